@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Set up (idempotent) and run every check: ruff, the Python 3.8 syntax check of src/ (the robot
+# runs JetPack 5), the ROS-free cores under Python 3.8 + numpy 1.24 when that interpreter exists,
+# and the whole pytest suite (unit + integration) on an isolated ROS domain.
+# Extra arguments go to pytest (e.g. scripts/test.sh -k raster).
+set -euo pipefail
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$ROOT"
+log() { printf '[test] %s\n' "$*"; }
+
+bash scripts/setup.sh
+
+log "ruff"
+.venv/bin/ruff check src tests scripts
+
+log "vermin: src/ must run on Python 3.8"
+.venv/bin/vermin -q -t=3.8- --no-tips --violations --eval-annotations --backport dataclasses \
+  --exclude-regex '/(build|install|log)/' src
+
+if [ -x scripts/test_py38.sh ]; then
+  bash scripts/test_py38.sh
+fi
+
+# One ROS_DOMAIN_ID per run, held by a lock, so parallel runs on one machine do not hear each other.
+lock_dir=${TMPDIR:-/tmp}/leapnbv-ros-domains
+mkdir -p "$lock_dir"
+for offset in $(seq 0 89); do
+  domain=$(( 1 + ($$ + offset) % 90 ))
+  exec 9>"$lock_dir/$domain.lock"
+  if flock -n 9; then break; fi
+  exec 9>&-
+  domain=""
+done
+[ -n "${domain:-}" ] || { echo "[test] no free ROS_DOMAIN_ID" >&2; exit 1; }
+export ROS_DOMAIN_ID=$domain LEAPNBV_ROS_DOMAIN_CLAIMED=1
+log "pytest on ROS_DOMAIN_ID=$ROS_DOMAIN_ID"
+set +e
+scripts/env.sh python -m pytest -p no:cacheprovider "$@"
+status=$?
+set -e
+if [ $status -eq 5 ]; then
+  echo "[test] pytest collected no tests: that is a failure here" >&2
+  exit 1
+fi
+exit $status

@@ -1,0 +1,1 @@
+"""Conversions, QoS, diagnostics and stamp matching shared by every LEAP-NBV node."""

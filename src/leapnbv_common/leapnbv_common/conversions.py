@@ -1,0 +1,347 @@
+"""The one place where ROS messages become numpy arrays and back.
+
+Every node converts through these functions. They use the fast idioms: a message's byte payload
+is filled from ``ndarray.tobytes()`` (or an ``array.array`` for typed sequences) and read with
+``np.frombuffer`` (no copy), never through Python lists.
+"""
+from __future__ import annotations
+
+import array
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+from geometry_msgs.msg import Point
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from std_msgs.msg import Header
+
+from leapnbv_msgs.msg import HumanMesh, PersonDetection
+
+
+class ConversionError(ValueError):
+    """A message cannot be turned into the array it should hold; the text says what is wrong."""
+
+
+# encoding -> (numpy dtype, channels)
+IMAGE_ENCODINGS = {
+    "rgb8": (np.uint8, 3),
+    "bgr8": (np.uint8, 3),
+    "mono8": (np.uint8, 1),
+    "8UC1": (np.uint8, 1),
+    "16UC1": (np.uint16, 1),
+    "mono16": (np.uint16, 1),
+    "32FC1": (np.float32, 1),
+}
+
+
+def image_to_numpy(msg: Image) -> np.ndarray:
+    """View an Image's payload as an array, checking encoding, step and size.
+
+    Args:
+        msg: sensor_msgs/Image in one of IMAGE_ENCODINGS.
+
+    Returns:
+        (H, W) or (H, W, C) array in the message's own channel order and native byte order.
+        Read-only when no byte swap was needed (it views the message buffer).
+
+    Raises:
+        ConversionError: unknown encoding, zero size, a step that does not fit the width, or a
+            payload of the wrong length.
+    """
+    if msg.encoding not in IMAGE_ENCODINGS:
+        raise ConversionError(
+            f"unsupported image encoding {msg.encoding!r}; expected one of {sorted(IMAGE_ENCODINGS)}"
+        )
+    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    if height == 0 or width == 0:
+        raise ConversionError(f"empty {msg.encoding} image: {width}x{height}")
+    itemsize = np.dtype(dtype).itemsize
+    row_bytes = width * channels * itemsize
+    if step < row_bytes or step % itemsize:
+        raise ConversionError(
+            f"{msg.encoding} image step {step} does not fit width {width} "
+            f"({row_bytes} bytes per row needed)"
+        )
+    if len(msg.data) != step * height:
+        raise ConversionError(
+            f"{msg.encoding} image {width}x{height} with step {step} needs {step * height} bytes, "
+            f"got {len(msg.data)}"
+        )
+    wire = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
+    rows = np.frombuffer(msg.data, dtype=wire).reshape(height, step // itemsize)
+    image = rows[:, : width * channels]
+    if wire != np.dtype(dtype):
+        image = image.astype(dtype)  # byte-swap big-endian data to native order
+    return image.reshape(height, width, channels) if channels > 1 else image
+
+
+def image_to_rgb(msg: Image) -> np.ndarray:
+    """(H, W, 3) uint8 RGB from an rgb8, bgr8 or mono8 Image (a copy only when reordering)."""
+    image = image_to_numpy(msg)
+    if msg.encoding == "rgb8":
+        return image
+    if msg.encoding == "bgr8":
+        return np.ascontiguousarray(image[:, :, ::-1])
+    if msg.encoding in ("mono8", "8UC1"):
+        return np.repeat(image[:, :, None], 3, axis=2)
+    raise ConversionError(f"colour image expected (rgb8, bgr8, mono8), got {msg.encoding!r}")
+
+
+def depth_to_metres(msg: Image) -> np.ndarray:
+    """(H, W) float32 depth in metres from a 16UC1 (millimetres) or 32FC1 (metres) Image.
+
+    Invalid readings (0, NaN, inf) become 0.0, the project's "no return" value.
+    """
+    image = image_to_numpy(msg)
+    if msg.encoding in ("16UC1", "mono16"):
+        return image.astype(np.float32) * np.float32(0.001)
+    if msg.encoding == "32FC1":
+        depth = np.array(image, dtype=np.float32)
+        depth[~np.isfinite(depth)] = 0.0
+        return depth
+    raise ConversionError(f"depth image expected (16UC1 or 32FC1), got {msg.encoding!r}")
+
+
+def numpy_to_image(image: np.ndarray, encoding: str, header: Optional[Header] = None) -> Image:
+    """Build an Image from an array (native byte order, is_bigendian = 0).
+
+    Raises:
+        ConversionError: the array's dtype or channel count does not match the encoding.
+    """
+    if encoding not in IMAGE_ENCODINGS:
+        raise ConversionError(f"unsupported image encoding {encoding!r}")
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    image = np.asarray(image)
+    shape_ok = image.ndim == 2 if channels == 1 else (image.ndim == 3 and image.shape[2] == channels)
+    if image.dtype != dtype or not shape_ok:
+        raise ConversionError(
+            f"{encoding} needs a {np.dtype(dtype).name} array with {channels} channel(s), "
+            f"got {image.dtype.name} {image.shape}"
+        )
+    msg = Image()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = int(image.shape[0]), int(image.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = 0 if np.little_endian else 1
+    msg.step = int(image.shape[1] * channels * image.itemsize)
+    msg.data = np.ascontiguousarray(image).tobytes()
+    return msg
+
+
+def camera_info_to_k(msg: CameraInfo) -> np.ndarray:
+    """The 3x3 intrinsic matrix of a CameraInfo.
+
+    Raises:
+        ConversionError: K is not a valid pinhole matrix (non-positive focal lengths).
+    """
+    k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0):
+        raise ConversionError(f"camera_info K is not a valid pinhole matrix: {k.ravel().tolist()}")
+    return k
+
+
+def make_camera_info(k: np.ndarray, width: int, height: int, header: Optional[Header] = None) -> CameraInfo:
+    """A CameraInfo for an ideal pinhole camera (no distortion) with intrinsics K."""
+    k = np.asarray(k, dtype=np.float64).reshape(3, 3)
+    msg = CameraInfo()
+    if header is not None:
+        msg.header = header
+    msg.width, msg.height = int(width), int(height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5
+    msg.k = k.ravel().tolist()
+    msg.r = np.eye(3).ravel().tolist()
+    p = np.zeros((3, 4))
+    p[:, :3] = k
+    msg.p = p.ravel().tolist()
+    return msg
+
+
+_XYZ_FIELDS = [
+    PointField(name="x", offset=0, datatype=PointField.FLOAT32, count=1),
+    PointField(name="y", offset=4, datatype=PointField.FLOAT32, count=1),
+    PointField(name="z", offset=8, datatype=PointField.FLOAT32, count=1),
+]
+
+
+def xyz_to_pointcloud2(points: np.ndarray, header: Optional[Header] = None) -> PointCloud2:
+    """An unorganized PointCloud2 with float32 x, y, z fields from (N, 3) points."""
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    msg = PointCloud2()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = 1, int(points.shape[0])
+    msg.fields = list(_XYZ_FIELDS)
+    msg.is_bigendian = False
+    msg.point_step, msg.row_step = 12, 12 * int(points.shape[0])
+    msg.is_dense = bool(np.all(np.isfinite(points)))
+    msg.data = np.ascontiguousarray(points).tobytes()
+    return msg
+
+
+def pointcloud2_to_xyz(msg: PointCloud2) -> np.ndarray:
+    """(N, 3) float32 x, y, z from a PointCloud2 whose x, y, z fields are float32.
+
+    Other fields and padding are skipped; organized clouds are flattened row by row.
+
+    Raises:
+        ConversionError: missing or non-float32 x/y/z fields, or a payload of the wrong length.
+    """
+    offsets = {}
+    for field in msg.fields:
+        if field.name in ("x", "y", "z"):
+            if field.datatype != PointField.FLOAT32:
+                raise ConversionError(f"PointCloud2 field {field.name!r} is not FLOAT32")
+            offsets[field.name] = int(field.offset)
+    if set(offsets) != {"x", "y", "z"}:
+        raise ConversionError(f"PointCloud2 needs x, y, z fields, found {[f.name for f in msg.fields]}")
+    count = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    if step < 12 or len(msg.data) < count * step or int(msg.row_step) * int(msg.height) != len(msg.data):
+        raise ConversionError(
+            f"PointCloud2 of {count} points with point_step {step}, row_step {msg.row_step} "
+            f"does not match its {len(msg.data)} bytes"
+        )
+    if count == 0:
+        return np.zeros((0, 3), dtype=np.float32)
+    endian = ">" if msg.is_bigendian else "<"
+    if step == 12 and (offsets["x"], offsets["y"], offsets["z"]) == (0, 4, 8) and int(msg.height) == 1:
+        return np.frombuffer(msg.data, dtype=endian + "f4").reshape(count, 3).astype(np.float32, copy=False)
+    rows = np.frombuffer(msg.data, dtype=np.uint8).reshape(int(msg.height), int(msg.row_step))
+    records = rows[:, : int(msg.width) * step].reshape(count, step)
+    out = np.empty((count, 3), dtype=np.float32)
+    for axis, name in enumerate("xyz"):
+        o = offsets[name]
+        out[:, axis] = np.ascontiguousarray(records[:, o : o + 4]).view(endian + "f4")[:, 0]
+    return out
+
+
+def float32_sequence(values: np.ndarray) -> array.array:
+    """An array.array('f') for a float32[] message field (fast, and accepted with field checks on)."""
+    return array.array("f", np.ascontiguousarray(values, dtype=np.float32).tobytes())
+
+
+def uint32_sequence(values: np.ndarray) -> array.array:
+    """An array.array('I') for a uint32[] message field."""
+    return array.array("I", np.ascontiguousarray(values, dtype=np.uint32).tobytes())
+
+
+def point_msg(xyz: np.ndarray) -> Point:
+    """geometry_msgs/Point from a 3-vector."""
+    x, y, z = (float(v) for v in np.asarray(xyz, dtype=np.float64).reshape(3))
+    return Point(x=x, y=y, z=z)
+
+
+def point_to_numpy(point: Point) -> np.ndarray:
+    """(3,) float64 from a geometry_msgs/Point."""
+    return np.array([point.x, point.y, point.z], dtype=np.float64)
+
+
+def box_to_detection(box_xyxy_score: np.ndarray) -> PersonDetection:
+    """PersonDetection from [x_min, y_min, x_max, y_max, score]."""
+    x0, y0, x1, y1, score = (float(v) for v in np.asarray(box_xyxy_score).reshape(5))
+    return PersonDetection(x_min=x0, y_min=y0, x_max=x1, y_max=y1, score=score)
+
+
+def detection_to_box(det: PersonDetection) -> np.ndarray:
+    """(5,) float32 [x_min, y_min, x_max, y_max, score] from a PersonDetection."""
+    return np.array([det.x_min, det.y_min, det.x_max, det.y_max, det.score], dtype=np.float32)
+
+
+@dataclass
+class HumanMeshArrays:
+    """The arrays of a HumanMesh message.
+
+    vertices (V, 3) float32 in the virtual crop camera, faces (F, 3) uint32, virtual intrinsics
+    (fx, fy, cx, cy), the body parameters as axis-angle, and the camera translation.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    virtual_intrinsics: Tuple[float, float, float, float]
+    image_size: Tuple[int, int]
+    detection: np.ndarray
+    processed_box: np.ndarray
+    root_pose: np.ndarray
+    body_pose: np.ndarray
+    left_hand_pose: np.ndarray
+    right_hand_pose: np.ndarray
+    jaw_pose: np.ndarray
+    betas: np.ndarray
+    expression: np.ndarray
+    cam_translation: np.ndarray
+    model_id: str = ""
+
+
+_MESH_PARAM_SIZES = {
+    "processed_box": 4,
+    "root_pose": 3,
+    "body_pose": 63,
+    "left_hand_pose": 45,
+    "right_hand_pose": 45,
+    "jaw_pose": 3,
+    "betas": 10,
+    "expression": 10,
+    "cam_translation": 3,
+}
+
+
+def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
+    """Arrays from a HumanMesh, checking that vertices and faces are consistent.
+
+    Raises:
+        ConversionError: vertex or face counts not multiples of 3, a face index out of range,
+            non-finite vertices, or non-positive virtual focal lengths.
+    """
+    vertices = np.frombuffer(msg.vertices, dtype=np.float32) if len(msg.vertices) else np.zeros(0, np.float32)
+    faces = np.frombuffer(msg.faces, dtype=np.uint32) if len(msg.faces) else np.zeros(0, np.uint32)
+    if vertices.size == 0 or vertices.size % 3:
+        raise ConversionError(f"HumanMesh has {vertices.size} vertex floats (need a non-zero multiple of 3)")
+    if faces.size == 0 or faces.size % 3:
+        raise ConversionError(f"HumanMesh has {faces.size} face indices (need a non-zero multiple of 3)")
+    vertices = vertices.reshape(-1, 3)
+    faces = faces.reshape(-1, 3)
+    if int(faces.max()) >= vertices.shape[0]:
+        raise ConversionError(
+            f"HumanMesh face index {int(faces.max())} out of range for {vertices.shape[0]} vertices"
+        )
+    if not np.all(np.isfinite(vertices)):
+        raise ConversionError("HumanMesh vertices contain NaN or inf")
+    if not (msg.fx > 0 and msg.fy > 0):
+        raise ConversionError(f"HumanMesh virtual focal lengths must be positive, got {msg.fx}, {msg.fy}")
+    params = {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size)
+              for name, size in _MESH_PARAM_SIZES.items()}
+    return HumanMeshArrays(
+        vertices=vertices,
+        faces=faces,
+        virtual_intrinsics=(float(msg.fx), float(msg.fy), float(msg.cx), float(msg.cy)),
+        image_size=(int(msg.image_width), int(msg.image_height)),
+        detection=detection_to_box(msg.detection),
+        model_id=msg.model_id,
+        **params,
+    )
+
+
+def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
+                         compute_time_ms: float = 0.0) -> HumanMesh:
+    """A HumanMesh message from arrays (the inverse of human_mesh_to_arrays)."""
+    msg = HumanMesh()
+    if header is not None:
+        msg.header = header
+    msg.detection = box_to_detection(mesh.detection)
+    msg.vertices = float32_sequence(mesh.vertices)
+    msg.faces = uint32_sequence(mesh.faces)
+    msg.fx, msg.fy, msg.cx, msg.cy = (float(v) for v in mesh.virtual_intrinsics)
+    msg.image_width, msg.image_height = (int(v) for v in mesh.image_size)
+    for name, size in _MESH_PARAM_SIZES.items():
+        setattr(msg, name, np.asarray(getattr(mesh, name), dtype=np.float32).reshape(size))
+    msg.model_id = mesh.model_id
+    msg.compute_time_ms = float(compute_time_ms)
+    return msg
+
+
+def stamp_to_ns(stamp) -> int:
+    """Nanoseconds since the epoch from a builtin_interfaces/Time."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)

@@ -1,0 +1,52 @@
+"""The QoS profiles of the graph, in one place (see DESIGN.md, Conventions)."""
+from __future__ import annotations
+
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+
+
+def camera_input_qos(depth: int = 1) -> QoSProfile:
+    """Sensor-data QoS for camera topics: best effort, volatile, keep the latest `depth` frames.
+
+    Depth 1 on inference inputs means the latest frame wins and no backlog builds up.
+    """
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def stage_input_qos(depth: int = 1) -> QoSProfile:
+    """Reliable input from another stage of the graph (matches stage_output_qos)."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def stage_output_qos(depth: int = 5) -> QoSProfile:
+    """Outputs of a stage: reliable, volatile."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def latched_goal_qos() -> QoSProfile:
+    """The next-best-view goal: reliable and transient-local, so a late subscriber gets the last goal."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )

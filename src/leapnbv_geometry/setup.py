@@ -1,0 +1,27 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "leapnbv_geometry"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*")),
+        ("share/" + package_name + "/launch", glob("launch/*")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    description="Mesh rasterizer, person mask and back-projection, RANSAC ground plane and their nodes.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            'raster_node = leapnbv_geometry.nodes.raster_node:main',
+            'ground_node = leapnbv_geometry.nodes.ground_node:main'
+        ],
+    },
+)

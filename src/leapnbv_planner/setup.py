@@ -1,0 +1,26 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "leapnbv_planner"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*")),
+        ("share/" + package_name + "/launch", glob("launch/*")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    description="Next-best-view candidate ring, S_v/S_a/S_o scoring and the nbv node.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            'nbv_node = leapnbv_planner.nodes.nbv_node:main'
+        ],
+    },
+)
