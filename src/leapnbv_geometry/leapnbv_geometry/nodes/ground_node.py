@@ -1,0 +1,98 @@
+"""ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC)."""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from leapnbv_common.conversions import camera_info_to_k, depth_to_metres, image_to_numpy
+from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
+from leapnbv_common.node_params import declare_parameters, run_node
+from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
+from leapnbv_geometry.ground import fit_ground_plane, ground_points_from_depth
+from leapnbv_msgs.msg import GroundPlane
+
+PARAMETERS = {
+    "max_tilt_deg": (30.0, "largest angle between the plane normal and the camera's up (-y): walls are refused"),
+    "inlier_threshold": (0.02, "metres from the plane for a point to count as an inlier"),
+    "iterations": (128, "RANSAC hypotheses per frame"),
+    "min_inliers": (200, "fewer inliers than this: valid=false"),
+    "min_inlier_ratio": (0.1, "smaller inlier share than this: valid=false"),
+    "max_points": (2048, "points subsampled to score the hypotheses (all points refine the winner)"),
+    "stride": (4, "pixel stride when back-projecting the depth frame"),
+    "min_depth": (0.1, "metres: nearer depth readings are invalid"),
+    "max_depth": (10.0, "metres: farther depth readings are invalid"),
+    "seed": (0, "RANSAC random seed (deterministic results for replay)"),
+    "mask_max_age_s": (1.0, "the person mask is excluded only when it is at most this much older than the depth"),
+}
+
+
+class GroundNode(Node):
+    def __init__(self) -> None:
+        super().__init__("ground_node")
+        p = self.params = declare_parameters(self, PARAMETERS)
+        self.diagnostics = StageDiagnostics(self)
+        self.camera_info: Optional[CameraInfo] = None
+        self.person_mask: Optional[Image] = None
+        self.publisher = self.create_publisher(GroundPlane, "ground_plane", stage_output_qos())
+        self.create_subscription(CameraInfo, "depth/camera_info", self.on_camera_info, camera_input_qos(1))
+        self.create_subscription(Image, "person_mask", self.on_mask, stage_input_qos(1))
+        self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(5))
+        self.rng_seed = int(p["seed"])
+
+    @rejects_bad_input("bad_camera_info")
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        camera_info_to_k(msg)
+        self.camera_info = msg
+
+    def on_mask(self, msg: Image) -> None:
+        self.person_mask = msg
+
+    def exclusion_mask(self, depth_msg: Image, shape) -> Optional[np.ndarray]:
+        """The latest person mask, if recent and of the same size (the person is not floor)."""
+        mask = self.person_mask
+        if mask is None or (mask.height, mask.width) != shape:
+            return None
+        age = (depth_msg.header.stamp.sec - mask.header.stamp.sec) + \
+              (depth_msg.header.stamp.nanosec - mask.header.stamp.nanosec) * 1e-9
+        if abs(age) > self.params["mask_max_age_s"]:
+            return None
+        return image_to_numpy(mask) > 0
+
+    @rejects_bad_input("bad_depth")
+    def on_depth(self, msg: Image) -> None:
+        self.diagnostics.frame_in()
+        started = time.perf_counter()
+        if self.camera_info is None:
+            raise ValueError("no depth camera_info received yet")
+        p = self.params
+        depth = depth_to_metres(msg)
+        if depth.shape != (self.camera_info.height, self.camera_info.width):
+            raise ValueError(f"depth {depth.shape[1]}x{depth.shape[0]} does not match camera_info "
+                             f"{self.camera_info.width}x{self.camera_info.height}")
+        points = ground_points_from_depth(depth, camera_info_to_k(self.camera_info),
+                                          exclude_mask=self.exclusion_mask(msg, depth.shape), stride=p["stride"],
+                                          min_depth=p["min_depth"], max_depth=p["max_depth"])
+        result = fit_ground_plane(points, max_tilt_deg=p["max_tilt_deg"], inlier_threshold=p["inlier_threshold"],
+                                  iterations=p["iterations"], min_inliers=p["min_inliers"],
+                                  min_inlier_ratio=p["min_inlier_ratio"], seed=self.rng_seed,
+                                  max_points=p["max_points"])
+        out = GroundPlane(header=msg.header, offset=float(result.offset), inlier_count=int(result.inlier_count),
+                          inlier_ratio=float(result.inlier_ratio), valid=bool(result.valid))
+        out.normal.x, out.normal.y, out.normal.z = (float(v) for v in result.normal)
+        out.compute_time_ms = (time.perf_counter() - started) * 1e3
+        if not result.valid:
+            self.diagnostics.reject("no_ground_plane", f"{result.inlier_count} inliers of {len(points)} points")
+        self.publisher.publish(out)
+        self.diagnostics.frame_out(msg.header.stamp, out.compute_time_ms)
+
+
+def main(args=None) -> None:
+    run_node(GroundNode, args)
+
+
+if __name__ == "__main__":
+    main()
