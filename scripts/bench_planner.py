@@ -1,0 +1,244 @@
+"""Benchmark of the planner core: candidate scoring (S_v, S_a, S_o) and feasibility, one core.
+
+Scene: a level RGB-D camera 1.2 m above the floor looks at a person (a 1.7 m cylinder
+surface, 3 m ahead) in a room (back and side walls, a box occluder in front of the person,
+a pillar behind it, a cabinet). Both clouds are back-projected from a ray-cast depth image in raster order, as
+the geometry stage produces them (floor pixels removed from the background). Point counts
+are set by the depth-image sampling grid.
+
+Reference ("slow"): per candidate, numpy projection, a min-depth image built with
+np.minimum.at, then a Python loop over the in-view target points taking the min of the
+(2h+1)^2 window of that image: the same definition as the compiled kernel, written the
+obvious way. Its S_o must equal the fast one exactly.
+
+Usage: .venv/bin/python scripts/bench_planner.py [--repeats 200] [--reference-repeats 3]
+"""
+
+from __future__ import annotations
+
+import os
+
+# One core: set before numpy / numba are imported.
+os.environ["NUMBA_NUM_THREADS"] = "1"
+os.environ["OMP_NUM_THREADS"] = "1"
+os.environ["OPENBLAS_NUM_THREADS"] = "1"
+os.environ["MKL_NUM_THREADS"] = "1"
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from functools import partial  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Callable, List, Tuple  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "leapnbv_planner"))
+
+from leapnbv_planner.candidates import (  # noqa: E402
+    CandidateRingParams,
+    check_feasibility,
+    generate_candidates,
+)
+from leapnbv_planner.scoring import score_candidates, warm_up_scoring  # noqa: E402
+
+WIDTH, HEIGHT = 640, 480
+INTRINSICS = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
+CAMERA_HEIGHT = 1.2
+PLANE_NORMAL = np.array([0.0, -1.0, 0.0])
+PLANE_OFFSET = CAMERA_HEIGHT  # floor: y = 1.2 in the optical frame
+ROOM_HALF_WIDTH, ROOM_DEPTH, CEILING_Y = 3.0, 6.0, CAMERA_HEIGHT - 2.6
+PERSON_CENTRE = np.array([0.2, CAMERA_HEIGHT - 0.85, 3.0])
+PERSON_RADIUS = 0.2
+PERSON_HEIGHT = 1.7
+# Axis-aligned boxes (min corner, max corner): an occluder in front of the person, a pillar
+# behind it on the right, a cabinet.
+BOXES = [
+    (np.array([-0.4, 0.3, 2.0]), np.array([0.25, CAMERA_HEIGHT, 2.3])),
+    (np.array([0.7, CEILING_Y, 3.6]), np.array([1.0, CAMERA_HEIGHT, 3.9])),
+    (np.array([-2.5, -0.2, 3.5]), np.array([-1.5, CAMERA_HEIGHT, 4.5])),
+]
+
+
+def ray_cast_scene(grid_width: int, grid_height: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Ray-cast the scene on a grid of pixel centres; return (target, background) points.
+
+    Args:
+        grid_width, grid_height: number of sampled columns and rows across the image.
+
+    Returns:
+        target (N, 3) and background (K, 3) points in raster order.
+    """
+    u = (np.arange(grid_width) + 0.5) * WIDTH / grid_width
+    v = (np.arange(grid_height) + 0.5) * HEIGHT / grid_height
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack(
+        [(uu - INTRINSICS[0, 2]) / INTRINSICS[0, 0], (vv - INTRINSICS[1, 2]) / INTRINSICS[1, 1],
+         np.ones_like(uu)], axis=-1,
+    ).reshape(-1, 3)
+    hit = np.full(rays.shape[0], np.inf)
+    label = np.zeros(rays.shape[0], dtype=np.int8)  # 0 background, 1 person, 2 floor
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Room planes (ray parameter t with ray z = 1, so t is the depth).
+        for axis, value, kind in ((2, ROOM_DEPTH, 0), (0, -ROOM_HALF_WIDTH, 0),
+                                  (0, ROOM_HALF_WIDTH, 0), (1, CEILING_Y, 0),
+                                  (1, CAMERA_HEIGHT, 2)):
+            t = value / rays[:, axis]
+            closer = (t > 0) & (t < hit)
+            hit[closer], label[closer] = t[closer], kind
+        for low, high in BOXES:
+            t_near = np.max(np.minimum(low / rays, high / rays), axis=1)
+            t_far = np.min(np.maximum(low / rays, high / rays), axis=1)
+            closer = (t_near <= t_far) & (t_near > 0) & (t_near < hit)
+            hit[closer], label[closer] = t_near[closer], 0
+        # Vertical person cylinder about the y axis through PERSON_CENTRE.
+        ox, oz = -PERSON_CENTRE[0], -PERSON_CENTRE[2]
+        a = rays[:, 0] ** 2 + rays[:, 2] ** 2
+        b = 2.0 * (ox * rays[:, 0] + oz * rays[:, 2])
+        c = ox * ox + oz * oz - PERSON_RADIUS ** 2
+        disc = b * b - 4 * a * c
+        t = (-b - np.sqrt(disc)) / (2 * a)
+        y = t * rays[:, 1]
+        inside = (disc >= 0) & (np.abs(y - PERSON_CENTRE[1]) <= PERSON_HEIGHT / 2)
+        closer = inside & (t > 0) & (t < hit)
+        hit[closer], label[closer] = t[closer], 1
+    points = rays * hit[:, None]
+    finite = np.isfinite(hit)
+    return points[finite & (label == 1)], points[finite & (label == 0)]
+
+
+def scene_with_counts(num_target: int, num_background: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Ray-cast on a grid fine enough for the counts, then keep every k-th point in order."""
+    scale = 1.0
+    while True:
+        target, background = ray_cast_scene(int(WIDTH * scale), int(HEIGHT * scale))
+        if target.shape[0] >= num_target and background.shape[0] >= num_background:
+            break
+        scale *= 1.25
+    pick_t = np.linspace(0, target.shape[0] - 1, num_target).astype(np.int64)
+    pick_b = np.linspace(0, background.shape[0] - 1, num_background).astype(np.int64)
+    return target[pick_t], background[pick_b]
+
+
+def reference_occlusion(
+    target: np.ndarray, background: np.ndarray, rotations: np.ndarray, positions: np.ndarray,
+    half_window: int,
+) -> np.ndarray:
+    """Slow S_o: numpy projection, np.minimum.at min-depth image, per-point window loop."""
+    fx, skew, cx = INTRINSICS[0]
+    fy, cy = INTRINSICS[1, 1], INTRINSICS[1, 2]
+    result = np.zeros(rotations.shape[0])
+    pad = half_window
+    for c in range(rotations.shape[0]):
+        cam_t = (target - positions[c]) @ rotations[c]
+        cam_b = (background - positions[c]) @ rotations[c]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u_t = fx * (cam_t[:, 0] / cam_t[:, 2]) + skew * (cam_t[:, 1] / cam_t[:, 2]) + cx
+            v_t = fy * (cam_t[:, 1] / cam_t[:, 2]) + cy
+            u_b = fx * (cam_b[:, 0] / cam_b[:, 2]) + skew * (cam_b[:, 1] / cam_b[:, 2]) + cx
+            v_b = fy * (cam_b[:, 1] / cam_b[:, 2]) + cy
+        view = (cam_t[:, 2] > 0) & (u_t >= 0) & (u_t < WIDTH) & (v_t >= 0) & (v_t < HEIGHT)
+        keep = ((cam_b[:, 2] > 0) & (u_b >= -pad) & (u_b < WIDTH + pad)
+                & (v_b >= -pad) & (v_b < HEIGHT + pad))
+        image = np.full((HEIGHT + 2 * pad, WIDTH + 2 * pad), np.inf)
+        np.minimum.at(
+            image,
+            (np.floor(v_b[keep]).astype(np.int64) + pad, np.floor(u_b[keep]).astype(np.int64) + pad),
+            cam_b[keep, 2],
+        )
+        cols = np.floor(u_t[view]).astype(np.int64) + pad
+        rows = np.floor(v_t[view]).astype(np.int64) + pad
+        depths = cam_t[view, 2]
+        visible = 0
+        for col, row, depth in zip(cols, rows, depths):
+            window = image[row - pad:row + pad + 1, col - pad:col + pad + 1]
+            visible += depth <= window.min()
+        result[c] = visible / len(depths) if len(depths) else 0.0
+    return result
+
+
+def time_call(function: Callable[[], object], repeats: int) -> Tuple[float, float]:
+    """Median and p95 wall time in milliseconds over `repeats` calls (after one warm call)."""
+    function()
+    samples: List[float] = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        samples.append((time.perf_counter() - start) * 1e3)
+    return float(np.median(samples)), float(np.percentile(samples, 95))
+
+
+def main() -> None:
+    """Run the benchmark and print a table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=200)
+    parser.add_argument("--reference-repeats", type=int, default=3)
+    args = parser.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {0})
+    warm_up_scoring()
+
+    centroid = np.median(ray_cast_scene(WIDTH, HEIGHT)[0], axis=0)
+
+    def ring(num_candidates: int):
+        return generate_candidates(
+            centroid, PLANE_NORMAL, PLANE_OFFSET, CandidateRingParams(num_candidates=num_candidates)
+        )
+
+    print(f"image {WIDTH}x{HEIGHT}, delta 4 px, one core, {args.repeats} repeats"
+          " (median / p95 ms)")
+    print("\nscore_candidates, 20k target / 100k background points:")
+    target, background = scene_with_counts(20000, 100000)
+    for num_candidates in (16, 32, 64):
+        candidates = ring(num_candidates)
+        median, p95 = time_call(partial(
+            score_candidates, target, background, candidates.rotations, candidates.positions,
+            INTRINSICS, WIDTH, HEIGHT), args.repeats)
+        print(f"  C = {len(candidates):3d}: {median:7.2f} / {p95:7.2f}")
+
+    print("\nscore_candidates, C = 17 (16 ring + current):")
+    candidates = ring(16)
+    for num_target, num_background in ((5000, 25000), (20000, 100000), (50000, 250000)):
+        target, background = scene_with_counts(num_target, num_background)
+        median, p95 = time_call(partial(
+            score_candidates, target, background, candidates.rotations, candidates.positions,
+            INTRINSICS, WIDTH, HEIGHT), args.repeats)
+        print(f"  {num_target // 1000:3d}k / {num_background // 1000:3d}k: {median:7.2f} / {p95:7.2f}")
+
+    print("\nworst case: same 20k/100k points in random order (no spatial coherence):")
+    target, background = scene_with_counts(20000, 100000)
+    rng = np.random.default_rng(0)
+    shuffled_t, shuffled_b = rng.permutation(target), rng.permutation(background)
+    median, p95 = time_call(lambda: score_candidates(
+        shuffled_t, shuffled_b, candidates.rotations, candidates.positions, INTRINSICS,
+        WIDTH, HEIGHT), args.repeats)
+    print(f"  C = {len(candidates):3d}: {median:7.2f} / {p95:7.2f}")
+
+    print("\nreference (numpy + np.minimum.at + per-point window loop), 20k/100k, C = 17:")
+    fast = score_candidates(target, background, candidates.rotations, candidates.positions,
+                            INTRINSICS, WIDTH, HEIGHT)
+    slow_result: List[np.ndarray] = []
+    ref_median, ref_p95 = time_call(lambda: slow_result.append(reference_occlusion(
+        target, background, candidates.rotations, candidates.positions, 4)),
+        args.reference_repeats)
+    fast_median, _ = time_call(lambda: score_candidates(
+        target, background, candidates.rotations, candidates.positions, INTRINSICS,
+        WIDTH, HEIGHT), args.repeats)
+    max_diff = float(np.max(np.abs(slow_result[-1] - fast.s_occlusion)))
+    print(f"  reference {ref_median:8.1f} / {ref_p95:8.1f}  fast {fast_median:.2f}"
+          f"  ratio {ref_median / fast_median:6.0f}x  max |S_o diff| {max_diff:.1e}")
+    print(f"  S_o per candidate: {np.array2string(fast.s_occlusion, precision=2)}")
+
+    print("\ncheck_feasibility, 100k background points:")
+    for num_candidates in (16, 64):
+        candidates = ring(num_candidates)
+        median, p95 = time_call(partial(
+            check_feasibility, candidates, background, PLANE_NORMAL, PLANE_OFFSET,
+            CandidateRingParams()), args.repeats)
+        print(f"  C = {len(candidates):3d}: {median:7.2f} / {p95:7.2f}")
+    median, p95 = time_call(lambda: ring(16), args.repeats)
+    print(f"\ngenerate_candidates (16): {median:.3f} / {p95:.3f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,355 @@
+"""Candidate camera poses on a ring around the target, and their feasibility on the ground."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import NamedTuple, Tuple
+
+import numpy as np
+
+from leapnbv_planner.footprint_kernel import footprints_blocked
+
+# Everything here lives in the camera optical frame of the observation (x right, y down,
+# z forward). The current camera sits at the origin with identity orientation. The ground is
+# the plane n.x + d = 0 with unit n pointing up (toward the camera side), so the signed
+# height of a point p above the ground is n.p + d, and the current camera's height is d.
+
+_DEGENERATE_NORM = 1e-9
+
+
+class CandidateGenerationError(ValueError):
+    """Raised when the ring cannot be built from the given centroid, plane or parameters."""
+
+
+class FeasibilityReason(enum.IntEnum):
+    """Why a candidate is (in)feasible; one code per candidate.
+
+    When a candidate fails both tests, OUT_OF_TRAVEL_RANGE is reported (it is checked first:
+    it needs no scene data).
+    """
+
+    OK = 0
+    OUT_OF_TRAVEL_RANGE = 1
+    OBSTACLE = 2
+
+
+@dataclass
+class CandidateRingParams:
+    """Parameters of the candidate ring and of the feasibility test.
+
+    Attributes:
+        num_candidates: number of ring candidates N (the current view is extra).
+        radius: ring radius r in metres, measured on the ground plane around the ring centre.
+        include_current: put the current view first (index 0) so that "stay" can be chosen.
+        max_travel: largest allowed distance (m) of a candidate foot point from the current
+            camera's foot point.
+        robot_radius: footprint radius (m); no obstacle point may lie within it.
+        floor_clearance: background points at most this high (m) above the plane are floor,
+            not obstacles.
+    """
+
+    num_candidates: int = 16
+    radius: float = 1.5
+    include_current: bool = True
+    max_travel: float = 3.0
+    robot_radius: float = 0.3
+    floor_clearance: float = 0.05
+
+
+@dataclass
+class CandidateSet:
+    """Candidate camera poses, all in the observation's camera optical frame.
+
+    Attributes:
+        rotations: (C, 3, 3) camera-to-observation rotations; columns are the candidate
+            camera's x, y, z axes.
+        positions: (C, 3) camera centres.
+        foot_points: (C, 3) camera centres projected onto the ground plane.
+        ring_center: (3,) target centroid projected onto the ground plane.
+        camera_height: height (m) of the current camera above the plane; every ring candidate
+            is placed at this height.
+        is_current: (C,) bool, True for the current view.
+    """
+
+    rotations: np.ndarray
+    positions: np.ndarray
+    foot_points: np.ndarray
+    ring_center: np.ndarray
+    camera_height: float
+    is_current: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+
+class FeasibilityResult(NamedTuple):
+    """Output of check_feasibility; unpacks as (feasible, reasons).
+
+    Attributes:
+        feasible: (C,) bool.
+        reasons: (C,) int8 FeasibilityReason codes (0 = OK).
+    """
+
+    feasible: np.ndarray
+    reasons: np.ndarray
+
+
+def _as_vector3(value: object, name: str) -> np.ndarray:
+    """Return value as a finite float64 (3,) array or raise CandidateGenerationError."""
+    vector = np.asarray(value, dtype=np.float64)
+    if vector.shape != (3,):
+        raise CandidateGenerationError(f"{name} must have shape (3,), got {vector.shape}")
+    if not np.all(np.isfinite(vector)):
+        raise CandidateGenerationError(f"{name} must be finite, got {vector.tolist()}")
+    return vector
+
+
+def normalize_plane(plane_normal: np.ndarray, plane_offset: float) -> Tuple[np.ndarray, float]:
+    """Scale the plane n.x + d = 0 so that |n| = 1.
+
+    Args:
+        plane_normal: (3,) normal n, any non-zero length, pointing up.
+        plane_offset: offset d.
+
+    Returns:
+        (unit normal (3,), offset) describing the same plane.
+
+    Raises:
+        CandidateGenerationError: the normal is not a finite non-zero (3,) vector.
+    """
+    normal = _as_vector3(plane_normal, "plane_normal")
+    length = float(np.linalg.norm(normal))
+    if length < _DEGENERATE_NORM:
+        raise CandidateGenerationError("plane_normal has zero length")
+    offset = float(plane_offset)
+    if not np.isfinite(offset):
+        raise CandidateGenerationError(f"plane_offset must be finite, got {plane_offset}")
+    return normal / length, offset / length
+
+
+def plane_basis(unit_normal: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane orthogonal to unit_normal.
+
+    Args:
+        unit_normal: (3,) unit vector n.
+
+    Returns:
+        (e1, e2), each (3,), with (e1, e2, n) right-handed.
+    """
+    # Start from whichever optical axis is least aligned with n (for a level camera that is x).
+    seed = np.eye(3)[int(np.argmin(np.abs(unit_normal)))]
+    e1 = seed - float(seed @ unit_normal) * unit_normal
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(unit_normal, e1)
+    return e1, e2
+
+
+def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarray) -> np.ndarray:
+    """Rotation of a camera at `position` whose optical axis points at `target`.
+
+    z = normalize(target - position) (optical axis), x = normalize(z x up) (parallel to the
+    ground, i.e. orthogonal to up), y = z x x. Then (x, y, z) is right-handed
+    (x x y = z) and y.up = ((z.up)^2 - 1) / |z x up| <= 0: the image "down" axis points away
+    from up, as for a level camera (z = (0,0,1), up = (0,-1,0) gives the identity).
+    When z is parallel to up (looking straight down or up) x is undefined; then x is taken
+    as the observation's x axis (or z axis if that is parallel too) made orthogonal to z.
+
+    Args:
+        position: (3,) camera centre.
+        target: (3,) point to look at.
+        up_normal: (3,) up direction (the ground normal n); need not be unit length.
+
+    Returns:
+        (3, 3) camera-to-observation rotation with columns x, y, z.
+
+    Raises:
+        CandidateGenerationError: position equals target, or up_normal is zero.
+    """
+    position = _as_vector3(position, "position")
+    target = _as_vector3(target, "target")
+    up = _as_vector3(up_normal, "up_normal")
+    up_length = float(np.linalg.norm(up))
+    if up_length < _DEGENERATE_NORM:
+        raise CandidateGenerationError("up_normal has zero length")
+    up = up / up_length
+    view = target - position
+    distance = float(np.linalg.norm(view))
+    if distance < _DEGENERATE_NORM:
+        raise CandidateGenerationError("camera position coincides with the look-at target")
+    z_axis = view / distance
+    x_axis = np.cross(z_axis, up)
+    x_length = float(np.linalg.norm(x_axis))
+    if x_length < _DEGENERATE_NORM:
+        for fallback in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])):
+            x_axis = fallback - float(fallback @ z_axis) * z_axis
+            x_length = float(np.linalg.norm(x_axis))
+            if x_length > 1e-3:
+                break
+    x_axis = x_axis / x_length
+    y_axis = np.cross(z_axis, x_axis)
+    return np.stack([x_axis, y_axis, z_axis], axis=1)
+
+
+def _ring_start_direction(
+    ring_center: np.ndarray, current_foot: np.ndarray, unit_normal: np.ndarray
+) -> np.ndarray:
+    """Unit in-plane direction from the ring centre toward the current camera's foot point.
+
+    Falls back to the current camera's backward axis (-z) projected on the plane when the
+    camera stands right above the ring centre, then to the projected x axis.
+    """
+    for direction in (
+        current_foot - ring_center,
+        np.array([0.0, 0.0, -1.0]),
+        np.array([1.0, 0.0, 0.0]),
+    ):
+        in_plane = direction - float(direction @ unit_normal) * unit_normal
+        length = float(np.linalg.norm(in_plane))
+        if length > 1e-6:
+            return in_plane / length
+    raise CandidateGenerationError("cannot find an in-plane start direction for the ring")
+
+
+def generate_candidates(
+    centroid: np.ndarray,
+    plane_normal: np.ndarray,
+    plane_offset: float,
+    params: CandidateRingParams,
+) -> CandidateSet:
+    """Candidate camera poses on a ring on the ground plane around the target.
+
+    Ring centre c0 = centroid projected onto the plane. Camera height h = n.0 + d = d (the
+    current camera's height above the plane). Ring candidate k (k = 0..N-1) stands at
+    foot point f_k = c0 + r (cos(theta_k) u + sin(theta_k) (n x u)), theta_k = 2 pi k / N,
+    with camera centre f_k + h n, and looks at the centroid (camera_look_at with up = n).
+    u is the in-plane direction from c0 toward the current camera's foot point, so ring
+    candidate 0 lies on the current camera's bearing from the target (at radius r, which
+    is generally not the current distance); the ring then runs counter-clockwise seen from
+    above (right-hand rule about n).
+    With include_current the current view (identity rotation, origin) is prepended as
+    index 0, so ring candidate k has index k + 1.
+
+    Args:
+        centroid: (3,) target centroid.
+        plane_normal: (3,) ground normal n pointing up (any non-zero length; normalized).
+        plane_offset: ground offset d (scaled along with n).
+        params: ring parameters.
+
+    Returns:
+        CandidateSet with C = N (+ 1 with include_current) candidates.
+
+    Raises:
+        CandidateGenerationError: non-finite or mis-shaped inputs, a camera that is not
+            above the plane (d <= 0), or invalid parameters.
+    """
+    centroid = _as_vector3(centroid, "centroid")
+    unit_normal, offset = normalize_plane(plane_normal, plane_offset)
+    num_ring = int(params.num_candidates)
+    if num_ring < 0:
+        raise CandidateGenerationError(f"num_candidates must be >= 0, got {num_ring}")
+    if num_ring > 0 and not params.radius > 0.0:
+        raise CandidateGenerationError(f"radius must be > 0, got {params.radius}")
+    camera_height = offset
+    if camera_height <= 0.0:
+        raise CandidateGenerationError(
+            f"the current camera is not above the ground plane (height {camera_height:.3f} m);"
+            " the plane normal must point toward the camera"
+        )
+
+    ring_center = centroid - (float(unit_normal @ centroid) + offset) * unit_normal
+    current_foot = -offset * unit_normal
+    start = _ring_start_direction(ring_center, current_foot, unit_normal)
+    side = np.cross(unit_normal, start)
+    angles = 2.0 * np.pi * np.arange(num_ring) / max(num_ring, 1)
+    ring_feet = (
+        ring_center[None, :]
+        + float(params.radius) * np.cos(angles)[:, None] * start[None, :]
+        + float(params.radius) * np.sin(angles)[:, None] * side[None, :]
+    )
+    ring_positions = ring_feet + camera_height * unit_normal[None, :]
+    ring_rotations = np.array(
+        [camera_look_at(position, centroid, unit_normal) for position in ring_positions]
+    ).reshape(num_ring, 3, 3)
+
+    if params.include_current:
+        rotations = np.concatenate([np.eye(3)[None], ring_rotations], axis=0)
+        positions = np.concatenate([np.zeros((1, 3)), ring_positions], axis=0)
+        foot_points = np.concatenate([current_foot[None], ring_feet], axis=0)
+        is_current = np.zeros(num_ring + 1, dtype=bool)
+        is_current[0] = True
+    else:
+        rotations, positions, foot_points = ring_rotations, ring_positions, ring_feet
+        is_current = np.zeros(num_ring, dtype=bool)
+    return CandidateSet(
+        rotations=rotations,
+        positions=positions,
+        foot_points=foot_points,
+        ring_center=ring_center,
+        camera_height=camera_height,
+        is_current=is_current,
+    )
+
+
+def check_feasibility(
+    candidates: CandidateSet,
+    background_points: np.ndarray,
+    plane_normal: np.ndarray,
+    plane_offset: float,
+    params: CandidateRingParams,
+) -> FeasibilityResult:
+    """Which candidates the robot can stand at.
+
+    A candidate is infeasible when
+      - OUT_OF_TRAVEL_RANGE: its foot point is farther than max_travel from the current
+        camera's foot point (-d n), or
+      - OBSTACLE: some background point higher than floor_clearance above the plane
+        (n.p + d > floor_clearance) lies within robot_radius of its foot point, measured
+        in the plane (the distance between the two points projected onto the plane;
+        exactly robot_radius counts as inside).
+    The current view (is_current) is feasible by definition: the robot already stands
+    there, so anything near it (its own body, the person's support) cannot block it.
+    Non-finite background points are ignored.
+
+    Args:
+        candidates: the candidate set (C candidates).
+        background_points: (K, 3) scene points that are not the target (K may be 0).
+        plane_normal: (3,) ground normal n pointing up.
+        plane_offset: ground offset d.
+        params: robot_radius, floor_clearance and max_travel are used.
+
+    Returns:
+        FeasibilityResult(feasible (C,) bool, reasons (C,) int8 FeasibilityReason codes).
+
+    Raises:
+        CandidateGenerationError: background_points is not (K, 3), or the plane is invalid.
+    """
+    unit_normal, offset = normalize_plane(plane_normal, plane_offset)
+    points = np.asarray(background_points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise CandidateGenerationError(
+            f"background_points must have shape (K, 3), got {points.shape}"
+        )
+    foot_points = np.asarray(candidates.foot_points, dtype=np.float64)
+    num_candidates = foot_points.shape[0]
+    reasons = np.full(num_candidates, int(FeasibilityReason.OK), dtype=np.int8)
+
+    # Travel range: distance between foot points (both lie on the plane).
+    current_foot = -offset * unit_normal
+    travel = np.linalg.norm(foot_points - current_foot[None, :], axis=1)
+    out_of_range = travel > float(params.max_travel)
+
+    # Obstacles: points above the floor clearance within the robot radius, in the plane.
+    e1, e2 = plane_basis(unit_normal)
+    blocked = footprints_blocked(
+        np.ascontiguousarray(points), unit_normal, offset, float(params.floor_clearance),
+        e1, e2, np.ascontiguousarray(foot_points @ e1), np.ascontiguousarray(foot_points @ e2),
+        float(params.robot_radius),
+    )
+
+    reasons[blocked] = int(FeasibilityReason.OBSTACLE)
+    reasons[out_of_range] = int(FeasibilityReason.OUT_OF_TRAVEL_RANGE)
+    is_current = np.asarray(candidates.is_current, dtype=bool)
+    reasons[is_current] = int(FeasibilityReason.OK)
+    feasible = reasons == int(FeasibilityReason.OK)
+    return FeasibilityResult(feasible=feasible, reasons=reasons)
