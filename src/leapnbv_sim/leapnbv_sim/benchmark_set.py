@@ -1,0 +1,152 @@
+"""The fixed benchmark set of synthetic scenes used by the evaluation (seeds committed as a literal)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, List, Optional
+
+from leapnbv_sim.scene import Scene, SceneConfig, SceneError, generate_scene
+
+#: Seeds whose scenes (default SceneConfig, stand-in body at "small" resolution) meet the
+#: starting occluder share range 0.20-0.60 and show at least MIN_PERSON_PIXELS person pixels in
+#: the start view. Produced once by ``select_benchmark_seeds(64, small_model)``; do not edit by
+#: hand. (The height bisection in generate_scene makes nearly every seed qualify, so this is a
+#: contiguous run; the same seeds also qualify with the "full" stand-in body.)
+BENCHMARK_SEEDS: List[int] = [
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    10,
+    11,
+    12,
+    13,
+    14,
+    15,
+    16,
+    17,
+    18,
+    19,
+    20,
+    21,
+    22,
+    23,
+    24,
+    25,
+    26,
+    27,
+    28,
+    29,
+    30,
+    31,
+    32,
+    33,
+    34,
+    35,
+    36,
+    37,
+    38,
+    39,
+    40,
+    41,
+    42,
+    43,
+    44,
+    45,
+    46,
+    47,
+    48,
+    49,
+    50,
+    51,
+    52,
+    53,
+    54,
+    55,
+    56,
+    57,
+    58,
+    59,
+    60,
+    61,
+    62,
+    63,
+]
+
+#: A start view must show at least this many person pixels (else the detector has nothing).
+MIN_PERSON_PIXELS = 1500
+
+
+def select_benchmark_seeds(
+    n: int,
+    body_model: Any,
+    base_config: Optional[SceneConfig] = None,
+    first_seed: int = 0,
+    max_seed: int = 100_000,
+) -> List[int]:
+    """Find the first ``n`` seeds whose generated scene is usable as a benchmark case.
+
+    A seed is kept when :func:`generate_scene` succeeds (its starting occluder share lies in
+    the config's range) and the start view shows at least :data:`MIN_PERSON_PIXELS` person
+    pixels.
+
+    Args:
+        n: How many seeds.
+        body_model: The stand-in body model (``SMPLXModel``) the set is made for.
+        base_config: Config whose seed is replaced; ``SceneConfig()`` if None.
+        first_seed: First seed tried.
+        max_seed: Give up after this seed.
+
+    Returns:
+        The seeds, ascending.
+
+    Raises:
+        SceneError: Fewer than ``n`` seeds qualify below ``max_seed``.
+    """
+    config = base_config if base_config is not None else SceneConfig()
+    seeds: List[int] = []
+    seed = first_seed
+    while len(seeds) < n:
+        if seed > max_seed:
+            raise SceneError(f"only {len(seeds)} of {n} benchmark seeds found up to seed {max_seed}")
+        try:
+            scene = generate_scene(dataclasses.replace(config, seed=seed), body_model)
+        except SceneError:
+            seed += 1
+            continue
+        frame = scene.render()
+        if frame.ground_truth.person_pixel_count >= MIN_PERSON_PIXELS:
+            seeds.append(seed)
+        seed += 1
+    return seeds
+
+
+def load_benchmark_scenes(
+    n: int,
+    body_model: Any,
+    base_config: Optional[SceneConfig] = None,
+) -> List[Scene]:
+    """Generate the first ``n`` scenes of the benchmark set.
+
+    Args:
+        n: How many scenes (at most ``len(BENCHMARK_SEEDS)``).
+        body_model: The stand-in body model (``SMPLXModel``).
+        base_config: Config whose seed is replaced; ``SceneConfig()`` if None. Keep its
+            defaults for comparable numbers.
+
+    Returns:
+        The scenes, in seed order.
+
+    Raises:
+        ValueError: ``n`` exceeds the committed seeds.
+    """
+    if n > len(BENCHMARK_SEEDS):
+        raise ValueError(f"n = {n} exceeds the {len(BENCHMARK_SEEDS)} committed benchmark seeds")
+    config = base_config if base_config is not None else SceneConfig()
+    return [generate_scene(dataclasses.replace(config, seed=seed), body_model) for seed in BENCHMARK_SEEDS[:n]]

@@ -1,0 +1,193 @@
+"""Evaluation metrics: body coverage, reconstructed area, PA-MPVPE and latency percentiles."""
+
+from __future__ import annotations
+
+from typing import Dict, Sequence
+
+import numpy as np
+
+
+def project_points(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole projection u = fx x/z + cx, v = fy y/z + cy (pixel centres at integer u, v).
+
+    Args:
+        points_cam: (N,3) points in the camera optical frame (z > 0 expected).
+        K: (3,3) intrinsics.
+
+    Returns:
+        (N,2) pixel coordinates (u, v); NaN/inf where z <= 0.
+    """
+    points = np.asarray(points_cam, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * points[:, 0] / points[:, 2] + K[0, 2]
+        v = K[1, 1] * points[:, 1] / points[:, 2] + K[1, 2]
+    return np.stack([u, v], axis=1)
+
+
+def visible_vertex_mask(
+    vertices_cam: np.ndarray,
+    scene_depth_m: np.ndarray,
+    K: np.ndarray,
+    tolerance: float = 0.02,
+) -> np.ndarray:
+    """Which vertices the camera sees: inside the image, in front, not behind the scene depth.
+
+    A vertex projects to pixel (round(v), round(u)); it is visible when that pixel lies in the
+    image, z > 0, and z <= scene_depth + tolerance there. A pixel without a return (0) hides
+    nothing, so a vertex there counts as visible.
+
+    Args:
+        vertices_cam: (V,3) vertices in the camera optical frame, metres.
+        scene_depth_m: (H,W) noise-free rendered depth of the whole scene, metres, 0 = none.
+        K: (3,3) intrinsics.
+        tolerance: How far behind the scene surface a vertex may lie and still count (m).
+
+    Returns:
+        (V,) bool.
+
+    Raises:
+        ValueError: Bad shapes.
+    """
+    vertices = np.asarray(vertices_cam, dtype=np.float64)
+    depth = np.asarray(scene_depth_m)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices_cam must be (V,3), got {vertices.shape}")
+    if depth.ndim != 2:
+        raise ValueError(f"scene_depth_m must be (H,W), got {depth.shape}")
+    height, width = depth.shape
+    in_front = vertices[:, 2] > 1e-6
+    uv = project_points(np.where(in_front[:, None], vertices, 1.0), K)
+    columns = np.rint(uv[:, 0])
+    rows = np.rint(uv[:, 1])
+    inside = in_front & (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
+    visible = np.zeros(vertices.shape[0], dtype=bool)
+    index = np.nonzero(inside)[0]
+    surface = depth[rows[index].astype(np.int64), columns[index].astype(np.int64)].astype(np.float64)
+    visible[index] = (surface <= 0) | (vertices[index, 2] <= surface + tolerance)
+    return visible
+
+
+def body_coverage(
+    gt_vertices_cam: np.ndarray,
+    scene_depth_m: np.ndarray,
+    K: np.ndarray,
+    tolerance: float = 0.02,
+) -> float:
+    """Share of ground-truth body vertices visible in the view (ALGORITHMS.md 8).
+
+    Use the rendered scene depth WITHOUT noise; see :func:`visible_vertex_mask`.
+
+    Args:
+        gt_vertices_cam: (V,3) ground-truth body vertices in the camera optical frame, metres.
+        scene_depth_m: (H,W) noise-free scene depth, metres, 0 = no return.
+        K: (3,3) intrinsics.
+        tolerance: Metres a vertex may lie behind the scene surface (default 2 cm).
+
+    Returns:
+        Fraction in [0, 1] (0 for an empty vertex set).
+    """
+    visible = visible_vertex_mask(gt_vertices_cam, scene_depth_m, K, tolerance)
+    if visible.size == 0:
+        return 0.0
+    return float(np.count_nonzero(visible)) / float(visible.size)
+
+
+def reconstructed_area(mask: np.ndarray, depth: np.ndarray) -> int:
+    """Pixels of the person mask with valid depth (ALGORITHMS.md 8).
+
+    Args:
+        mask: (H,W) bool person mask.
+        depth: (H,W) depth, metres (float) or millimetres (uint16); valid = finite and > 0.
+
+    Returns:
+        The pixel count.
+
+    Raises:
+        ValueError: The shapes differ.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    depth = np.asarray(depth)
+    if mask.shape != depth.shape:
+        raise ValueError(f"mask {mask.shape} and depth {depth.shape} differ in shape")
+    if np.issubdtype(depth.dtype, np.floating):
+        valid = np.isfinite(depth) & (depth > 0)
+    else:
+        valid = depth > 0
+    return int(np.count_nonzero(mask & valid))
+
+
+def procrustes_align(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Similarity-align pred to gt: argmin over s, R, t of sum |s R pred_i + t - gt_i|^2.
+
+    Umeyama's closed form: with centred X = pred - mean, Y = gt - mean and
+    ``U S V^T = svd(X^T Y)``, ``R = V D U^T`` where ``D = diag(1, 1, sign(det(V U^T)))``
+    keeps R a proper rotation (no reflection), ``s = trace(S D) / |X|^2`` and
+    ``t = mean_gt - s R mean_pred``.
+
+    Args:
+        pred: (V,3) predicted vertices.
+        gt: (V,3) ground-truth vertices (same order).
+
+    Returns:
+        (V,3) aligned prediction.
+
+    Raises:
+        ValueError: Shapes differ or are not (V,3), or pred is degenerate (all one point).
+    """
+    X = np.asarray(pred, dtype=np.float64)
+    Y = np.asarray(gt, dtype=np.float64)
+    if X.shape != Y.shape or X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f"pred {X.shape} and gt {Y.shape} must both be (V,3)")
+    mean_x = X.mean(axis=0)
+    mean_y = Y.mean(axis=0)
+    Xc = X - mean_x
+    Yc = Y - mean_y
+    variance_x = float(np.sum(Xc * Xc))
+    if variance_x <= 0.0:
+        raise ValueError("pred is degenerate (all vertices coincide)")
+    U, S, Vt = np.linalg.svd(Xc.T @ Yc)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ D @ U.T
+    scale = float(np.sum(S * np.diag(D))) / variance_x
+    t = mean_y - scale * (R @ mean_x)
+    return scale * (X @ R.T) + t
+
+
+def pa_mpvpe_mm(pred: np.ndarray, gt: np.ndarray) -> float:
+    """PA-MPVPE: mean per-vertex distance after Procrustes alignment (scale, rotation, translation).
+
+    Args:
+        pred: (V,3) predicted vertices, metres.
+        gt: (V,3) ground-truth vertices, metres, same vertex order.
+
+    Returns:
+        Millimetres.
+    """
+    aligned = procrustes_align(pred, gt)
+    return float(np.mean(np.linalg.norm(aligned - np.asarray(gt, dtype=np.float64), axis=1)) * 1000.0)
+
+
+def latency_summary(samples_ms: Sequence[float]) -> Dict[str, float]:
+    """Percentiles of latency samples (linear interpolation, numpy's default).
+
+    Args:
+        samples_ms: Latencies in milliseconds.
+
+    Returns:
+        ``{"n", "mean", "p50", "p95", "p99", "max"}``; all NaN except n = 0 when empty.
+    """
+    samples = np.asarray(list(samples_ms), dtype=np.float64)
+    if samples.size == 0:
+        nan = float("nan")
+        return {"n": 0, "mean": nan, "p50": nan, "p95": nan, "p99": nan, "max": nan}
+    p50, p95, p99 = np.percentile(samples, [50, 95, 99])
+    return {
+        "n": int(samples.size),
+        "mean": float(samples.mean()),
+        "p50": float(p50),
+        "p95": float(p95),
+        "p99": float(p99),
+        "max": float(samples.max()),
+    }

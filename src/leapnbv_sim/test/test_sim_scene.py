@@ -1,0 +1,177 @@
+"""Tests of leapnbv_sim.scene and leapnbv_sim.benchmark_set on the small stand-in body."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leapnbv_perception.rotations import axis_angle_to_matrix
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
+from leapnbv_sim import bag_io
+from leapnbv_sim.benchmark_set import BENCHMARK_SEEDS, load_benchmark_scenes
+from leapnbv_sim.metrics import body_coverage
+from leapnbv_sim.scene import (
+    FLOOR_ID,
+    PERSON_ID,
+    CameraPose,
+    SceneConfig,
+    camera_pose_from_base_goal,
+    generate_scene,
+    look_at_pose,
+    pose_in_world,
+)
+
+
+@pytest.fixture(scope="module")
+def body_model() -> SMPLXModel:
+    return SMPLXModel(build_stand_in_body_model("small"), source="stand_in_small")
+
+
+@pytest.fixture(scope="module")
+def scene(body_model: SMPLXModel):
+    return generate_scene(SceneConfig(seed=BENCHMARK_SEEDS[0]), body_model)
+
+
+def test_same_seed_same_scene_and_frames(body_model: SMPLXModel) -> None:
+    a = generate_scene(SceneConfig(seed=11), body_model)
+    b = generate_scene(SceneConfig(seed=11), body_model)
+    c = generate_scene(SceneConfig(seed=12), body_model)
+    fa, fb, fc = a.render(), b.render(), c.render()
+    assert fa.rgb.tobytes() == fb.rgb.tobytes()
+    assert fa.depth_mm.tobytes() == fb.depth_mm.tobytes()
+    assert fa.ground_truth.person_box_xyxy == fb.ground_truth.person_box_xyxy
+    assert np.array_equal(fa.ground_truth.vertices_camera, fb.ground_truth.vertices_camera)
+    assert np.array_equal(fa.ground_truth.body_params_camera.body_pose, fb.ground_truth.body_params_camera.body_pose)
+    assert fa.rgb.tobytes() != fc.rgb.tobytes()
+    assert fa.depth_mm.tobytes() != fc.depth_mm.tobytes()
+    # The depth noise is drawn per frame index.
+    assert a.render(frame_index=1).depth_mm.tobytes() != fa.depth_mm.tobytes()
+
+
+def test_benchmark_seeds_start_occluded_within_range(body_model: SMPLXModel) -> None:
+    assert len(BENCHMARK_SEEDS) >= 60 and len(set(BENCHMARK_SEEDS)) == len(BENCHMARK_SEEDS)
+    for scene in load_benchmark_scenes(3, body_model):
+        frame = scene.render()
+        assert 0.2 <= scene.start_occluder_share <= 0.6
+        assert frame.ground_truth.occluder_share == pytest.approx(scene.start_occluder_share)
+        assert frame.ground_truth.person_box_xyxy is not None
+        assert scene.object_names[PERSON_ID] == "person"
+        assert any(name.startswith("occluder") for name in scene.object_names.values())
+
+
+def test_ground_truth_translation_reproduces_camera_vertices(scene, body_model: SMPLXModel) -> None:
+    moved = pose_in_world(
+        scene.start_camera, axis_angle_to_matrix(np.array([0.0, 0.6, 0.0])), np.array([1.0, 0.0, 0.5])
+    )
+    for camera in (scene.start_camera, moved):
+        truth = scene.render(camera).ground_truth
+        output = body_model.forward(truth.body_params_camera.to_smplx_params())
+        reproduced = np.asarray(output.vertices, dtype=np.float64) + truth.translation_camera
+        np.testing.assert_allclose(reproduced, truth.vertices_camera, atol=1e-5)
+        # And those are the world vertices seen from this camera.
+        expected = (scene.body_vertices_world - camera.position) @ camera.rotation
+        np.testing.assert_allclose(truth.vertices_camera, expected, atol=1e-9)
+
+
+def test_body_stands_on_floor_in_front_of_camera(scene) -> None:
+    body = scene.body_vertices_world
+    assert body[:, 2].min() == pytest.approx(0.0, abs=1e-6)
+    assert 1.0 < body[:, 2].max() < 2.2
+    in_camera = scene.start_camera.world_to_camera(body)
+    assert (in_camera[:, 2] > 1.5).all()
+    # No roll: the camera's x axis is horizontal.
+    assert abs(scene.start_camera.rotation[2, 0]) < 1e-12
+
+
+def test_floor_depth_matches_the_plane(body_model: SMPLXModel) -> None:
+    config = SceneConfig(seed=BENCHMARK_SEEDS[1], depth_noise=False)
+    scene = generate_scene(config, body_model)
+    frame = scene.render()
+    rows, columns = np.nonzero(frame.object_id == FLOOR_ID)
+    assert rows.size > 10_000
+    rays = np.linalg.solve(frame.K, np.stack([columns, rows, np.ones_like(rows)]).astype(np.float64))
+    rays_world = scene.start_camera.rotation @ rays  # camera-z = 1 per ray
+    depth_plane = -scene.start_camera.position[2] / rays_world[2]
+    np.testing.assert_allclose(frame.depth_m[rows, columns], depth_plane, atol=1e-3)
+    np.testing.assert_allclose(frame.depth_clean_m[rows, columns], depth_plane, rtol=1e-5)
+    assert np.array_equal(frame.depth_mm, np.rint(frame.depth_clean_m.astype(np.float64) * 1000).astype(np.uint16))
+
+
+def test_noise_keeps_depth_close(scene) -> None:
+    frame = scene.render()
+    both = (frame.depth_m > 0) & (frame.depth_clean_m > 0)
+    error = frame.depth_m[both] - frame.depth_clean_m[both]
+    assert 0.0 < np.std(error) < 0.05
+    assert np.count_nonzero(frame.depth_m == 0) > np.count_nonzero(frame.depth_clean_m == 0)
+
+
+def test_person_box_contains_visible_person_pixels(scene) -> None:
+    frame = scene.render()
+    x0, y0, x1, y1 = frame.ground_truth.person_box_xyxy
+    rows, columns = np.nonzero(frame.object_id == PERSON_ID)
+    assert rows.size == frame.ground_truth.person_pixel_count > 0
+    assert columns.min() == x0 and columns.max() == x1 - 1
+    assert rows.min() == y0 and rows.max() == y1 - 1
+    # Looking away: no person, no box.
+    away = look_at_pose(scene.start_camera.position, scene.start_camera.position + np.array([-1.0, 0.0, 0.0]))
+    assert scene.render(away).ground_truth.person_box_xyxy is None
+
+
+def test_body_coverage_drops_when_occluded(scene) -> None:
+    camera = scene.start_camera
+    truth = scene.render(camera).ground_truth
+    unoccluded_depth, _ = scene.render_depth(camera, include=np.array([FLOOR_ID, PERSON_ID]))
+    occluded_depth, _ = scene.render_depth(camera)
+    clear = body_coverage(truth.vertices_camera, unoccluded_depth, scene.K)
+    hidden = body_coverage(truth.vertices_camera, occluded_depth, scene.K)
+    # A body sees roughly its front half; the occluders then hide start_occluder_share of it.
+    assert clear > 0.35
+    assert hidden == pytest.approx(clear * (1.0 - scene.start_occluder_share), abs=0.02)
+    assert hidden < clear - 0.05
+    assert truth.occlusion_share == pytest.approx(1.0 - hidden)
+
+
+def test_pose_in_world_composes_transforms(scene) -> None:
+    start = scene.start_camera
+    same = pose_in_world(start, np.eye(3), np.zeros(3))
+    np.testing.assert_allclose(same.as_matrix(), start.as_matrix())
+    R_on = axis_angle_to_matrix(np.array([0.1, -0.4, 0.2]))
+    p_on = np.array([0.3, -0.2, 1.0])
+    moved = pose_in_world(start, R_on, p_on)
+    np.testing.assert_allclose(moved.as_matrix(), start.as_matrix() @ CameraPose(R_on, p_on).as_matrix())
+    # A point fixed in the world maps consistently through both frames.
+    point = np.array([[0.2, 0.1, 1.0]])
+    in_start = start.world_to_camera(point)[0]
+    np.testing.assert_allclose(moved.world_to_camera(point)[0], R_on.T @ (in_start - p_on), atol=1e-12)
+
+
+def test_camera_pose_from_base_goal_is_level_above_base() -> None:
+    pose = camera_pose_from_base_goal(np.array([1.0, 2.0]), np.pi / 2, 1.2)
+    np.testing.assert_allclose(pose.position, [1.0, 2.0, 1.2])
+    np.testing.assert_allclose(pose.rotation[:, 2], [0.0, 1.0, 0.0], atol=1e-12)  # forward = +y
+    np.testing.assert_allclose(pose.rotation[:, 1], [0.0, 0.0, -1.0], atol=1e-12)  # down
+
+
+def test_rendered_frames_round_trip_through_a_bag(scene, tmp_path: Path) -> None:
+    frames = [scene.render(frame_index=i) for i in range(2)]
+    path = tmp_path / "scene"
+    bag_io.write_scene_bag(path, frames, body_model_id=scene.body_model_id)
+    truths = [m for t, _, _, m in bag_io.read_bag(path, topics=[bag_io.GROUND_TRUTH_TOPIC])]
+    depths = [m for t, _, _, m in bag_io.read_bag(path, topics=[bag_io.DEPTH_IMAGE_TOPIC])]
+    assert len(truths) == 2
+    expected = frames[0].ground_truth
+    np.testing.assert_allclose(truths[0].root_pose, expected.body_params_camera.root_pose, atol=1e-6)
+    np.testing.assert_allclose(truths[0].translation, expected.translation_camera, atol=1e-6)
+    assert truths[0].person_box.x_min == expected.person_box_xyxy[0]
+    assert bytes(depths[1].data) == frames[1].depth_mm.tobytes()
+    assert bag_io.validate_bag_crcs(path)[bag_io.GROUND_TRUTH_TOPIC] == 2
+
+
+def test_configs_are_plain_dataclasses() -> None:
+    config = dataclasses.replace(SceneConfig(), seed=5, walls=False)
+    assert config.seed == 5 and not config.walls
+    np.testing.assert_allclose(config.K, [[615.0, 0, 320.0], [0, 615.0, 240.0], [0, 0, 1]])
