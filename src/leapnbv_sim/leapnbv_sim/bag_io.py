@@ -633,12 +633,15 @@ def write_scene_bag(
     return counts
 
 
-def read_bag(path: Union[str, Path], topics: Optional[Sequence[str]] = None) -> Iterator[Tuple[str, str, int, object]]:
+def read_bag(
+    path: Union[str, Path], topics: Optional[Sequence[str]] = None, raw: bool = False
+) -> Iterator[Tuple[str, str, int, object]]:
     """Iterate over a bag's messages in log-time order, deserialized with the bag's own definitions.
 
     Args:
         path: rosbag2 directory (MCAP or SQLite storage).
         topics: Only these topics; all if None.
+        raw: Yield the CDR bytes as stored instead of deserialized messages (for replay).
 
     Yields:
         (topic, msgtype, timestamp_ns, message) tuples.

@@ -1,0 +1,102 @@
+"""onnxruntime engine backend (CPU by default; other providers by parameter)."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Dict, Mapping, Optional, Sequence
+
+import numpy as np
+
+from leapnbv_perception.backends.base import (
+    BackendError,
+    EngineBackend,
+    TensorSpec,
+    check_inputs,
+    require_model_file,
+)
+
+# onnxruntime's type strings -> numpy dtype names.
+_ORT_TYPES = {
+    "tensor(float)": "float32",
+    "tensor(float16)": "float16",
+    "tensor(double)": "float64",
+    "tensor(int64)": "int64",
+    "tensor(int32)": "int32",
+    "tensor(uint8)": "uint8",
+    "tensor(bool)": "bool",
+}
+
+
+class OnnxRuntimeBackend(EngineBackend):
+    """Runs an ONNX model with onnxruntime.
+
+    Args:
+        model_path: the ONNX file.
+        providers: execution providers in priority order; default ["CPUExecutionProvider"].
+        intra_op_threads: threads per operator (0 = onnxruntime's default).
+        precision: reported precision; the model runs in the types it was exported with.
+
+    Raises:
+        ModelFileNotFoundError: when model_path does not exist.
+        BackendError: when onnxruntime cannot load the model.
+    """
+
+    def __init__(
+        self,
+        model_path: str,
+        providers: Optional[Sequence[str]] = None,
+        intra_op_threads: int = 0,
+        precision: str = "fp32",
+    ) -> None:
+        import onnxruntime
+
+        self.model_path = require_model_file(model_path)
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = int(intra_op_threads)
+        options.inter_op_num_threads = 1
+        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+        self._providers = list(providers) if providers else ["CPUExecutionProvider"]
+        try:
+            self._session = onnxruntime.InferenceSession(
+                self.model_path, sess_options=options, providers=self._providers
+            )
+        except Exception as error:  # onnxruntime raises its own untyped exceptions
+            raise BackendError("onnxruntime could not load '%s': %s" % (self.model_path, error)) from error
+        self._inputs = OrderedDict(
+            (arg.name, TensorSpec(tuple(arg.shape), _ORT_TYPES.get(arg.type, arg.type)))
+            for arg in self._session.get_inputs()
+        )
+        self._outputs = OrderedDict(
+            (arg.name, TensorSpec(tuple(arg.shape), _ORT_TYPES.get(arg.type, arg.type)))
+            for arg in self._session.get_outputs()
+        )
+        self._output_names = list(self._outputs)
+        self._precision = precision
+
+    @property
+    def input_specs(self) -> Mapping[str, TensorSpec]:
+        return self._inputs
+
+    @property
+    def output_specs(self) -> Mapping[str, TensorSpec]:
+        return self._outputs
+
+    @property
+    def precision(self) -> str:
+        return self._precision
+
+    @property
+    def providers(self) -> Sequence[str]:
+        """Providers the session actually uses."""
+        return self._session.get_providers()
+
+    def run(self, inputs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:
+        check_inputs(inputs, self._inputs, self.model_path)
+        feed = {
+            name: np.ascontiguousarray(inputs[name], dtype=spec.dtype) for name, spec in self._inputs.items()
+        }
+        try:
+            values = self._session.run(self._output_names, feed)
+        except Exception as error:
+            raise BackendError("onnxruntime failed on '%s': %s" % (self.model_path, error)) from error
+        return dict(zip(self._output_names, values))

@@ -1,0 +1,178 @@
+"""Human mesh estimation: crop, HMR engine (read by output name), FP32 SMPL-X tail."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Sequence, Tuple
+
+import numpy as np
+
+from leapnbv_perception.backends.base import EngineBackend
+from leapnbv_perception.hmr_crop import (
+    CROP_H,
+    CROP_W,
+    DEFAULT_ASPECT,
+    DEFAULT_BOX_SCALE,
+    crop_for_hmr,
+    fit_to_engine_input,
+    process_box,
+    xyxy_to_xywh,
+)
+from leapnbv_perception.hmr_tail import camera_translation, unmirror_left_hand, virtual_intrinsics
+from leapnbv_perception.model_contracts import (
+    HMR_INPUT_NAME,
+    HMR_OUTPUT_SIZES,
+    SMPLERX_CONTRACT,
+    check_backend_contract,
+)
+from leapnbv_perception.rotations import matrix_to_axis_angle, rot6d_to_matrix
+from leapnbv_perception.smplx_layer import NUM_BODY_JOINTS, NUM_HAND_JOINTS, SMPLXModel, SMPLXParams
+
+
+class HMROutputError(ValueError):
+    """The HMR engine returned non-finite or wrongly sized values."""
+
+
+@dataclass
+class HumanMeshEstimate:
+    """One person's mesh in the virtual crop camera, with what is needed to use it.
+
+    Attributes:
+        vertices: (V, 3) float32, model vertices + cam_translation (virtual crop camera,
+            optical axes: x right, y down, z forward).
+        faces: (F, 3) uint32.
+        joints: (55, 3) float32 posed joints in the same frame.
+        fx, fy, cx, cy: virtual intrinsics that project `vertices` onto the source image.
+        processed_box: (4,) [x, y, w, h] crop box in source pixels.
+        crop_affine: (2, 3) source -> crop (512x384) pixels.
+        root, body, left_hand, right_hand, jaw: axis-angle (3,), (63,), (45,), (45,), (3,)
+            (left hand already un-mirrored; hand poses relative to the hand mean).
+        betas: (10,).
+        expression: (10,).
+        cam_translation: (3,) metres in the virtual crop camera.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    joints: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    processed_box: np.ndarray
+    crop_affine: np.ndarray
+    root: np.ndarray
+    body: np.ndarray
+    left_hand: np.ndarray
+    right_hand: np.ndarray
+    jaw: np.ndarray
+    betas: np.ndarray
+    expression: np.ndarray
+    cam_translation: np.ndarray
+
+
+class HumanMeshEstimator:
+    """SMPLer-X-style HMR on any EngineBackend plus the numpy SMPL-X tail.
+
+    Args:
+        backend: engine with the SMPLer-X encoder + heads contract (input `img`).
+        body_model: loaded SMPL-X (or stand-in) model.
+        box_scale: crop enlargement about the box centre (SMPLer-X 1.25).
+        unmirror_left_hand: apply R_L = S R S to the left-hand rotations.
+
+    Raises:
+        ModelContractError: when the backend does not declare the contract's names/shapes.
+    """
+
+    def __init__(
+        self,
+        backend: EngineBackend,
+        body_model: SMPLXModel,
+        box_scale: float = DEFAULT_BOX_SCALE,
+        unmirror_left_hand: bool = True,
+    ) -> None:
+        check_backend_contract(backend, SMPLERX_CONTRACT)
+        self.backend = backend
+        self.body_model = body_model
+        self.box_scale = float(box_scale)
+        self.unmirror_left_hand = bool(unmirror_left_hand)
+        input_shape = backend.input_specs[HMR_INPUT_NAME].shape
+        self.input_hw: Tuple[int, int] = (int(input_shape[2]), int(input_shape[3]))
+
+    def _read_outputs(self, outputs: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+        """Flatten each named output to its per-item length and reject non-finite values."""
+        values = {}
+        for name, size in HMR_OUTPUT_SIZES.items():
+            if name not in outputs:
+                raise HMROutputError("HMR engine output '%s' missing (got %s)" % (name, sorted(outputs)))
+            array = np.asarray(outputs[name], dtype=np.float64).reshape(-1)
+            if array.size != size:
+                raise HMROutputError("HMR output '%s' has %d values, expected %d" % (name, array.size, size))
+            if not np.all(np.isfinite(array)):
+                raise HMROutputError("HMR output '%s' has non-finite values" % name)
+            values[name] = array
+        return values
+
+    def estimate(self, rgb: np.ndarray, box_xyxy: Sequence[float]) -> HumanMeshEstimate:
+        """Estimate the mesh of the person in one box.
+
+        Args:
+            rgb: (H, W, 3) uint8 RGB image.
+            box_xyxy: [x_min, y_min, x_max, y_max, ...] person box in source pixels.
+
+        Returns:
+            HumanMeshEstimate.
+
+        Raises:
+            InvalidBoxError: when the box has no area inside the image.
+            HMROutputError: when the engine returns non-finite or missing outputs.
+        """
+        image_h, image_w = rgb.shape[:2]
+        processed_box = process_box(xyxy_to_xywh(box_xyxy), image_w, image_h, DEFAULT_ASPECT, self.box_scale)
+        crop, affine, _ = crop_for_hmr(rgb, processed_box, CROP_H, CROP_W)
+        outputs = self.backend.run({HMR_INPUT_NAME: fit_to_engine_input(crop, self.input_hw)})
+        values = self._read_outputs(outputs)
+
+        root = rot6d_to_matrix(values["root_pose"].reshape(1, 6))[0]
+        body = rot6d_to_matrix(values["body_pose"].reshape(NUM_BODY_JOINTS, 6))
+        left_hand = rot6d_to_matrix(values["lhand_pose"].reshape(NUM_HAND_JOINTS, 6))
+        right_hand = rot6d_to_matrix(values["rhand_pose"].reshape(NUM_HAND_JOINTS, 6))
+        jaw = rot6d_to_matrix(values["jaw_pose"].reshape(1, 6))[0]
+        if self.unmirror_left_hand:
+            left_hand = unmirror_left_hand(left_hand)
+        params = SMPLXParams(
+            root_rotation=root,
+            body_rotations=body,
+            jaw_rotation=jaw,
+            left_hand_rotations=left_hand,
+            right_hand_rotations=right_hand,
+            betas=values["betas"],
+            expression=values["expression"],
+        )
+        posed = self.body_model.forward(params, add_hand_mean=True)
+        translation = camera_translation(values["cam_param"])
+        offset = translation.astype(np.float32)
+        fx, fy, cx, cy = virtual_intrinsics(processed_box)
+        axis_angles = matrix_to_axis_angle(
+            np.concatenate([root[None], body, left_hand, right_hand, jaw[None]], axis=0)
+        )
+        hands_end = 1 + NUM_BODY_JOINTS + 2 * NUM_HAND_JOINTS
+        return HumanMeshEstimate(
+            vertices=posed.vertices + offset,
+            faces=self.body_model.faces,
+            joints=posed.joints + offset,
+            fx=fx,
+            fy=fy,
+            cx=cx,
+            cy=cy,
+            processed_box=processed_box,
+            crop_affine=affine,
+            root=axis_angles[0],
+            body=axis_angles[1 : 1 + NUM_BODY_JOINTS].reshape(-1),
+            left_hand=axis_angles[1 + NUM_BODY_JOINTS : 1 + NUM_BODY_JOINTS + NUM_HAND_JOINTS].reshape(-1),
+            right_hand=axis_angles[1 + NUM_BODY_JOINTS + NUM_HAND_JOINTS : hands_end].reshape(-1),
+            jaw=axis_angles[hands_end],
+            betas=values["betas"].copy(),
+            expression=values["expression"].copy(),
+            cam_translation=translation,
+        )

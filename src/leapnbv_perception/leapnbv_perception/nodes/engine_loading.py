@@ -1,0 +1,39 @@
+"""Loading an engine inside a node: never fatal, retried, reported in diagnostics."""
+from __future__ import annotations
+
+from typing import Any, Callable, Optional
+
+
+class RetryingLoader:
+    """Calls `load()` now and again every `retry_period_s` until it succeeds.
+
+    A missing model file or a model that breaks its contract is logged with the error (which
+    names the path), reported as an ERROR in diagnostics, and the node keeps serving: it
+    rejects frames as "engine_not_ready" until a later retry loads the model.
+    """
+
+    def __init__(self, node, diagnostics, what: str, load: Callable[[], Any], retry_period_s: float) -> None:
+        self._node = node
+        self._diagnostics = diagnostics
+        self._what = what
+        self._load = load
+        self.value: Optional[Any] = None
+        self._timer = None
+        if not self.try_load() and retry_period_s > 0:
+            self._timer = node.create_timer(retry_period_s, self._retry)
+
+    def try_load(self) -> bool:
+        try:
+            self.value = self._load()
+        except Exception as exc:  # noqa: BLE001 - any load failure is reported, never fatal
+            message = f"{self._what} not loaded: {type(exc).__name__}: {exc}"
+            self._node.get_logger().error(message, throttle_duration_sec=30.0)
+            self._diagnostics.set_engine_state(message, ok=False)
+            return False
+        self._node.get_logger().info(f"{self._what} loaded")
+        self._diagnostics.set_engine_state("ready", ok=True)
+        return True
+
+    def _retry(self) -> None:
+        if self.try_load() and self._timer is not None:
+            self._timer.cancel()

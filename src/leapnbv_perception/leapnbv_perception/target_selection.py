@@ -1,0 +1,43 @@
+"""Which detected person the HMR stage follows from frame to frame."""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+
+def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """IoU of one [x0, y0, x1, y1] box with each row of boxes (N, >=4)."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, boxes.shape[-1] if np.ndim(boxes) > 1 else 4)
+    x0 = np.maximum(box[0], boxes[:, 0])
+    y0 = np.maximum(box[1], boxes[:, 1])
+    x1 = np.minimum(box[2], boxes[:, 2])
+    y1 = np.minimum(box[3], boxes[:, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    area = (box[2] - box[0]) * (box[3] - box[1])
+    areas = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    union = area + areas - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def select_target(boxes: np.ndarray, previous_box: Optional[np.ndarray] = None, min_track_iou: float = 0.3) -> int:
+    """Index of the person to reconstruct, or -1 when there is none.
+
+    The best-scoring box, unless a box overlaps the previous frame's target by at least
+    min_track_iou: then the one overlapping most, so that a second, briefly more confident
+    person does not steal the target.
+
+    Args:
+        boxes: (N, 5) [x_min, y_min, x_max, y_max, score], sorted by score or not.
+        previous_box: [x_min, y_min, x_max, y_max] of the last target, or None.
+        min_track_iou: overlap needed to keep following the previous target.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64)
+    if boxes.size == 0:
+        return -1
+    if previous_box is not None:
+        overlaps = box_iou(np.asarray(previous_box, dtype=np.float64), boxes)
+        best = int(np.argmax(overlaps))
+        if overlaps[best] >= min_track_iou:
+            return best
+    return int(np.argmax(boxes[:, 4]))
