@@ -16,7 +16,7 @@ setup(
     ],
     install_requires=["setuptools"],
     zip_safe=True,
-    description="Person detector, HMR engine, SMPL-X tail and their engine backends (onnxruntime, TensorRT, ground truth).",
+    description="Person detector, HMR engine, SMPL-X tail and their backends (onnxruntime, TensorRT, ground truth).",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Optional, Tuple
 
 import numpy as np
-from geometry_msgs.msg import Point
+from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
@@ -345,3 +345,46 @@ def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
 def stamp_to_ns(stamp) -> int:
     """Nanoseconds since the epoch from a builtin_interfaces/Time."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """(x, y, z, w) unit quaternion of a 3x3 rotation matrix (Shepperd's method, w >= 0)."""
+    m = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q, dtype=np.float64)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def quaternion_to_rotation(xyzw: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of a (x, y, z, w) quaternion (normalized first)."""
+    x, y, z, w = np.asarray(xyzw, dtype=np.float64).reshape(4) / np.linalg.norm(xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def pose_msg(rotation: np.ndarray, position: np.ndarray) -> Pose:
+    """geometry_msgs/Pose from a rotation matrix (columns = the body's axes) and a position."""
+    qx, qy, qz, qw = (float(v) for v in rotation_to_quaternion(rotation))
+    return Pose(position=point_msg(position), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+
+
+def pose_to_numpy(pose: Pose) -> Tuple[np.ndarray, np.ndarray]:
+    """(rotation (3, 3), position (3,)) from a geometry_msgs/Pose."""
+    q = pose.orientation
+    return quaternion_to_rotation([q.x, q.y, q.z, q.w]), point_to_numpy(pose.position)

@@ -101,23 +101,24 @@ class StageDiagnostics:
         self._pub.publish(msg)
 
 
-def guarded_callback(diagnostics: StageDiagnostics, reason: str = "bad_input") -> Callable:
-    """Wrap a subscription callback so that no exception ever kills the node.
+def rejects_bad_input(reason: str = "bad_input") -> Callable:
+    """Decorate a node's callback method so that no exception ever kills the node.
 
-    A ValueError (conversion or contract failure) counts as `reason`; anything else counts as
-    "internal_error" and logs the traceback. Either way the node serves the next message.
+    The node must have a `diagnostics` attribute (StageDiagnostics). A ValueError (conversion
+    or contract failure) counts as `reason`; anything else counts as "internal_error" and logs
+    the traceback. Either way the node serves the next message.
     """
 
-    def wrap(callback: Callable) -> Callable:
-        @functools.wraps(callback)
-        def guarded(*args, **kwargs) -> Optional[object]:
+    def wrap(method: Callable) -> Callable:
+        @functools.wraps(method)
+        def guarded(self, *args, **kwargs) -> Optional[object]:
             try:
-                return callback(*args, **kwargs)
+                return method(self, *args, **kwargs)
             except ValueError as exc:
-                diagnostics.reject(reason, str(exc))
+                self.diagnostics.reject(reason, str(exc))
             except Exception as exc:  # noqa: BLE001 - a node must survive any bad frame
-                diagnostics.reject("internal_error", f"{type(exc).__name__}: {exc}")
-                diagnostics._node.get_logger().error(traceback.format_exc(), throttle_duration_sec=5.0)
+                self.diagnostics.reject("internal_error", f"{type(exc).__name__}: {exc}")
+                self.get_logger().error(traceback.format_exc(), throttle_duration_sec=5.0)
             return None
 
         return guarded

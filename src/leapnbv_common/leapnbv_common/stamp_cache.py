@@ -24,6 +24,10 @@ class StampCache(Generic[T]):
     def __len__(self) -> int:
         return len(self._items)
 
+    def items(self) -> list:
+        """(stamp, item) pairs, oldest first (a copy: safe to pop while iterating)."""
+        return list(self._items.items())
+
     def put(self, stamp_ns: int, item: T) -> None:
         """Insert (or replace) the item for a stamp, evicting the oldest beyond capacity."""
         self._items[stamp_ns] = item
@@ -56,3 +60,77 @@ class StampCache(Generic[T]):
         for s in old:
             del self._items[s]
         return len(old)
+
+
+class ExactStampPairer(Generic[T]):
+    """Pairs two streams whose messages carry the same stamp, whichever arrives first.
+
+    `add_first` / `add_second` return the completed (first, second) pair, or None while the
+    companion has not arrived. Unpaired messages fall out of a bounded cache (counted in
+    `unpaired_dropped`), so a stream that stops never grows memory.
+    """
+
+    def __init__(self, capacity: int = 10) -> None:
+        self._first: StampCache = StampCache(capacity)
+        self._second: StampCache = StampCache(capacity)
+
+    @property
+    def unpaired_dropped(self) -> int:
+        return self._first.evicted + self._second.evicted
+
+    def add_first(self, stamp_ns: int, item: Any) -> Optional[Tuple[Any, Any]]:
+        other = self._second.pop(stamp_ns)
+        if other is None:
+            self._first.put(stamp_ns, item)
+            return None
+        return item, other
+
+    def add_second(self, stamp_ns: int, item: Any) -> Optional[Tuple[Any, Any]]:
+        other = self._first.pop(stamp_ns)
+        if other is None:
+            self._second.put(stamp_ns, item)
+            return None
+        return other, item
+
+
+class CompanionWait:
+    """Holds frames until a companion message with the same stamp arrives, or a wait expires.
+
+    Used where a stage prefers the companion computed from the same camera frame (the ground
+    plane of that frame) so that replays are deterministic, but must not stall when it is late
+    or missing: `expire(now_ns)` hands back the frames whose wait ran out, to be served with
+    the latest companion instead.
+    """
+
+    def __init__(self, wait_ns: int, capacity: int = 10) -> None:
+        self.wait_ns = wait_ns
+        self._frames: StampCache = StampCache(capacity)
+        self._companions: StampCache = StampCache(capacity)
+        self.latest_companion: Optional[Any] = None
+
+    def add_frame(self, stamp_ns: int, frame: Any, now_ns: int) -> Optional[Tuple[Any, Any]]:
+        """Returns (frame, companion) at once when the companion is already here."""
+        companion = self._companions.get_exact(stamp_ns)
+        if companion is not None:
+            return frame, companion
+        if self.wait_ns <= 0:
+            return frame, self.latest_companion
+        self._frames.put(stamp_ns, (frame, now_ns))
+        return None
+
+    def add_companion(self, stamp_ns: int, companion: Any) -> Optional[Tuple[Any, Any]]:
+        """Store a companion; returns (frame, companion) when a frame was waiting for it."""
+        self._companions.put(stamp_ns, companion)
+        self.latest_companion = companion
+        waiting = self._frames.pop(stamp_ns)
+        return (waiting[0], companion) if waiting is not None else None
+
+    def expire(self, now_ns: int) -> list:
+        """(frame, latest companion or None) for every frame that waited longer than wait_ns."""
+        expired = []
+        for stamp in list(self._frames._items):
+            frame, since = self._frames._items[stamp]
+            if now_ns - since >= self.wait_ns:
+                del self._frames._items[stamp]
+                expired.append((frame, self.latest_companion))
+        return expired

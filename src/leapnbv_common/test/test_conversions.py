@@ -144,3 +144,17 @@ def test_camera_info_k_round_trip_and_validation():
     info.k = [0.0] * 9
     with pytest.raises(cv.ConversionError, match="not a valid pinhole"):
         cv.camera_info_to_k(info)
+
+
+def test_pose_round_trip_through_quaternion():
+    from leapnbv_common.conversions import pose_msg, pose_to_numpy
+
+    for seed in range(20):
+        q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+        q *= np.sign(np.linalg.det(q))  # a proper rotation
+        rot, pos = pose_to_numpy(pose_msg(q, np.array([1.0, -2.0, 3.0])))
+        np.testing.assert_allclose(rot, q, atol=1e-12)
+        np.testing.assert_array_equal(pos, [1.0, -2.0, 3.0])
+    # 180 degrees about x: the w = 0 branch
+    rot, _ = pose_to_numpy(pose_msg(np.diag([1.0, -1.0, -1.0]), np.zeros(3)))
+    np.testing.assert_allclose(rot, np.diag([1.0, -1.0, -1.0]), atol=1e-12)

@@ -65,6 +65,15 @@ def _refine_plane(points: np.ndarray, up: np.ndarray):
     return normal, float(-normal @ centre)
 
 
+MAX_NOISE_THRESHOLD_M = 0.08
+
+
+def _companion(first: np.ndarray, offset: np.ndarray, n_points: int) -> np.ndarray:
+    """first + offset, or first - offset where that would run past the last point."""
+    ahead = first + offset
+    return np.where(ahead < n_points, ahead, np.maximum(first - offset, 0))
+
+
 def fit_ground_plane(
     points: np.ndarray,
     max_tilt_deg: float = 30.0,
@@ -76,6 +85,9 @@ def fit_ground_plane(
     up: Sequence[float] = (0.0, -1.0, 0.0),
     max_points: int = 2048,
     refine_iterations: int = 2,
+    depth_noise_coeff: float = 0.0,
+    local_sampling: bool = True,
+    local_refinements: int = 6,
 ) -> GroundPlaneResult:
     """Fit the ground plane n.x + d = 0 to background points.
 
@@ -85,6 +97,15 @@ def fit_ground_plane(
     before scoring, so walls are never taken for the floor. The best hypothesis is refined by
     least squares on its inliers among all points (``refine_iterations`` rounds, inliers
     re-selected each round). Deterministic for a given ``seed``.
+
+    Hypothesis sampling: when the floor is a small share f of the view (a far floor behind
+    walls and occluders), uniform triplets are all-floor with probability f^3 only. With
+    ``local_sampling`` half of the triplets are drawn NAPSAC-style: a uniform first point and
+    two companions a few points / a few image rows later in the (raster-ordered) input, which
+    lie on the same surface far more often. The other half stays uniform.
+
+    Depth cameras' noise grows with z^2, so a point is an inlier within
+    ``inlier_threshold + depth_noise_coeff * z^2`` of the plane (0 keeps a fixed threshold).
 
     Args:
         points: (N, 3) background points in the camera optical frame, metres.
@@ -97,6 +118,9 @@ def fit_ground_plane(
         up: (3,) up direction in the camera frame (-y of the optical frame by default).
         max_points: size of the subsample used to score hypotheses.
         refine_iterations: least-squares rounds on the inliers.
+        depth_noise_coeff: metres per metre^2 added to the threshold at depth z (RealSense ~0.003).
+        local_sampling: draw half of the hypotheses from neighbouring points (input in raster order).
+        local_refinements: how many of the best-scoring hypotheses are refined before choosing.
 
     Returns:
         GroundPlaneResult (``valid`` False when no plane within the tilt prior reaches
@@ -133,14 +157,34 @@ def fit_ground_plane(
         return invalid
 
     rng = np.random.default_rng(seed)
+    points64 = points.astype(np.float64, copy=False)
+    # Capped, so that a far wall does not become a thick slab that any level plane cuts through.
+    thresholds = np.minimum(inlier_threshold + depth_noise_coeff * np.square(points64[:, 2]),
+                            max(inlier_threshold, MAX_NOISE_THRESHOLD_M))
     # Sampling with replacement keeps this O(max_points); repeats are harmless.
     if n_points > max_points:
-        sample = points[rng.integers(0, n_points, size=max_points)].astype(np.float64)
+        chosen = rng.integers(0, n_points, size=max_points)
+        sample, sample_thresholds = points64[chosen], thresholds[chosen]
     else:
-        sample = points.astype(np.float64)
-    triplets = rng.integers(0, sample.shape[0], size=(int(iterations), 3))
-    p0 = sample[triplets[:, 0]]
-    normals = np.cross(sample[triplets[:, 1]] - p0, sample[triplets[:, 2]] - p0)
+        sample, sample_thresholds = points64, thresholds
+    hypotheses = np.empty((int(iterations), 3, 3))
+    uniform = rng.integers(0, sample.shape[0], size=(int(iterations), 3))
+    hypotheses[:] = sample[uniform]
+    if local_sampling and n_points > 3:
+        half = int(iterations) // 2
+        first = rng.integers(0, n_points, size=half)
+        # Companions a little and a good deal later in raster order (along the row, some rows
+        # down), mirrored back when that runs past the end: nearby on the surface, yet far
+        # enough apart that depth noise does not swamp the normal.
+        second = _companion(first, rng.integers(max(1, n_points // 500), max(2, n_points // 50), size=half),
+                            n_points)
+        third = _companion(first, rng.integers(max(2, n_points // 50), max(3, n_points // 10), size=half),
+                           n_points)
+        hypotheses[:half, 0] = points64[first]
+        hypotheses[:half, 1] = points64[second]
+        hypotheses[:half, 2] = points64[third]
+    p0 = hypotheses[:, 0]
+    normals = np.cross(hypotheses[:, 1] - p0, hypotheses[:, 2] - p0)
     lengths = np.linalg.norm(normals, axis=1)
     usable = lengths > 1e-12  # collinear or repeated points give no plane
     normals[usable] /= lengths[usable, None]
@@ -153,18 +197,22 @@ def fit_ground_plane(
     # All hypotheses scored at once: (S, 3) @ (3, H) distances.
     distances = np.abs(sample.astype(np.float32) @ normals.T.astype(np.float32)
                        + offsets.astype(np.float32))
-    scores = np.count_nonzero(distances <= inlier_threshold, axis=0)
-    best = int(np.argmax(scores))  # first best on ties: deterministic
-    normal = normals[best]
-    offset = float(offsets[best])
-
-    points64 = points.astype(np.float64, copy=False)
-    inliers = np.abs(points64 @ normal + offset) <= inlier_threshold
-    for _ in range(int(refine_iterations)):
-        if np.count_nonzero(inliers) < 3:
-            break
-        normal, offset = _refine_plane(points64[inliers], up_vec)
-        inliers = np.abs(points64 @ normal + offset) <= inlier_threshold
+    scores = np.count_nonzero(distances <= sample_thresholds[:, None].astype(np.float32), axis=0)
+    # LO-RANSAC: a hypothesis from three noisy points scores poorly even when it lies on the
+    # floor, so the few best are each refined by least squares before the winner is chosen.
+    order = np.argsort(-scores, kind="stable")[: max(1, int(local_refinements))]
+    best_count = -1
+    for h in order:
+        candidate_normal, candidate_offset = normals[h], float(offsets[h])
+        candidate_inliers = np.abs(points64 @ candidate_normal + candidate_offset) <= thresholds
+        for _ in range(int(refine_iterations)):
+            if np.count_nonzero(candidate_inliers) < 3:
+                break
+            candidate_normal, candidate_offset = _refine_plane(points64[candidate_inliers], up_vec)
+            candidate_inliers = np.abs(points64 @ candidate_normal + candidate_offset) <= thresholds
+        count = int(np.count_nonzero(candidate_inliers))
+        if count > best_count:  # first best on ties: deterministic
+            best_count, normal, offset, inliers = count, candidate_normal, candidate_offset, candidate_inliers
 
     inlier_count = int(np.count_nonzero(inliers))
     cos_tilt = float(np.clip(normal @ up_vec, -1.0, 1.0))

@@ -1,1 +1,1 @@
-"""Person detector, HMR engine, SMPL-X tail and their engine backends (onnxruntime, TensorRT, ground truth)."""
+"""Person detector, HMR engine, SMPL-X tail and their backends (onnxruntime, TensorRT, ground truth)."""

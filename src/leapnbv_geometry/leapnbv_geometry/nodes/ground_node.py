@@ -17,10 +17,11 @@ from leapnbv_msgs.msg import GroundPlane
 
 PARAMETERS = {
     "max_tilt_deg": (30.0, "largest angle between the plane normal and the camera's up (-y): walls are refused"),
-    "inlier_threshold": (0.02, "metres from the plane for a point to count as an inlier"),
-    "iterations": (128, "RANSAC hypotheses per frame"),
+    "inlier_threshold": (0.02, "metres from the plane for a point to count as an inlier (at z = 0)"),
+    "depth_noise_coeff": (0.003, "metres per m^2 added to the inlier threshold at depth z (depth noise ~ z^2)"),
+    "iterations": (512, "RANSAC hypotheses per frame (half drawn from neighbouring points)"),
     "min_inliers": (200, "fewer inliers than this: valid=false"),
-    "min_inlier_ratio": (0.1, "smaller inlier share than this: valid=false"),
+    "min_inlier_ratio": (0.05, "smaller inlier share than this: valid=false"),
     "max_points": (2048, "points subsampled to score the hypotheses (all points refine the winner)"),
     "stride": (4, "pixel stride when back-projecting the depth frame"),
     "min_depth": (0.1, "metres: nearer depth readings are invalid"),
@@ -79,7 +80,7 @@ class GroundNode(Node):
         result = fit_ground_plane(points, max_tilt_deg=p["max_tilt_deg"], inlier_threshold=p["inlier_threshold"],
                                   iterations=p["iterations"], min_inliers=p["min_inliers"],
                                   min_inlier_ratio=p["min_inlier_ratio"], seed=self.rng_seed,
-                                  max_points=p["max_points"])
+                                  max_points=p["max_points"], depth_noise_coeff=p["depth_noise_coeff"])
         out = GroundPlane(header=msg.header, offset=float(result.offset), inlier_count=int(result.inlier_count),
                           inlier_ratio=float(result.inlier_ratio), valid=bool(result.valid))
         out.normal.x, out.normal.y, out.normal.z = (float(v) for v in result.normal)

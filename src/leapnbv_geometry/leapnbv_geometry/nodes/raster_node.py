@@ -22,6 +22,7 @@ from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import declare_parameters, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import CompanionWait, StampCache
+from leapnbv_geometry.raster import warm_up
 from leapnbv_geometry.target_geometry import compute_target_geometry, place_mesh_metric
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry
 
@@ -56,6 +57,7 @@ class RasterNode(Node):
         self.create_subscription(HumanMesh, "human_mesh", self.on_mesh, stage_input_qos(5))
         self.create_subscription(GroundPlane, "ground_plane", self.on_ground, stage_input_qos(5))
         self.create_timer(0.02, self.expire_waits)
+        warm_up()  # compile the rasterizer now, not on the first frame
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds

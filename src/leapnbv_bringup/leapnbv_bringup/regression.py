@@ -1,0 +1,376 @@
+"""Regression harness: replay a bag through the graph and compare every output with golden files.
+
+    python -m leapnbv_bringup.regression bags/sample_a            # compare, exit 1 on regression
+    python -m leapnbv_bringup.regression bags/sample_a --update-golden   # after a deliberate change
+
+The graph runs as separate processes (leapnbv_bringup.graph_runner); the bag is replayed one
+frame at a time (each once the previous frame's final output arrived); every output topic is
+recorded to an output bag (for inspection) and reduced to per-frame values that are compared
+with `<bag>.golden.npz` under the tolerances in TOLERANCES. The report names each topic,
+frame and field that changed, and frames that are missing.
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from leapnbv_bringup.graph import NAMESPACE, OUTPUT_TOPICS
+
+# (topic short name, field) -> absolute tolerance; fields not listed must match exactly.
+TOLERANCES: Dict[Tuple[str, str], float] = {
+    ("detections", "boxes"): 0.5,                 # px
+    ("detections", "scores"): 1e-4,
+    ("human_mesh", "vertices"): 1e-4,             # 0.1 mm
+    ("human_mesh_metric", "vertices"): 1e-4,
+    ("target_geometry", "centroid"): 1e-3,        # m
+    ("target_geometry", "bbox"): 1e-3,
+    ("target_geometry", "visible_fraction"): 1e-3,
+    ("target_geometry", "mask_pixel_count"): 20,  # px (a few edge pixels)
+    ("target_geometry", "target_point_count"): 20,
+    ("target_geometry", "depth_offset"): 1e-3,
+    ("ground_plane", "normal"): 1e-3,
+    ("ground_plane", "offset"): 1e-3,             # m
+    ("ground_plane", "inlier_count"): 50,
+    ("person_mask", "pixel_count"): 20,
+    ("view_candidates", "score"): 1e-4,
+    ("view_candidates", "s_visibility"): 1e-4,
+    ("view_candidates", "s_area"): 1e-4,
+    ("view_candidates", "s_occlusion"): 1e-4,
+    ("next_best_view", "position"): 0.01,         # 1 cm
+    ("next_best_view", "heading_deg"): 1.0,       # 1 degree
+    ("base_goal", "position"): 0.01,
+    ("base_goal", "heading_deg"): 1.0,
+}
+DEFAULT_TOLERANCE = 0.0
+
+
+def short_topic(topic: str) -> str:
+    return topic[len(NAMESPACE) + 1:] if topic.startswith(NAMESPACE + "/") else topic.strip("/")
+
+
+def _stamp_ns(msg) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+def _pose_values(pose) -> Dict[str, np.ndarray]:
+    from leapnbv_common.conversions import pose_to_numpy
+
+    rotation, position = pose_to_numpy(pose)
+    return {"position": position, "rotation": rotation}
+
+
+def frame_values(topic: str, msg) -> Dict[str, np.ndarray]:
+    """The values of one output message that the golden files keep and compare."""
+    from leapnbv_common.conversions import image_to_numpy, pointcloud2_to_xyz
+
+    name = short_topic(topic)
+    if name == "detections":
+        boxes = np.array([[d.x_min, d.y_min, d.x_max, d.y_max] for d in msg.detections], np.float64).reshape(-1, 4)
+        return {"boxes": boxes, "scores": np.array([d.score for d in msg.detections], np.float64)}
+    if name in ("human_mesh", "human_mesh_metric"):
+        return {"vertices": np.frombuffer(msg.vertices, np.float32).reshape(-1, 3).astype(np.float64),
+                "face_count": np.array(len(msg.faces) // 3)}
+    if name == "target_geometry":
+        return {
+            "valid": np.array(bool(msg.valid)),
+            "centroid": np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z]),
+            "bbox": np.array([[msg.bbox_min.x, msg.bbox_min.y, msg.bbox_min.z],
+                              [msg.bbox_max.x, msg.bbox_max.y, msg.bbox_max.z]]),
+            "mask_pixel_count": np.array(msg.mask_pixel_count),
+            "visible_fraction": np.array(msg.visible_fraction, np.float64),
+            "depth_offset": np.array(msg.depth_offset, np.float64),
+            "target_point_count": np.array(len(pointcloud2_to_xyz(msg.target_points))),
+        }
+    if name == "person_mask":
+        return {"pixel_count": np.array(int(np.count_nonzero(image_to_numpy(msg))))}
+    if name == "ground_plane":
+        return {"valid": np.array(bool(msg.valid)), "normal": np.array([msg.normal.x, msg.normal.y, msg.normal.z]),
+                "offset": np.array(msg.offset), "inlier_count": np.array(msg.inlier_count)}
+    if name == "view_candidates":
+        return {"score": np.asarray(msg.score, np.float64), "s_visibility": np.asarray(msg.s_visibility, np.float64),
+                "s_area": np.asarray(msg.s_area, np.float64), "s_occlusion": np.asarray(msg.s_occlusion, np.float64),
+                "feasible": np.asarray(msg.feasible, bool), "chosen_index": np.array(msg.chosen_index)}
+    if name in ("next_best_view", "base_goal"):
+        return _pose_values(msg.pose)
+    if name == "markers":
+        return {"marker_count": np.array(len(msg.markers))}
+    raise ValueError(f"no golden values defined for topic {topic}")
+
+
+def collect_frame_values(decoded: List[Tuple[str, int, object]]) -> Dict[str, Dict[int, Dict[str, np.ndarray]]]:
+    """{topic short name: {stamp: values}} from recorded (topic, receive time, message) triples.
+
+    MarkerArray has no header: its markers carry the frame's header, so the first marker's stamp is used.
+    """
+    out: Dict[str, Dict[int, Dict[str, np.ndarray]]] = {}
+    for topic, _, msg in decoded:
+        if short_topic(topic) == "markers":
+            if not msg.markers:
+                continue
+            stamp = _stamp_ns(msg.markers[0])
+        else:
+            stamp = _stamp_ns(msg)
+        out.setdefault(short_topic(topic), {})[stamp] = frame_values(topic, msg)
+    return out
+
+
+def heading_difference_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> float:
+    """Angle of the rotation between two orientations, degrees."""
+    cos = (np.trace(rot_a.T @ rot_b) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+
+
+@dataclass
+class Finding:
+    topic: str
+    stamp_ns: int
+    field: str
+    status: str  # "ok", "changed", "missing", "unexpected"
+    detail: str = ""
+
+
+def compare_frame(topic: str, stamp: int, got: Dict[str, np.ndarray], want: Dict[str, np.ndarray]) -> List[Finding]:
+    findings = []
+    for key, expected in want.items():
+        if key == "rotation":
+            diff = heading_difference_deg(got["rotation"], expected)
+            tol = TOLERANCES.get((topic, "heading_deg"), 1.0)
+            if diff > tol:
+                findings.append(Finding(topic, stamp, "heading", "changed", f"{diff:.3f} deg > {tol} deg"))
+            continue
+        actual = got.get(key)
+        if actual is None:
+            findings.append(Finding(topic, stamp, key, "changed", "field missing in output"))
+            continue
+        actual, expected = np.asarray(actual), np.asarray(expected)
+        if actual.shape != expected.shape:
+            findings.append(Finding(topic, stamp, key, "changed", f"shape {actual.shape} != golden {expected.shape}"))
+            continue
+        tol = TOLERANCES.get((topic, key), DEFAULT_TOLERANCE)
+        if actual.dtype == bool or expected.dtype == bool:
+            bad = int(np.count_nonzero(actual != expected))
+            if bad:
+                findings.append(Finding(topic, stamp, key, "changed", f"{bad} of {actual.size} flags differ"))
+            continue
+        diff = np.abs(actual.astype(np.float64) - expected.astype(np.float64))
+        worst = float(diff.max()) if diff.size else 0.0
+        if worst > tol:
+            where = int(np.argmax(diff))
+            findings.append(Finding(topic, stamp, key, "changed",
+                                    f"max |diff| {worst:.6g} > {tol:g} (element {where}: "
+                                    f"{actual.ravel()[where]:.6g} vs golden {expected.ravel()[where]:.6g})"))
+    return findings
+
+
+def compare_outputs(got: Dict[str, Dict[int, Dict[str, np.ndarray]]],
+                    golden: Dict[str, Dict[int, Dict[str, np.ndarray]]]) -> List[Finding]:
+    """Every difference between recorded outputs and golden values, frame by frame."""
+    findings: List[Finding] = []
+    for topic in sorted(golden):
+        for stamp in sorted(golden[topic]):
+            frame = got.get(topic, {}).get(stamp)
+            if frame is None:
+                findings.append(Finding(topic, stamp, "-", "missing", "no output for this frame"))
+                continue
+            changed = compare_frame(topic, stamp, frame, golden[topic][stamp])
+            findings.extend(changed or [Finding(topic, stamp, "-", "ok")])
+        for stamp in sorted(set(got.get(topic, {})) - set(golden[topic])):
+            findings.append(Finding(topic, stamp, "-", "unexpected", "output for a frame the golden run did not have"))
+    for topic in sorted(set(got) - set(golden)):
+        findings.append(Finding(topic, 0, "-", "unexpected", "topic not in the golden files"))
+    return findings
+
+
+def save_golden(path: str, values: Dict[str, Dict[int, Dict[str, np.ndarray]]]) -> None:
+    """Write values to an .npz atomically (a failed write never replaces the old golden file)."""
+    arrays = {f"{topic}|{stamp}|{key}": np.asarray(v)
+              for topic, frames in values.items() for stamp, fields in frames.items() for key, v in fields.items()}
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    write_atomically(path, buffer.getvalue())
+
+
+def load_golden(path: str) -> Dict[str, Dict[int, Dict[str, np.ndarray]]]:
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"golden file not found: {path} (create it with --update-golden)")
+    out: Dict[str, Dict[int, Dict[str, np.ndarray]]] = {}
+    with np.load(path, allow_pickle=False) as data:
+        for name in data.files:
+            topic, stamp, key = name.split("|")
+            out.setdefault(topic, {}).setdefault(int(stamp), {})[key] = data[name]
+    return out
+
+
+def write_atomically(path: str, data: bytes) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    handle, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".")
+    try:
+        with os.fdopen(handle, "wb") as out:
+            out.write(data)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; these are shared artefacts
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def golden_paths(bag: str) -> Tuple[str, str]:
+    base = os.path.normpath(bag)
+    return base + ".golden.npz", base + ".golden.json"
+
+
+def golden_summary(values: Dict[str, Dict[int, Dict[str, np.ndarray]]]) -> Dict[str, object]:
+    """A readable digest of the golden run: per frame, the chosen view and its scores."""
+    frames = []
+    for stamp, vc in sorted(values.get("view_candidates", {}).items()):
+        chosen = int(vc["chosen_index"])
+        entry = {"stamp_ns": stamp, "chosen_index": chosen}
+        if chosen >= 0:
+            entry.update({k: round(float(vc[k][chosen]), 6)
+                          for k in ("score", "s_visibility", "s_area", "s_occlusion")})
+            goal = values.get("next_best_view", {}).get(stamp)
+            if goal is not None:
+                entry["position_m"] = [round(float(v), 4) for v in goal["position"]]
+        frames.append(entry)
+    return {"frames": frames, "topics": {t: len(f) for t, f in sorted(values.items())}}
+
+
+def format_report(findings: List[Finding], input_stamps: List[int]) -> Tuple[str, int]:
+    """A per-topic, per-frame report; returns (text, number of failures)."""
+    index = {stamp: i for i, stamp in enumerate(sorted(input_stamps))}
+    lines = []
+    failures = 0
+    by_topic: Dict[str, List[Finding]] = {}
+    for f in findings:
+        by_topic.setdefault(f.topic, []).append(f)
+    for topic, items in sorted(by_topic.items()):
+        bad = [f for f in items if f.status != "ok"]
+        failures += len(bad)
+        ok_frames = len({f.stamp_ns for f in items if f.status == "ok"})
+        lines.append(f"{'FAIL' if bad else 'ok  '} {topic}: {ok_frames} frames match"
+                     + (f", {len(bad)} problems" if bad else ""))
+        for f in bad:
+            frame = index.get(f.stamp_ns, "?")
+            lines.append(f"       frame {frame} (stamp {f.stamp_ns}) {f.field}: {f.status} - {f.detail}")
+    return "\n".join(lines), failures
+
+
+def default_body_model() -> str:
+    """The stand-in body model the sample bags were made with (written on first use)."""
+    from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+
+    return ensure_stand_in_body_model("small")
+
+
+def run_graph_on_bag(bag: str, out_dir: str, overrides, params_file: Optional[str] = None,
+                     frame_timeout_s: float = 20.0) -> Dict[str, object]:
+    """Start the graph, replay `bag` in keep-up mode, record the outputs to out_dir/outputs.
+
+    Returns a dict with the decoded outputs, the input frame stamps, missing frames and timings.
+    """
+    import rclpy
+    from rclpy.node import Node
+
+    from leapnbv_bringup.graph_runner import GraphRunner
+    from leapnbv_bringup.replay import BagReplayer, OutputRecorder
+
+    os.makedirs(out_dir, exist_ok=True)
+    started = time.monotonic()
+    rclpy.init()
+    probe = Node("leapnbv_regression")
+    runner = GraphRunner(params_file, overrides, log_dir=os.path.join(out_dir, "logs"))
+    try:
+        runner.start()
+        ready_s = runner.wait_ready(probe, timeout_s=60.0)
+        recorder = OutputRecorder(probe)
+        replayer = BagReplayer(probe, bag, rate=None, frame_timeout_s=frame_timeout_s)
+        replay_started = time.monotonic()
+        count, timed_out = replayer.run()
+        replay_s = time.monotonic() - replay_started
+        # Trailing outputs (markers, goals) of the last frame.
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            rclpy.spin_once(probe, timeout_sec=0.05)
+        runner.check_alive()
+    finally:
+        runner.stop()
+        decoded = recorder.decoded() if "recorder" in locals() else []
+        probe.destroy_node()
+        rclpy.try_shutdown()
+    recorder.write_bag(os.path.join(out_dir, "outputs"))
+    return {"decoded": decoded, "input_stamps": [f.stamp_ns for f in replayer.frames], "frames": count,
+            "timed_out": timed_out, "ready_s": ready_s, "replay_s": replay_s,
+            "wall_s": time.monotonic() - started, "replayer": replayer}
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    from leapnbv_bringup.graph_runner import (
+        add_graph_arguments,
+        merge_overrides,
+        parse_set_arguments,
+        perception_overrides,
+    )
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("bag", help="input rosbag2 directory (MCAP)")
+    parser.add_argument("--golden", default=None, help="golden .npz (default: <bag>.golden.npz)")
+    parser.add_argument("--update-golden", action="store_true", help="rewrite the golden files from this run")
+    parser.add_argument("--out", default=None, help="output folder (default: out/regression/<bag name>)")
+    add_graph_arguments(parser)
+    args = parser.parse_args(argv)
+
+    bag = os.path.normpath(args.bag)
+    golden_npz, golden_json = golden_paths(bag)
+    golden_npz = args.golden or golden_npz
+    out_dir = args.out or os.path.join("out", "regression", os.path.basename(bag))
+    perception = args.perception or "ground_truth"
+    body = args.body_model or (default_body_model() if perception == "ground_truth" else None)
+    overrides = merge_overrides(perception_overrides(perception, args.detector_model, args.hmr_model, body),
+                                parse_set_arguments(args.set))
+    if not args.update_golden and not os.path.exists(golden_npz):
+        print(f"[regression] golden file not found: {golden_npz} (run with --update-golden)", file=sys.stderr)
+        return 2
+    run = run_graph_on_bag(bag, out_dir, overrides, args.params)
+    values = collect_frame_values(run["decoded"])
+    stamps = run["input_stamps"]
+    print(f"[regression] {bag}: {run['frames']} frames replayed in {run['replay_s']:.1f} s "
+          f"(graph ready in {run['ready_s']:.1f} s); outputs recorded to {os.path.join(out_dir, 'outputs')}")
+    if args.update_golden:
+        missing = [(t, i) for t in sorted(OUTPUT_TOPICS) for i, s in enumerate(stamps)
+                   if s not in values.get(short_topic(t), {})]
+        if missing:
+            print(f"[regression] refusing to write golden files: {len(missing)} outputs missing, e.g. {missing[:5]}",
+                  file=sys.stderr)
+            return 1
+        save_golden(golden_npz, values)
+        write_atomically(golden_json, json.dumps(golden_summary(values), indent=1).encode())
+        print(f"[regression] wrote {golden_npz} and {golden_json}")
+        return 0
+    golden = load_golden(golden_npz)
+    findings = compare_outputs(values, golden)
+    for topic in sorted(short_topic(t) for t in OUTPUT_TOPICS):  # every input frame, every topic
+        for stamp in stamps:
+            if stamp not in values.get(topic, {}) and not any(f.topic == topic and f.stamp_ns == stamp
+                                                              for f in findings):
+                findings.append(Finding(topic, stamp, "-", "missing", "no output for this input frame"))
+    text, failures = format_report(findings, stamps)
+    print(text)
+    print(f"[regression] {'PASS' if failures == 0 else 'FAIL'}: {failures} problems over "
+          f"{len(stamps)} frames x {len(OUTPUT_TOPICS)} topics")
+    return 0 if failures == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
