@@ -1,0 +1,1 @@
+"""ROS 2 node of the planner stage (a thin wrapper around the cores)."""
