@@ -114,6 +114,7 @@ class BagReplayer:
         self.clock_pub = node.create_publisher(Clock, "/clock", 10) if publish_clock else None
         self._clock_class = Clock
         self.completed: Set[int] = set()
+        self.published_at: Dict[int, int] = {}  # frame stamp -> wall time it was published (ns)
         node.create_subscription(_message_class(OUTPUT_TOPICS[wait_topic]), wait_topic, self._on_final, 10,
                                  raw=True)
 
@@ -139,6 +140,7 @@ class BagReplayer:
             clock = self._clock_class()
             clock.clock.sec, clock.clock.nanosec = divmod(frame.log_time_ns, 1_000_000_000)
             self.clock_pub.publish(clock)
+        self.published_at[frame.stamp_ns] = self.node.get_clock().now().nanoseconds
         for m in frame.messages:
             self.publishers[m.topic].publish(m.cdr)
 

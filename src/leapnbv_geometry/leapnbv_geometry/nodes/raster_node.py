@@ -30,7 +30,7 @@ PARAMETERS = {
     "slop_s": (0.005, "largest stamp difference between a mesh and the depth frame it is paired with"),
     "depth_wait_s": (1.0, "how long a mesh waits for its depth frame before it is dropped and counted"),
     "depth_cache_size": (15, "depth frames kept while their meshes are computed"),
-    "ground_wait_s": (0.25, "how long a frame waits for the ground plane of the same stamp, then uses the latest"),
+    "ground_wait_s": (1.0, "how long a frame waits for the ground plane of the same stamp, then uses the latest"),
     "box_dilation_px": (10.0, "the detection box is grown by this much before intersecting the silhouette"),
     "depth_tolerance": (0.15, "metres: mask pixels farther than this from the aligned mesh depth are dropped"),
     "min_depth": (0.1, "metres: nearer depth readings are invalid"),

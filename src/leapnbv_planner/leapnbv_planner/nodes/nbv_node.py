@@ -36,7 +36,7 @@ PARAMETERS = {
     "weight_area": (0.14, "w_a, weight of S_a (projected target box area)"),
     "weight_occlusion": (0.83, "w_o, weight of S_o (share of target points not hidden)"),
     "delta_px": (4.0, "pixels: neighbourhood of the background depth test in S_o"),
-    "ground_wait_s": (0.25, "how long a frame waits for the ground plane of the same stamp, then uses the latest"),
+    "ground_wait_s": (1.0, "how long a frame waits for the ground plane of the same stamp, then uses the latest"),
     "ground_max_age_s": (2.0, "a fallback ground plane older than this is not used"),
 }
 
