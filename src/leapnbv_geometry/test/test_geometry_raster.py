@@ -237,3 +237,25 @@ def test_warm_up_reports_compile_time():
     start = time.perf_counter()
     seconds = warm_up()
     assert 0.0 <= seconds <= time.perf_counter() - start + 1e-6
+
+
+@pytest.mark.slow
+def test_rasterizer_matches_raycast_reference_on_posed_stand_in_body():
+    """The issue's check: a posed stand-in body at 640x480 against independent ray casting."""
+    from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
+    from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
+
+    model = SMPLXModel(build_stand_in_body_model("small"))
+    body = np.zeros(63)
+    body[15 * 3 + 2] = -1.1  # left shoulder down  (joint 16 -> body index 15)
+    body[16 * 3 + 2] = 1.1   # right shoulder down
+    body[17 * 3 + 1] = -1.2  # left elbow bent
+    body[3 * 3] = 0.6        # left knee bent (joint 4 -> body index 3)
+    params = SMPLXParams.from_axis_angle(np.array([np.pi, 0.3, 0.0]), body, np.zeros(45), np.zeros(45),
+                                         np.zeros(3))
+    # Upside-down root (y up -> optical y down), turned a little, 3 m ahead of the camera.
+    vertices = model.forward(params).vertices.astype(np.float64) + np.array([0.1, 0.1, 3.0])
+    iou, max_error, n_rays = compare_with_raycast(vertices, model.faces, K_REAL, WIDTH, HEIGHT)
+    assert n_rays >= 20000
+    assert iou >= 0.99, iou
+    assert max_error <= 1e-3, max_error
