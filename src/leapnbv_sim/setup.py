@@ -20,7 +20,8 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-
+            "simulator_node = leapnbv_sim.nodes.simulator_node:main",
+            "evaluate = leapnbv_sim.evaluation:main",
         ],
     },
 )

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import List, Optional, Sequence
 
 import numpy as np
 
@@ -66,12 +66,13 @@ def _refine_plane(points: np.ndarray, up: np.ndarray):
 
 
 MAX_NOISE_THRESHOLD_M = 0.08
-
-
-def _companion(first: np.ndarray, offset: np.ndarray, n_points: int) -> np.ndarray:
-    """first + offset, or first - offset where that would run past the last point."""
-    ahead = first + offset
-    return np.where(ahead < n_points, ahead, np.maximum(first - offset, 0))
+DISTINCT_COS = float(np.cos(np.radians(5.0)))  # hypotheses closer than this are the same plane
+LOCAL_RADIUS_M = 1.0  # NAPSAC neighbourhood
+LOCAL_POOL = 384  # companions are drawn from this many sample points (bounds the distance matrix)
+LOCAL_MIN_GAP_M = 0.15  # closer companions make the normal noise-dominated
+PARALLEL_COS = float(np.cos(np.radians(2.0)))  # a box top is level with the floor, a slice through it is not
+LEVEL_SEPARATION_M = 0.15  # a surface this far below the best-supported one is another level
+LOW_PLANE_SCORE_SHARE = 0.3  # low hypotheses with at least this share of the best score are refined too
 
 
 def fit_ground_plane(
@@ -88,6 +89,8 @@ def fit_ground_plane(
     depth_noise_coeff: float = 0.0,
     local_sampling: bool = True,
     local_refinements: int = 6,
+    lowest_plane_share: float = 0.5,
+    camera_height_range: Sequence[float] = (0.0, float("inf")),
 ) -> GroundPlaneResult:
     """Fit the ground plane n.x + d = 0 to background points.
 
@@ -101,8 +104,8 @@ def fit_ground_plane(
     Hypothesis sampling: when the floor is a small share f of the view (a far floor behind
     walls and occluders), uniform triplets are all-floor with probability f^3 only. With
     ``local_sampling`` half of the triplets are drawn NAPSAC-style: a uniform first point and
-    two companions a few points / a few image rows later in the (raster-ordered) input, which
-    lie on the same surface far more often. The other half stays uniform.
+    two companions among the subsample points 0.15 to 1 m from it, which lie on the same
+    surface far more often. The other half stays uniform.
 
     Depth cameras' noise grows with z^2, so a point is an inlier within
     ``inlier_threshold + depth_noise_coeff * z^2`` of the plane (0 keeps a fixed threshold).
@@ -119,8 +122,13 @@ def fit_ground_plane(
         max_points: size of the subsample used to score hypotheses.
         refine_iterations: least-squares rounds on the inliers.
         depth_noise_coeff: metres per metre^2 added to the threshold at depth z (RealSense ~0.003).
-        local_sampling: draw half of the hypotheses from neighbouring points (input in raster order).
+        local_sampling: draw half of the hypotheses from neighbouring points (NAPSAC).
         local_refinements: how many of the best-scoring hypotheses are refined before choosing.
+        camera_height_range: (min, max) height of the camera above the floor, i.e. of d; planes
+            outside it are refused like tilted ones. A robot knows its camera's mounting height:
+            this prior keeps box and table tops (and the ceiling) out.
+        lowest_plane_share: among refined planes with at least this share of the best one's
+            inliers, the lowest (largest offset) wins; 1.0 keeps the most-supported plane.
 
     Returns:
         GroundPlaneResult (``valid`` False when no plane within the tilt prior reaches
@@ -170,19 +178,21 @@ def fit_ground_plane(
     hypotheses = np.empty((int(iterations), 3, 3))
     uniform = rng.integers(0, sample.shape[0], size=(int(iterations), 3))
     hypotheses[:] = sample[uniform]
-    if local_sampling and n_points > 3:
+    if local_sampling and sample.shape[0] > 3:
+        # NAPSAC: companions drawn among the sample points within LOCAL_RADIUS_M of a uniform
+        # first point lie on the same surface far more often than uniform draws do.
         half = int(iterations) // 2
-        first = rng.integers(0, n_points, size=half)
-        # Companions a little and a good deal later in raster order (along the row, some rows
-        # down), mirrored back when that runs past the end: nearby on the surface, yet far
-        # enough apart that depth noise does not swamp the normal.
-        second = _companion(first, rng.integers(max(1, n_points // 500), max(2, n_points // 50), size=half),
-                            n_points)
-        third = _companion(first, rng.integers(max(2, n_points // 50), max(3, n_points // 10), size=half),
-                           n_points)
-        hypotheses[:half, 0] = points64[first]
-        hypotheses[:half, 1] = points64[second]
-        hypotheses[:half, 2] = points64[third]
+        first = rng.integers(0, sample.shape[0], size=half)
+        pool = sample[rng.integers(0, sample.shape[0], size=min(LOCAL_POOL, sample.shape[0]))]
+        gaps = np.sqrt(np.square(sample[first][:, None, :] - pool[None, :, :]).sum(axis=2))
+        keys = rng.random(gaps.shape)
+        keys[(gaps < LOCAL_MIN_GAP_M) | (gaps > LOCAL_RADIUS_M)] = -1.0
+        companions = np.argpartition(-keys, 1, axis=1)[:, :2]
+        has_two = np.take_along_axis(keys, companions, axis=1).min(axis=1) >= 0.0
+        local = hypotheses[:half]
+        local[has_two, 0] = sample[first[has_two]]
+        local[has_two, 1] = pool[companions[has_two, 0]]
+        local[has_two, 2] = pool[companions[has_two, 1]]
     p0 = hypotheses[:, 0]
     normals = np.cross(hypotheses[:, 1] - p0, hypotheses[:, 2] - p0)
     lengths = np.linalg.norm(normals, axis=1)
@@ -192,16 +202,38 @@ def fit_ground_plane(
     usable &= normals @ up_vec >= cos_max_tilt  # the tilt prior
     if not np.any(usable):
         return invalid
+    offsets = -np.einsum("ij,ij->i", normals, p0)
+    min_height, max_height = (float(v) for v in camera_height_range)
+    usable &= (offsets >= min_height) & (offsets <= max_height)  # the height prior
+    if not np.any(usable):
+        return invalid
     normals = normals[usable]
-    offsets = -np.einsum("ij,ij->i", normals, p0[usable])
+    offsets = offsets[usable]
     # All hypotheses scored at once: (S, 3) @ (3, H) distances.
     distances = np.abs(sample.astype(np.float32) @ normals.T.astype(np.float32)
                        + offsets.astype(np.float32))
     scores = np.count_nonzero(distances <= sample_thresholds[:, None].astype(np.float32), axis=0)
     # LO-RANSAC: a hypothesis from three noisy points scores poorly even when it lies on the
     # floor, so the few best are each refined by least squares before the winner is chosen.
-    order = np.argsort(-scores, kind="stable")[: max(1, int(local_refinements))]
-    best_count = -1
+    # The best few DISTINCT hypotheses (a plane is found many times over; refining copies
+    # of the winner would crowd out the runner-up, e.g. the floor behind a larger box top),
+    # and the lowest few among those with a fair share of the best score (the floor is the
+    # lowest surface, however little of it is in view).
+    def distinct(candidates: np.ndarray, chosen: List[int], limit: int) -> None:
+        for h in candidates:
+            if len(chosen) >= limit:
+                return
+            if all(abs(offsets[h] - offsets[k]) > 2 * inlier_threshold or normals[h] @ normals[k] < DISTINCT_COS
+                   for k in chosen):
+                chosen.append(int(h))
+
+    order: List[int] = []
+    limit = max(1, int(local_refinements))
+    distinct(np.argsort(-scores, kind="stable"), order, limit)
+    fair = np.nonzero(scores >= LOW_PLANE_SCORE_SHARE * scores.max())[0]
+    distinct(fair[np.argsort(-offsets[fair], kind="stable")], order, 2 * limit)
+    order = order or [int(np.argmax(scores))]
+    refined = []
     for h in order:
         candidate_normal, candidate_offset = normals[h], float(offsets[h])
         candidate_inliers = np.abs(points64 @ candidate_normal + candidate_offset) <= thresholds
@@ -211,13 +243,21 @@ def fit_ground_plane(
             candidate_normal, candidate_offset = _refine_plane(points64[candidate_inliers], up_vec)
             candidate_inliers = np.abs(points64 @ candidate_normal + candidate_offset) <= thresholds
         count = int(np.count_nonzero(candidate_inliers))
-        if count > best_count:  # first best on ties: deterministic
-            best_count, normal, offset, inliers = count, candidate_normal, candidate_offset, candidate_inliers
+        refined.append((count, candidate_normal, candidate_offset, candidate_inliers))
+    # The floor is the lowest level surface: a box or table top may hold as many points, but
+    # never lies below it. A well-supported plane PARALLEL to the best-supported one and clearly
+    # below it (not the same noisy surface fitted twice) is the floor; else the best one is.
+    best = max(refined, key=lambda r: r[0])
+    lower = [r for r in refined
+             if r[0] >= lowest_plane_share * best[0] and r[1] @ best[1] >= PARALLEL_COS
+             and r[2] > best[2] + LEVEL_SEPARATION_M]
+    _, normal, offset, inliers = max(lower, key=lambda r: r[2]) if lower else best
 
     inlier_count = int(np.count_nonzero(inliers))
     cos_tilt = float(np.clip(normal @ up_vec, -1.0, 1.0))
     valid = (
-        inlier_count >= min_inliers
+        min_height <= offset <= max_height
+        and inlier_count >= min_inliers
         and inlier_count >= min_inlier_ratio * n_points
         and cos_tilt >= cos_max_tilt
     )

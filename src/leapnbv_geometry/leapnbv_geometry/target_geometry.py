@@ -254,16 +254,20 @@ def _dilated_box(box_xyxy: Sequence[float], dilation_px: float, width: int, heig
     return row0, row1, col0, col1
 
 
-def _robust_depth_offset(offsets: np.ndarray, tolerance: float) -> float:
-    """Depth offset of the dominant cluster of D - D_mesh values.
+MIN_CLUSTER_SHARE = 0.15
+
+
+def _robust_depth_offset(offsets: np.ndarray, tolerance: float, min_share: float = MIN_CLUSTER_SHARE) -> float:
+    """Depth offset of the person's cluster of D - D_mesh values.
 
     The person's offsets are tightly clustered (the mesh models its surface, so D - D_mesh is
-    nearly constant over it) while occluders and background seen through gaps spread over many
-    values. We take the densest window of width ``tolerance`` (histogram with bins of
-    tolerance / 3, summed over 3 neighbouring bins), then the median of the offsets within
-    ``tolerance`` of that window's centre, then once more the median within ``tolerance`` of
-    that median. A plain median over the mask would be dragged onto an occluder that covers a
-    large part of the person.
+    nearly constant over it); occluders form clusters NEARER than the person, and background
+    seen through gaps of an imperfect silhouette is farther but covers little of it. So we take
+    the FARTHEST window of width ``tolerance`` (histogram bins of tolerance / 3, summed over 3
+    neighbouring bins) that holds at least ``min_share`` of the offsets -- the densest window
+    when none does -- then the median of the offsets within ``tolerance`` of its centre, twice.
+    Neither a plain median nor the densest cluster works once an occluder covers more of the
+    silhouette than the visible person does: both would align the mesh to the occluder.
     """
     bin_width = tolerance / 3.0
     lowest = float(offsets.min())
@@ -271,7 +275,9 @@ def _robust_depth_offset(offsets: np.ndarray, tolerance: float) -> float:
     counts = np.bincount(bins)
     if counts.shape[0] >= 3:
         window = counts[:-2] + counts[1:-1] + counts[2:]
-        centre = lowest + (int(np.argmax(window)) + 1.5) * bin_width
+        supported = np.nonzero(window >= min_share * offsets.size)[0]
+        chosen = int(supported[-1]) if supported.size else int(np.argmax(window))
+        centre = lowest + (chosen + 1.5) * bin_width
     else:
         centre = lowest + 0.5 * counts.shape[0] * bin_width
     for _ in range(2):

@@ -99,3 +99,19 @@ def test_floor_from_rendered_depth():
     np.testing.assert_allclose(result.normal, [0.0, -1.0, 0.0], atol=1e-4)
     assert result.offset == pytest.approx(1.1, abs=1e-3)
     assert result.inlier_ratio == pytest.approx(1.0)
+
+
+def test_floor_wins_over_a_larger_box_top_above_it():
+    """A table or box top can hold more points than the visible floor; the floor is the lowest."""
+    rng = np.random.default_rng(4)
+    floor = np.column_stack([rng.uniform(-2, 2, 3000), np.full(3000, 1.2), rng.uniform(2, 6, 3000)])
+    top = np.column_stack([rng.uniform(-0.8, 0.8, 4500), np.full(4500, 0.5), rng.uniform(2, 3, 4500)])
+    clutter = rng.uniform([-2, -1, 1], [2, 1.2, 6], size=(1500, 3))
+    points = np.concatenate([floor, top, clutter]) + rng.normal(0, 0.004, size=(9000, 3))
+    result = fit_ground_plane(points, seed=1, local_sampling=False)
+    assert result.valid
+    assert result.offset == pytest.approx(1.2, abs=0.01)
+    assert np.degrees(np.arccos(abs(result.normal @ np.array([0.0, -1.0, 0.0])))) < 1.0
+    # With only the best-supported plane allowed, the box top would win: the preference matters.
+    assert fit_ground_plane(points, seed=1, local_sampling=False, lowest_plane_share=1.0).offset == \
+        pytest.approx(0.5, abs=0.01)

@@ -224,3 +224,29 @@ def test_depth_to_metres():
     metres = depth_to_metres(np.array([[np.nan, 1.0], [np.inf, -2.0]], dtype=np.float32))
     np.testing.assert_array_equal(metres, [[0.0, 1.0], [0.0, 0.0]])
     assert metres.dtype == np.float32
+
+
+def test_depth_alignment_stays_on_the_person_when_an_occluder_covers_most_of_it():
+    """An occluder hiding ~70 % of the silhouette must not become the target (it is nearer)."""
+    z = 3.0
+    person = person_mesh(z, arm_width=0.08)
+    big_occluder = box_mesh((-0.1, 0.25, z - 0.8), (0.45, 0.9, 0.05))
+    wall = box_mesh((0.0, 0.0, z + 1.5), (8.0, 4.0, 0.05))
+    meshes = [person, wall, big_occluder]
+    ids = np.concatenate([np.full(len(m.faces), i, dtype=np.int32) for i, m in enumerate(meshes)])
+    scene = trimesh.util.concatenate(meshes)
+    rendered = rasterize_mesh(scene.vertices, scene.faces, K_REAL, WIDTH, HEIGHT, face_object_id=ids)
+    alone = rasterize_mesh(person.vertices, person.faces, K_REAL, WIDTH, HEIGHT)
+    hidden = np.count_nonzero(alone.silhouette & (rendered.object_id == 2)) / np.count_nonzero(alone.silhouette)
+    assert 0.6 < hidden < 0.8, hidden  # precondition: the occluder covers most of the person
+
+    # The estimate is 0.3 m too far: the alignment must bring it back onto the person, not the box.
+    estimate = person.vertices * (z + 0.3) / z
+    result = compute_target_geometry(estimate, person.faces, rendered.depth, K_REAL,
+                                     silhouette_box(alone.silhouette))
+    assert result.valid
+    assert result.depth_offset == pytest.approx(-0.3, abs=0.03)
+    kept_ids = rendered.object_id[result.mask]
+    assert np.all(kept_ids == PERSON)
+    visible_person = alone.silhouette & (rendered.object_id == PERSON)
+    assert result.mask_pixel_count >= 0.95 * np.count_nonzero(visible_person)

@@ -191,3 +191,108 @@ def latency_summary(samples_ms: Sequence[float]) -> Dict[str, float]:
         "p99": float(p99),
         "max": float(samples.max()),
     }
+
+
+# Largest side (pixels) of the body-only render that decides self-visibility; beyond it the
+# focal length is scaled down (coarser, but the whole body still fits).
+MAX_SELF_VISIBILITY_IMAGE_PX = 4096
+
+
+def self_visible_vertex_mask(
+    vertices_cam: np.ndarray,
+    faces: np.ndarray,
+    K: np.ndarray,
+    tolerance: float = 0.02,
+    max_image_px: int = MAX_SELF_VISIBILITY_IMAGE_PX,
+) -> np.ndarray:
+    """Which vertices the body shows by itself from this viewpoint, image bounds ignored.
+
+    The body alone is rendered with a virtual camera at the same pose, with the same focal
+    length and a principal point shifted by whole pixels so that every vertex in front of
+    the camera lands inside a virtual image just large enough for them (the pixel grid stays
+    the one of the real camera, so the test below matches :func:`visible_vertex_mask` on the
+    real image pixel for pixel). A vertex is self-visible when it is in front (z > 0) and not
+    more than ``tolerance`` behind that body-only depth (see :func:`visible_vertex_mask`).
+    When the virtual image would exceed ``max_image_px`` on a side, the focal length is scaled
+    down to fit (coarser pixels; only for bodies very near the camera).
+
+    Args:
+        vertices_cam: (V,3) body vertices in the camera optical frame, metres.
+        faces: (F,3) int triangles into vertices_cam.
+        K: (3,3) intrinsics of the real camera.
+        tolerance: Metres a vertex may lie behind the body surface and still count.
+        max_image_px: Largest side of the virtual image.
+
+    Returns:
+        (V,) bool.
+
+    Raises:
+        ValueError: Bad shapes.
+    """
+    from leapnbv_geometry.raster import rasterize_mesh
+
+    vertices = np.asarray(vertices_cam, dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices_cam must be (V,3), got {vertices.shape}")
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces must be (F,3), got {faces.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    # Only vertices clearly in front matter: the rasterizer clips at z = 1 cm anyway.
+    in_front = vertices[:, 2] > 0.01
+    if not np.any(in_front):
+        return np.zeros(vertices.shape[0], dtype=bool)
+    uv = project_points(vertices[in_front], K)
+    u_min, v_min = np.floor(uv.min(axis=0)) - 2.0
+    u_max, v_max = np.ceil(uv.max(axis=0)) + 2.0
+    scale = min(1.0, float(max_image_px) / max(u_max - u_min + 1.0, v_max - v_min + 1.0))
+    virtual_K = K.copy()
+    if scale < 1.0:
+        # Scale about the principal point, then shift: pixels grow by 1/scale.
+        virtual_K[0, 0] *= scale
+        virtual_K[1, 1] *= scale
+        virtual_K[0, 1] *= scale
+        uv = project_points(vertices[in_front], virtual_K)
+        u_min, v_min = np.floor(uv.min(axis=0)) - 2.0
+        u_max, v_max = np.ceil(uv.max(axis=0)) + 2.0
+    virtual_K[0, 2] -= u_min
+    virtual_K[1, 2] -= v_min
+    width = int(u_max - u_min) + 1
+    height = int(v_max - v_min) + 1
+    body_depth = rasterize_mesh(vertices, faces, virtual_K, width, height).depth
+    return visible_vertex_mask(vertices, body_depth, virtual_K, tolerance)
+
+
+def surface_coverage(
+    gt_vertices_cam: np.ndarray,
+    body_faces: np.ndarray,
+    scene_depth_m: np.ndarray,
+    K: np.ndarray,
+    tolerance: float = 0.02,
+) -> float:
+    """Share of the body surface this viewpoint could show that it does show (in [0, 1]).
+
+    :func:`body_coverage` divides by all vertices; its ceiling is about 50-55 % because the
+    back of a body is always hidden by its front. Here the denominator is the set of vertices
+    the body shows by itself from the camera's position (in front, not self-occluded, image
+    bounds ignored: :func:`self_visible_vertex_mask`), and the numerator those of them that
+    the real view sees (inside the image, in front, not behind the scene depth by more than
+    ``tolerance``: :func:`visible_vertex_mask`). An unoccluded, fully framed body scores ~1;
+    occluders and the image border lower it.
+
+    Args:
+        gt_vertices_cam: (V,3) ground-truth body vertices in the camera optical frame, metres.
+        body_faces: (F,3) the body model's triangles.
+        scene_depth_m: (H,W) noise-free depth of the whole scene from this camera, metres.
+        K: (3,3) intrinsics.
+        tolerance: Metres a vertex may lie behind a surface and still count (default 2 cm).
+
+    Returns:
+        Fraction in [0, 1]; 0 when the body shows no vertex from here (e.g. behind the camera).
+    """
+    self_visible = self_visible_vertex_mask(gt_vertices_cam, body_faces, K, tolerance)
+    count = int(np.count_nonzero(self_visible))
+    if count == 0:
+        return 0.0
+    seen = visible_vertex_mask(gt_vertices_cam, scene_depth_m, K, tolerance) & self_visible
+    return float(np.count_nonzero(seen)) / float(count)

@@ -17,11 +17,13 @@ from leapnbv_msgs.msg import GroundPlane
 
 PARAMETERS = {
     "max_tilt_deg": (30.0, "largest angle between the plane normal and the camera's up (-y): walls are refused"),
-    "inlier_threshold": (0.02, "metres from the plane for a point to count as an inlier (at z = 0)"),
-    "depth_noise_coeff": (0.003, "metres per m^2 added to the inlier threshold at depth z (depth noise ~ z^2)"),
-    "iterations": (512, "RANSAC hypotheses per frame (half drawn from neighbouring points)"),
+    "min_camera_height": (0.0, "metres: the camera is at least this high above the floor (mounting prior)"),
+    "max_camera_height": (10.0, "metres: the camera is at most this high above the floor (box tops are refused)"),
+    "inlier_threshold": (0.03, "metres from the plane for a point to count as an inlier (at z = 0)"),
+    "depth_noise_coeff": (0.0, "metres per m^2 added to the inlier threshold at depth z (depth noise ~ z^2)"),
+    "iterations": (256, "RANSAC hypotheses per frame (half drawn from neighbouring points)"),
     "min_inliers": (200, "fewer inliers than this: valid=false"),
-    "min_inlier_ratio": (0.05, "smaller inlier share than this: valid=false"),
+    "min_inlier_ratio": (0.02, "smaller inlier share than this: valid=false"),
     "max_points": (2048, "points subsampled to score the hypotheses (all points refine the winner)"),
     "stride": (4, "pixel stride when back-projecting the depth frame"),
     "min_depth": (0.1, "metres: nearer depth readings are invalid"),
@@ -80,7 +82,8 @@ class GroundNode(Node):
         result = fit_ground_plane(points, max_tilt_deg=p["max_tilt_deg"], inlier_threshold=p["inlier_threshold"],
                                   iterations=p["iterations"], min_inliers=p["min_inliers"],
                                   min_inlier_ratio=p["min_inlier_ratio"], seed=self.rng_seed,
-                                  max_points=p["max_points"], depth_noise_coeff=p["depth_noise_coeff"])
+                                  max_points=p["max_points"], depth_noise_coeff=p["depth_noise_coeff"],
+                                  camera_height_range=(p["min_camera_height"], p["max_camera_height"]))
         out = GroundPlane(header=msg.header, offset=float(result.offset), inlier_count=int(result.inlier_count),
                           inlier_ratio=float(result.inlier_ratio), valid=bool(result.valid))
         out.normal.x, out.normal.y, out.normal.z = (float(v) for v in result.normal)

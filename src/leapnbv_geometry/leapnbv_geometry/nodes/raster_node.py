@@ -70,9 +70,11 @@ class RasterNode(Node):
     def on_depth(self, msg: Image) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         self.depth_frames.put(stamp, msg)
-        waiting = self.pending_meshes.pop(stamp)
+        # A mesh that came first pairs with this depth under the same slop as the other order.
+        waiting = self.pending_meshes.find_nearest(stamp, int(self.params["slop_s"] * 1e9))
         if waiting is not None:
-            self.pair_with_ground(waiting[0], msg)
+            self.pending_meshes.pop(waiting[0])
+            self.pair_with_ground(waiting[1][0], msg)
 
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:

@@ -141,8 +141,8 @@ class HmrNode(Node):
         return HumanMeshArrays(
             vertices=est.vertices, faces=est.faces, virtual_intrinsics=(est.fx, est.fy, est.cx, est.cy),
             image_size=(rgb.shape[1], rgb.shape[0]), detection=box, processed_box=est.processed_box,
-            root_pose=est.root_pose, body_pose=est.body_pose, left_hand_pose=est.left_hand_pose,
-            right_hand_pose=est.right_hand_pose, jaw_pose=est.jaw_pose, betas=est.betas,
+            root_pose=est.root, body_pose=est.body, left_hand_pose=est.left_hand,
+            right_hand_pose=est.right_hand, jaw_pose=est.jaw, betas=est.betas,
             expression=est.expression, cam_translation=est.cam_translation,
             model_id=os.path.basename(self.params["model_file_path"]))
 

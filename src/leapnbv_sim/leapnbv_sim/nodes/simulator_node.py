@@ -1,0 +1,363 @@
+"""simulator_node: a simulated RGB-D camera on a robot that drives to the next-best-view goals it gets.
+
+The node holds one synthetic scene (:mod:`leapnbv_sim.scene`) and renders it from the robot's
+current camera pose, publishing what a RealSense driver would (colour, aligned depth in mm, both
+camera infos) plus the simulator's ground truth, all five with one header (stamp = the sim time of
+the frame, frame_id = the camera's optical frame), and the world pose of the camera it rendered
+from on ``/leapnbv/sim/camera_pose`` (frame ``world_frame_id``).
+
+It remembers the world camera pose of every stamp it published (a bounded memory) and
+subscribes to the next-best-view goal (``goal``, remapped to ``/leapnbv/next_best_view`` by
+default): a camera pose in the optical frame of the observation whose stamp the goal carries.
+That pose goes to the world with ``pose_in_world(T_world_observation, R, p)``, and the camera
+moves there:
+
+* ``move_speed_m_s`` = 0: at once (the next frame is rendered from the goal);
+* ``move_speed_m_s`` > 0: along the straight line from where the camera is at the goal's
+  arrival, at that speed in sim time; the orientation is slerped with the same progress (the
+  camera turns while it drives and arrives with the goal's orientation). Motion starts at the
+  sim time of the latest published frame, so frame stamps alone decide where each frame is
+  rendered from (deterministic for in-process callers that choose the stamps).
+
+A goal whose stamp the node never published (or forgot), or in another frame, is rejected and
+counted on /diagnostics; the camera then stays where it is.
+
+Frames are rendered at ``rate_hz`` from a timer (stamp = the node clock, which follows /clock
+under use_sim_time), or, with ``rate_hz`` = 0, only when an in-process caller asks
+(:meth:`SimulatorNode.publish_frame`, which takes the stamp to use). An in-process caller may
+also hand the node a ready :class:`~leapnbv_sim.scene.Scene` (:meth:`SimulatorNode.set_scene`)
+instead of the ``scene_seed`` parameters.
+
+    python -m leapnbv_sim.nodes.simulator_node --ros-args -p scene_seed:=3 -p rate_hz:=5.0
+"""
+from __future__ import annotations
+
+import sys
+import time
+from collections import OrderedDict
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+from leapnbv_common.conversions import (
+    ConversionError,
+    box_to_detection,
+    make_camera_info,
+    numpy_to_image,
+    pose_msg,
+    pose_to_numpy,
+    stamp_to_ns,
+)
+from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
+from leapnbv_common.node_params import declare_parameters
+from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_output_qos
+from leapnbv_msgs.msg import SceneGroundTruth
+from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from leapnbv_sim.bag_io import (
+    COLOR_IMAGE_TOPIC,
+    COLOR_INFO_TOPIC,
+    DEPTH_IMAGE_TOPIC,
+    DEPTH_INFO_TOPIC,
+    GROUND_TRUTH_TOPIC,
+)
+from leapnbv_sim.scene import CameraPose, RenderedFrame, Scene, pose_in_world
+
+CAMERA_POSE_TOPIC = "/leapnbv/sim/camera_pose"
+DEFAULT_GOAL_TOPIC = "/leapnbv/next_best_view"
+# Local remap of the relative goal topic applied unless the caller remaps it itself.
+DEFAULT_GOAL_REMAP = ["--ros-args", "-r", "goal:=" + DEFAULT_GOAL_TOPIC]
+# Camera drivers offer sensor-data QoS: best effort, keep the last 5 frames.
+CAMERA_QOS_DEPTH = 5
+
+PARAMETERS = {
+    "scene_seed": (0, "seed of the synthetic scene (leapnbv_sim.scene.SceneConfig.seed)"),
+    "body_resolution": ("small", "stand-in body model resolution: small or full"),
+    "body_model_path": ("", "SMPL-X layout .npz of the scene's body (empty: the stand-in of body_resolution)"),
+    "walls": (True, "add a wall behind the person (and sometimes one beside)"),
+    "depth_noise": (True, "corrupt the depth like a structured-light sensor"),
+    "rate_hz": (10.0, "frames per second from a timer; 0 = only when an in-process caller asks"),
+    "move_speed_m_s": (0.0, "0 = jump to each goal; > 0 = drive there on a straight line at this speed"),
+    "frame_id": ("camera_color_optical_frame", "frame_id of every published frame"),
+    "world_frame_id": ("sim_world", "frame_id of the published camera pose (the simulator's world)"),
+    "pose_memory": (300, "how many published stamps keep their camera pose for goal lookups"),
+}
+
+
+class SimulatorError(ValueError):
+    """The simulator cannot do what was asked (no scene, bad stamp); the text says why."""
+
+
+def interpolate_camera_pose(start: CameraPose, goal: CameraPose, fraction: float) -> CameraPose:
+    """A pose between two camera poses: position on the straight line, orientation slerped.
+
+    R(f) = R_0 exp(f log(R_0^T R_1)), p(f) = p_0 + f (p_1 - p_0), with f clipped to [0, 1].
+
+    Args:
+        start: Pose at fraction 0.
+        goal: Pose at fraction 1.
+        fraction: Progress along the motion.
+
+    Returns:
+        The interpolated T_world_camera (exactly ``goal`` at fraction >= 1).
+    """
+    f = min(1.0, max(0.0, float(fraction)))
+    if f >= 1.0:
+        return CameraPose(goal.rotation.copy(), goal.position.copy())
+    relative = matrix_to_axis_angle(start.rotation.T @ goal.rotation)
+    rotation = start.rotation @ axis_angle_to_matrix(f * np.asarray(relative, dtype=np.float64))
+    position = start.position + f * (goal.position - start.position)
+    return CameraPose(rotation, position)
+
+
+class CameraMotion:
+    """A straight-line camera motion in sim time (speed 0: the goal is reached at once)."""
+
+    def __init__(self, start: CameraPose, goal: CameraPose, start_ns: int, speed_m_s: float) -> None:
+        self.start = start
+        self.goal = goal
+        self.start_ns = int(start_ns)
+        self.speed_m_s = float(speed_m_s)
+        self.distance_m = float(np.linalg.norm(goal.position - start.position))
+
+    def fraction_at(self, stamp_ns: int) -> float:
+        """Progress in [0, 1] at a sim time (1 for an instant move or a pure turn)."""
+        if self.speed_m_s <= 0.0 or self.distance_m < 1e-9:
+            return 1.0
+        travelled = max(0, int(stamp_ns) - self.start_ns) * 1e-9 * self.speed_m_s
+        return min(1.0, travelled / self.distance_m)
+
+    def pose_at(self, stamp_ns: int) -> CameraPose:
+        return interpolate_camera_pose(self.start, self.goal, self.fraction_at(stamp_ns))
+
+
+def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: str) -> SceneGroundTruth:
+    """leapnbv_msgs/SceneGroundTruth of a rendered frame (an all-zero box, score 0, when no person is visible).
+
+    Args:
+        header: The frame's header.
+        frame: The rendered frame (its ``ground_truth``).
+        body_model_id: Which body model the parameters belong to.
+
+    Returns:
+        The message.
+    """
+    truth = frame.ground_truth
+    if truth.person_box_xyxy is None:
+        box = np.zeros(5, dtype=np.float32)
+    else:
+        box = np.array(list(truth.person_box_xyxy) + [1.0], dtype=np.float32)
+    params = truth.body_params_camera
+    msg = SceneGroundTruth(header=header, person_box=box_to_detection(box), body_model_id=str(body_model_id))
+    msg.root_pose = np.asarray(params.root_pose, dtype=np.float32).reshape(3)
+    msg.body_pose = np.asarray(params.body_pose, dtype=np.float32).reshape(63)
+    msg.left_hand_pose = np.asarray(params.left_hand_pose, dtype=np.float32).reshape(45)
+    msg.right_hand_pose = np.asarray(params.right_hand_pose, dtype=np.float32).reshape(45)
+    msg.jaw_pose = np.asarray(params.jaw_pose, dtype=np.float32).reshape(3)
+    msg.betas = np.asarray(params.betas, dtype=np.float32).reshape(10)
+    msg.expression = np.asarray(params.expression, dtype=np.float32).reshape(10)
+    msg.translation = np.asarray(truth.translation_camera, dtype=np.float32).reshape(3)
+    msg.occlusion_share = float(truth.occlusion_share)
+    return msg
+
+
+def load_scene(seed: int, body_resolution: str = "small", body_model_path: str = "", walls: bool = True,
+               depth_noise: bool = True) -> Scene:
+    """Generate the scene the node's parameters describe (default SceneConfig otherwise).
+
+    Raises:
+        SceneError: The seed gives no usable scene.
+    """
+    from leapnbv_perception.smplx_layer import SMPLXModel
+    from leapnbv_sim.scene import SceneConfig, generate_scene
+    from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+
+    path = body_model_path or ensure_stand_in_body_model(body_resolution)
+    config = SceneConfig(seed=int(seed), walls=bool(walls), depth_noise=bool(depth_noise),
+                         body_resolution=str(body_resolution))
+    return generate_scene(config, SMPLXModel.load(path))
+
+
+class SimulatorNode(Node):
+    """The simulated robot camera (see the module docstring).
+
+    Args:
+        scene: A ready scene (in-process callers); generated from the parameters when None.
+        **node_kwargs: Passed to rclpy's Node (e.g. ``parameter_overrides``, ``cli_args``);
+            without ``cli_args`` the goal topic is remapped to /leapnbv/next_best_view.
+    """
+
+    def __init__(self, scene: Optional[Scene] = None, **node_kwargs: Any) -> None:
+        node_kwargs.setdefault("cli_args", list(DEFAULT_GOAL_REMAP))
+        super().__init__("simulator_node", **node_kwargs)
+        p = self.params = declare_parameters(self, PARAMETERS)
+        self.diagnostics = StageDiagnostics(self, hardware_id="simulator")
+        self.frame_id = str(p["frame_id"])
+        camera_qos = camera_input_qos(CAMERA_QOS_DEPTH)
+        self.image_pub = self.create_publisher(Image, COLOR_IMAGE_TOPIC, camera_qos)
+        self.image_info_pub = self.create_publisher(CameraInfo, COLOR_INFO_TOPIC, camera_qos)
+        self.depth_pub = self.create_publisher(Image, DEPTH_IMAGE_TOPIC, camera_qos)
+        self.depth_info_pub = self.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, camera_qos)
+        # The detector and HMR nodes pair every image with its ground truth: deliver it reliably.
+        self.truth_pub = self.create_publisher(SceneGroundTruth, GROUND_TRUTH_TOPIC, stage_output_qos(10))
+        self.pose_pub = self.create_publisher(PoseStamped, CAMERA_POSE_TOPIC, stage_output_qos(10))
+        self.create_subscription(PoseStamped, "goal", self.on_goal, latched_goal_qos())
+
+        self.scene: Optional[Scene] = None
+        self.camera: Optional[CameraPose] = None
+        self.motion: Optional[CameraMotion] = None
+        self.frame_count = 0
+        self.last_stamp_ns: Optional[int] = None
+        self.last_goal_stamp_ns: Optional[int] = None
+        self.goals_accepted = 0
+        self._poses: Dict[int, CameraPose] = OrderedDict()  # oldest stamp first
+        if scene is None:
+            scene = load_scene(p["scene_seed"], p["body_resolution"], p["body_model_path"], p["walls"],
+                               p["depth_noise"])
+        self.set_scene(scene)
+        if float(p["rate_hz"]) > 0.0:
+            self.create_timer(1.0 / float(p["rate_hz"]), self.on_timer)
+
+    # ------------------------------------------------------------------ scene and camera state
+
+    def set_scene(self, scene: Scene, camera: Optional[CameraPose] = None) -> None:
+        """Switch to a scene: camera at its start pose (or ``camera``), no motion, no remembered stamps.
+
+        Forgetting the stamps makes any goal planned in the previous scene (e.g. the latched
+        last goal) a rejected one instead of a jump to nonsense.
+        """
+        self.scene = scene
+        start = camera if camera is not None else scene.start_camera
+        self.camera = CameraPose(start.rotation.copy(), start.position.copy())
+        self.motion = None
+        self.frame_count = 0
+        self._poses.clear()
+        self.last_goal_stamp_ns = None
+
+    @property
+    def body_model_id(self) -> str:
+        return self.scene.body_model_id if self.scene is not None else ""
+
+    def camera_pose_at(self, stamp_ns: int) -> Optional[CameraPose]:
+        """The world camera pose a published stamp was rendered from, if still remembered."""
+        return self._poses.get(int(stamp_ns))
+
+    def move_to(self, goal: CameraPose, start_ns: Optional[int] = None) -> None:
+        """Start moving the camera to a world pose (at once when move_speed_m_s is 0).
+
+        Args:
+            goal: Target T_world_camera.
+            start_ns: Sim time the motion starts; the latest published stamp when None.
+        """
+        if start_ns is None:
+            start_ns = self.last_stamp_ns if self.last_stamp_ns is not None else 0
+        speed = float(self.params["move_speed_m_s"])
+        self.motion = CameraMotion(self.camera, goal, int(start_ns), speed)
+        if speed <= 0.0:
+            self.camera = self.motion.pose_at(int(start_ns))
+            self.motion = None
+
+    # ------------------------------------------------------------------ frames
+
+    @rejects_bad_input("render_failed")
+    def on_timer(self) -> None:
+        self.publish_frame()
+
+    def publish_frame(self, stamp_ns: Optional[int] = None) -> Tuple[int, RenderedFrame]:
+        """Render the scene from the current camera and publish the five topics and the camera pose.
+
+        Args:
+            stamp_ns: Sim time of the frame (header stamp); the node clock's now when None.
+                Stamps must increase (a motion in progress is evaluated at this time).
+
+        Returns:
+            (stamp_ns, the rendered frame).
+
+        Raises:
+            SimulatorError: No scene, or a stamp not later than the previous one (the timer's
+                guard counts it on /diagnostics and keeps the node running).
+        """
+        self.diagnostics.frame_in()
+        started = time.perf_counter()
+        if self.scene is None or self.camera is None:
+            raise SimulatorError("no scene loaded")
+        if stamp_ns is None:
+            stamp_ns = self.get_clock().now().nanoseconds
+        stamp_ns = int(stamp_ns)
+        if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns and self.frame_count > 0:
+            raise SimulatorError(f"frame stamp {stamp_ns} ns is not after the previous {self.last_stamp_ns} ns")
+        if self.motion is not None:
+            self.camera = self.motion.pose_at(stamp_ns)
+            if self.motion.fraction_at(stamp_ns) >= 1.0:
+                self.motion = None
+        camera = self.camera
+        frame = self.scene.render(camera, frame_index=self.frame_count)
+        header = Header(frame_id=self.frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        height, width = frame.depth_mm.shape
+        info = make_camera_info(frame.K, width, height, header)
+        # Calibration first: a node that pairs images with their intrinsics has them on arrival.
+        self.image_info_pub.publish(info)
+        self.depth_info_pub.publish(info)
+        self.truth_pub.publish(scene_ground_truth_msg(header, frame, self.body_model_id))
+        self.image_pub.publish(numpy_to_image(np.ascontiguousarray(frame.rgb), "rgb8", header))
+        self.depth_pub.publish(numpy_to_image(np.ascontiguousarray(frame.depth_mm), "16UC1", header))
+        pose_header = Header(frame_id=str(self.params["world_frame_id"]), stamp=header.stamp)
+        self.pose_pub.publish(PoseStamped(header=pose_header, pose=pose_msg(camera.rotation, camera.position)))
+
+        self._poses[stamp_ns] = CameraPose(camera.rotation.copy(), camera.position.copy())
+        while len(self._poses) > max(1, int(self.params["pose_memory"])):
+            self._poses.popitem(last=False)
+        self.last_stamp_ns = stamp_ns
+        self.frame_count += 1
+        self.diagnostics.frame_out(header.stamp, (time.perf_counter() - started) * 1e3)
+        return stamp_ns, frame
+
+    # ------------------------------------------------------------------ goals
+
+    @rejects_bad_input("bad_goal")
+    def on_goal(self, msg: PoseStamped) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        if msg.header.frame_id and msg.header.frame_id != self.frame_id:
+            raise ConversionError(f"goal in frame {msg.header.frame_id!r}, expected {self.frame_id!r}")
+        observation = self.camera_pose_at(stamp)
+        if observation is None:
+            self.diagnostics.reject("unknown_goal_stamp",
+                                    f"goal stamped {stamp} ns: no frame with that stamp is remembered; staying")
+            return
+        rotation, position = pose_to_numpy(msg.pose)
+        if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(position))):
+            raise ConversionError("goal pose is not finite")
+        self.move_to(pose_in_world(observation, rotation, position))
+        self.last_goal_stamp_ns = stamp
+        self.goals_accepted += 1
+
+
+def _global_args_remap_goal(args: Optional[List[str]]) -> bool:
+    return any(str(arg).startswith("goal:=") for arg in (args if args is not None else sys.argv))
+
+
+def main(args: Optional[List[str]] = None) -> None:
+    """Run the node from parameters (``--ros-args -p scene_seed:=N ...``) until Ctrl-C."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    kwargs: Dict[str, Any] = {}
+    if _global_args_remap_goal(args):
+        kwargs["cli_args"] = []  # the command line remaps the goal itself (local rules would win)
+    node = SimulatorNode(**kwargs)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+"""Closed-loop pieces without ROS: surface coverage, candidate poses in the world, method choices."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_planner.candidates import CandidateRingParams, generate_candidates
+from leapnbv_sim.evaluation import (
+    ScoredCandidates,
+    candidate_world_pose,
+    choose_method_views,
+    frame_stamp_ns,
+    view_metrics,
+)
+from leapnbv_sim.metrics import body_coverage, self_visible_vertex_mask, surface_coverage
+from leapnbv_sim.scene import PERSON_ID, SceneConfig, generate_scene, look_at_pose
+from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+
+
+@pytest.fixture(scope="module")
+def scene():
+    model = SMPLXModel.load(ensure_stand_in_body_model("small"))
+    return generate_scene(dataclasses.replace(SceneConfig(), seed=3), model)
+
+
+def _far_camera(scene, distance=4.5):
+    """A camera on the person's -x side far enough to frame the whole body."""
+    centre = scene.body_centre_world
+    return look_at_pose(np.array([centre[0] - distance, centre[1], 1.2]), centre)
+
+
+def test_surface_coverage_of_an_unoccluded_framed_body_is_one(scene):
+    camera = _far_camera(scene)
+    vertices = camera.world_to_camera(scene.body_vertices_world)
+    body_depth, _ = scene.render_depth(camera, include=np.array([PERSON_ID]))
+    coverage = surface_coverage(vertices, scene.body_faces, body_depth, scene.K)
+    assert coverage > 0.98
+    # The raw share of all vertices cannot come near 1: the back of the body is hidden.
+    assert body_coverage(vertices, body_depth, scene.K) < 0.6
+
+
+def test_surface_coverage_drops_with_the_occluder(scene):
+    camera = scene.start_camera
+    vertices = camera.world_to_camera(scene.body_vertices_world)
+    scene_depth, _ = scene.render_depth(camera)
+    body_depth, _ = scene.render_depth(camera, include=np.array([PERSON_ID]))
+    occluded = surface_coverage(vertices, scene.body_faces, scene_depth, scene.K)
+    free = surface_coverage(vertices, scene.body_faces, body_depth, scene.K)
+    assert free > 0.95
+    # The scene was generated so that occluders hide start_occluder_share of the body's
+    # self-visible in-image vertices.
+    assert occluded == pytest.approx(free * (1.0 - scene.start_occluder_share), abs=0.03)
+    assert occluded < free - 0.15
+
+
+def test_surface_coverage_counts_what_the_image_border_cuts_off(scene):
+    camera = _far_camera(scene, distance=1.0)  # 42 degrees vertical FOV: the body does not fit
+    vertices = camera.world_to_camera(scene.body_vertices_world)
+    body_depth, _ = scene.render_depth(camera, include=np.array([PERSON_ID]))
+    cropped = surface_coverage(vertices, scene.body_faces, body_depth, scene.K)
+    assert 0.1 < cropped < 0.8
+    # Self-visibility itself ignores the image bounds: about half the body faces the camera.
+    share = self_visible_vertex_mask(vertices, scene.body_faces, scene.K).mean()
+    assert 0.35 < share < 0.65
+
+
+def test_candidate_pose_in_world_matches_the_ring_geometry(scene):
+    start = scene.start_camera
+    # The floor z = 0 seen from the start camera: n_c = R^T e_z, offset = camera height.
+    normal = start.rotation.T @ np.array([0.0, 0.0, 1.0])
+    offset = float(start.position[2])
+    centroid_world = scene.body_centre_world
+    centroid = start.world_to_camera(centroid_world[None])[0]
+    params = CandidateRingParams(num_candidates=8, radius=2.0)
+    ring = generate_candidates(centroid, normal, offset, params)
+    candidates = ScoredCandidates(
+        rotations=ring.rotations, positions=ring.positions, score=np.zeros(len(ring.positions)),
+        s_visibility=np.zeros(9), s_area=np.zeros(9), s_occlusion=np.zeros(9), feasible=np.ones(9, bool),
+        chosen_index=-1, includes_current_view=True)
+    stay = candidate_world_pose(start, candidates, 0)
+    np.testing.assert_allclose(stay.as_matrix(), start.as_matrix(), atol=1e-12)
+    for index in range(1, 9):
+        pose = candidate_world_pose(start, candidates, index)
+        # Same height as the start camera, on the ring around the centroid's foot point ...
+        assert pose.position[2] == pytest.approx(start.position[2], abs=1e-9)
+        assert np.linalg.norm(pose.position[:2] - centroid_world[:2]) == pytest.approx(2.0, abs=1e-9)
+        # ... looking at the centroid, x axis level (no roll): the world look-at pose.
+        expected = look_at_pose(pose.position, centroid_world)
+        np.testing.assert_allclose(pose.rotation, expected.rotation, atol=1e-9)
+    # Ring candidate 0 (index 1) lies on the start camera's bearing from the target.
+    first = candidate_world_pose(start, candidates, 1).position[:2] - centroid_world[:2]
+    bearing = start.position[:2] - centroid_world[:2]
+    assert np.dot(first, bearing) / (np.linalg.norm(first) * np.linalg.norm(bearing)) == pytest.approx(1.0)
+
+
+def _candidates(s_v, s_a, s_o, feasible, chosen=1):
+    count = len(s_v)
+    positions = np.array([[float(i), 0.0, 0.0] for i in range(count)])
+    return ScoredCandidates(
+        rotations=np.repeat(np.eye(3)[None], count, axis=0), positions=positions, score=np.zeros(count),
+        s_visibility=np.asarray(s_v, float), s_area=np.asarray(s_a, float), s_occlusion=np.asarray(s_o, float),
+        feasible=np.asarray(feasible, bool), chosen_index=chosen, includes_current_view=True)
+
+
+def test_methods_choose_among_the_same_feasible_candidates():
+    c = _candidates(s_v=[1.0, 1.0, 1.0, 0.5, 1.0], s_a=[0.1, 0.2, 0.9, 0.3, 0.4],
+                    s_o=[0.5, 0.6, 0.7, 0.99, 0.8], feasible=[True, True, False, True, True], chosen=4)
+    choices = choose_method_views(c, scene_seed=11)
+    assert choices["leap_nbv"] == 4
+    assert choices["stay"] == 0
+    assert choices["area_only"] == 4  # 2 has the largest S_a but is infeasible
+    assert choices["occlusion_only"] == 3
+    assert choices["visibility_only"] == 0  # S_v ties at 1.0: the nearest (the current view) wins
+    assert choices["random"] in (1, 3, 4)
+    # Seeded per scene: the same scene draws the same candidate, and the draws vary over scenes.
+    assert choose_method_views(c, scene_seed=11)["random"] == choices["random"]
+    draws = {choose_method_views(c, scene_seed=seed)["random"] for seed in range(40)}
+    assert draws == {1, 3, 4}
+
+
+def test_methods_stay_when_nothing_is_feasible():
+    c = _candidates([1.0, 1.0], [0.2, 0.3], [0.5, 0.9], feasible=[False, False], chosen=-1)
+    choices = choose_method_views(c, scene_seed=0)
+    assert choices["random"] == -1 and choices["area_only"] == -1 and choices["occlusion_only"] == -1
+
+
+def test_view_metrics_of_the_start_view(scene):
+    frame = scene.render(scene.start_camera, frame_index=0)
+    metrics = view_metrics(scene, frame)
+    person = frame.object_id == PERSON_ID
+    assert metrics.person_pixels == int(person.sum())
+    assert metrics.area_px == int(np.count_nonzero(person & (frame.depth_mm > 0)))
+    assert 0 < metrics.area_px <= metrics.person_pixels
+    assert metrics.raw_coverage == pytest.approx(frame.ground_truth.visible_vertices.mean())
+    assert metrics.raw_coverage < metrics.surface_coverage < 1.0
+
+
+def test_frame_stamps_are_deterministic_and_ordered():
+    base = 1_700_000_000_000_000_000
+    assert frame_stamp_ns(base, 0, 0) == base
+    assert frame_stamp_ns(base, 2, 1) == base + 20_000_000_000 + 100_000_000
+    assert frame_stamp_ns(base, 1, 0) > frame_stamp_ns(base, 0, 1)

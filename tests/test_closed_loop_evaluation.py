@@ -1,0 +1,188 @@
+"""The closed loop over DDS: the simulator node's topics and goals, and the evaluation through the real graph."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+
+from leapnbv_common.conversions import pose_msg, pose_to_numpy, stamp_to_ns  # noqa: E402
+from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_input_qos  # noqa: E402
+from leapnbv_msgs.msg import SceneGroundTruth  # noqa: E402
+from leapnbv_sim.evaluation import (  # noqa: E402
+    END_TO_END,
+    STAGE_TOPICS,
+    ClosedLoopEvaluator,
+    EvaluationOptions,
+    write_outputs,
+)
+from leapnbv_sim.nodes.simulator_node import CameraMotion, interpolate_camera_pose  # noqa: E402
+from leapnbv_sim.scene import look_at_pose  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+CAMERA_TOPICS = {
+    "image": ("/camera/color/image_raw", Image),
+    "camera_info": ("/camera/color/camera_info", CameraInfo),
+    "depth": ("/camera/aligned_depth_to_color/image_raw", Image),
+    "depth_info": ("/camera/aligned_depth_to_color/camera_info", CameraInfo),
+}
+
+
+def test_motion_interpolates_position_and_slerps_orientation():
+    start = look_at_pose(np.array([0.0, 0.0, 1.0]), np.array([3.0, 0.0, 1.0]))
+    goal = look_at_pose(np.array([2.0, 0.0, 1.0]), np.array([2.0, 3.0, 1.0]))  # turned 90 degrees left
+    motion = CameraMotion(start, goal, start_ns=1_000_000_000, speed_m_s=0.5)
+    half = motion.pose_at(3_000_000_000)  # 2 s at 0.5 m/s: 1 m of 2 m
+    np.testing.assert_allclose(half.position, [1.0, 0.0, 1.0], atol=1e-12)
+    forward = half.rotation[:, 2]
+    assert np.degrees(np.arctan2(forward[1], forward[0])) == pytest.approx(45.0, abs=1e-6)
+    np.testing.assert_allclose(motion.pose_at(9_000_000_000).as_matrix(), goal.as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(motion.pose_at(0).as_matrix(), start.as_matrix(), atol=1e-12)
+    instant = CameraMotion(start, goal, start_ns=0, speed_m_s=0.0)
+    np.testing.assert_allclose(instant.pose_at(0).as_matrix(), goal.as_matrix(), atol=1e-12)
+    quarter = interpolate_camera_pose(start, goal, 0.25)
+    np.testing.assert_allclose(quarter.rotation.T @ quarter.rotation, np.eye(3), atol=1e-12)
+
+
+class _Listener(Node):
+    """Keeps every simulator message by stamp."""
+
+    def __init__(self) -> None:
+        super().__init__("closed_loop_test_listener")
+        self.by_stamp = {}
+        for name, (topic, msg_type) in CAMERA_TOPICS.items():
+            self.create_subscription(msg_type, topic, lambda m, n=name: self._keep(n, m), camera_input_qos(5))
+        self.create_subscription(SceneGroundTruth, "/leapnbv/sim/ground_truth",
+                                 lambda m: self._keep("ground_truth", m), stage_input_qos(10))
+        self.create_subscription(PoseStamped, "/leapnbv/sim/camera_pose",
+                                 lambda m: self._keep("camera_pose", m), stage_input_qos(10))
+        self.goal_pub = self.create_publisher(PoseStamped, "/leapnbv/next_best_view", latched_goal_qos())
+
+    def _keep(self, name, msg) -> None:
+        self.by_stamp.setdefault(stamp_to_ns(msg.header.stamp), {})[name] = msg
+
+    def complete_frames(self):
+        names = set(CAMERA_TOPICS) | {"ground_truth", "camera_pose"}
+        return sorted(stamp for stamp, msgs in self.by_stamp.items() if names <= set(msgs))
+
+
+def _spin_until(node, done, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while not done() and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return done()
+
+
+def test_simulator_node_publishes_one_stamp_on_all_topics_and_follows_a_goal(repo_root):
+    process = subprocess.Popen(
+        [sys.executable, "-m", "leapnbv_sim.nodes.simulator_node", "--ros-args", "-p", "scene_seed:=3",
+         "-p", "rate_hz:=4.0", "-p", "depth_noise:=false"], env=dict(os.environ))
+    rclpy.init()
+    node = _Listener()
+    try:
+        assert _spin_until(node, lambda: len(node.complete_frames()) >= 1, 60.0), "no complete frame arrived"
+        stamp = node.complete_frames()[0]
+        frame = node.by_stamp[stamp]
+        for name, msg in frame.items():
+            expected_frame = "sim_world" if name == "camera_pose" else "camera_color_optical_frame"
+            assert msg.header.frame_id == expected_frame, name
+        assert frame["image"].encoding == "rgb8" and frame["depth"].encoding == "16UC1"
+        assert (frame["image"].width, frame["image"].height) == (640, 480)
+        assert frame["camera_info"].k[0] == pytest.approx(615.0)
+        truth = frame["ground_truth"]
+        assert truth.person_box.score == 1.0 and truth.body_model_id.startswith("stand_in")
+        rotation_before, position_before = pose_to_numpy(frame["camera_pose"].pose)
+
+        # Goal: 0.5 m to the camera's right, same orientation, in the optical frame of that frame.
+        goal = PoseStamped()
+        goal.header = truth.header
+        goal.pose = pose_msg(np.eye(3), np.array([0.5, 0.0, 0.0]))
+        node.goal_pub.publish(goal)
+        expected = position_before + rotation_before @ np.array([0.5, 0.0, 0.0])
+
+        def moved():
+            for later in node.complete_frames():
+                if later > stamp:
+                    _, position = pose_to_numpy(node.by_stamp[later]["camera_pose"].pose)
+                    if np.linalg.norm(position - expected) < 1e-6:
+                        return True
+            return False
+
+        assert _spin_until(node, moved, 20.0), "the camera did not move to the goal"
+        after = next(s for s in node.complete_frames()
+                     if s > stamp and np.linalg.norm(pose_to_numpy(node.by_stamp[s]["camera_pose"].pose)[1]
+                                                     - expected) < 1e-6)
+        rotation_after, _ = pose_to_numpy(node.by_stamp[after]["camera_pose"].pose)
+        np.testing.assert_allclose(rotation_after, rotation_before, atol=1e-6)
+        # The body, seen from 0.5 m further right, sits 0.5 m further left in the camera frame.
+        shift = np.asarray(node.by_stamp[after]["ground_truth"].translation) - np.asarray(truth.translation)
+        np.testing.assert_allclose(shift, [-0.5, 0.0, 0.0], atol=1e-4)
+    finally:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+@pytest.mark.slow
+def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
+    from leapnbv_sim.benchmark_set import BENCHMARK_SEEDS
+
+    started = time.monotonic()
+    options = EvaluationOptions(log_dir=str(tmp_path / "logs"))
+    with ClosedLoopEvaluator(options) as evaluator:
+        first = evaluator.evaluate(BENCHMARK_SEEDS[:3])
+        second = evaluator.evaluate(BENCHMARK_SEEDS[:2])
+    elapsed = time.monotonic() - started
+    assert elapsed < 180.0
+
+    methods = options.methods
+    assert {"leap_nbv", "stay", "random", "visibility_only", "area_only", "occlusion_only"} <= set(methods)
+    assert len(first["scenes"]) == 3
+    for scene in first["scenes"]:
+        assert scene["graph_failure"] is None, scene["graph_failure"]
+        assert set(scene["per_method"]) == set(methods)
+        for row in scene["per_method"].values():
+            for key in ("coverage_before", "coverage_after", "area_before", "area_after", "chosen_index"):
+                assert row[key] is not None
+            assert 0.0 <= row["coverage_after"] <= 1.0
+        stay = scene["per_method"]["stay"]
+        assert stay["chosen_index"] == 0 and stay["coverage_after"] == pytest.approx(stay["coverage_before"])
+        assert scene["per_method"]["leap_nbv"]["graph_area_after"] > 0
+    for log in first["scene_logs"]:
+        assert log["per_method"]["leap_nbv"]["goal_received"]
+        assert log["per_method"]["leap_nbv"]["goal_position_error_m"] < 1e-6
+        assert log["per_method"]["leap_nbv"]["closed_loop_matches_render"]
+    stages = [stage for stage, _ in STAGE_TOPICS] + [END_TO_END]
+    for stage in stages:
+        # Three start views and three after-move views went through the graph.
+        assert len(first["latency_ms"][stage]) == 6, stage
+        assert all(value >= 0.0 for value in first["latency_ms"][stage])
+
+    # Same seeds, same chosen views and metrics (the second pass runs on later stamps).
+    for a, b in zip(first["scenes"][:2], second["scenes"]):
+        assert a["seed"] == b["seed"]
+        for method in methods:
+            assert a["per_method"][method]["chosen_index"] == b["per_method"][method]["chosen_index"], method
+            assert a["per_method"][method]["coverage_after"] == b["per_method"][method]["coverage_after"]
+        assert a["per_method"]["leap_nbv"]["graph_area_after"] == b["per_method"]["leap_nbv"]["graph_area_after"]
+
+    first["ready_s"] = evaluator.ready_s
+    write_outputs(str(tmp_path / "out"), first, options, elapsed)
+    for name in ("results.md", "results.json", "chosen_views.json", "evaluation.md"):
+        assert (tmp_path / "out" / name).exists(), name
+

@@ -1,0 +1,393 @@
+"""raster_node and ground_node as processes over DDS, fed a rendered scene: stamps, pairing, bad depth."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from leapnbv_bringup.graph import default_params_file  # noqa: E402
+from leapnbv_common.conversions import (  # noqa: E402
+    HumanMeshArrays,
+    arrays_to_human_mesh,
+    make_camera_info,
+    numpy_to_image,
+    point_to_numpy,
+    pointcloud2_to_xyz,
+)
+from leapnbv_common.qos import stage_input_qos, stage_output_qos  # noqa: E402
+from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry  # noqa: E402
+from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
+from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
+from leapnbv_sim.stand_ins import ensure_stand_in_body_model  # noqa: E402
+
+pytestmark = [pytest.mark.ros]
+
+NS = "/leapnbv"
+FRAME_ID = "camera_depth_optical_frame"
+SCENE_SEED = 6
+
+
+# ----------------------------------------------------------------------------- harness
+
+
+def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
+               remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
+    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides)."""
+    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace}",
+           "--params-file", default_params_file()]
+    for name, value in (params or {}).items():
+        cmd += ["-p", f"{name}:={value}"]
+    for source, target in (remaps or {}).items():
+        cmd += ["-r", f"{source}:={target}"]
+    log = open(log_path, "w")  # noqa: SIM115 - the process owns it until stop_node
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            start_new_session=True)
+    proc.log_path = log_path
+    proc.log_handle = log
+    return proc
+
+
+def stop_node(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    proc.log_handle.close()
+
+
+def read_log(proc: subprocess.Popen) -> str:
+    with open(proc.log_path, errors="replace") as handle:
+        return handle.read()
+
+
+class Probe:
+    """The test's own ROS node (own context): publishers, collecting subscriptions, /diagnostics."""
+
+    def __init__(self, name: str) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.statuses: Dict[str, List[DiagnosticStatus]] = {}
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, stage_input_qos(100))
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.statuses.setdefault(status.name, []).append(status)
+
+    def collect(self, msg_type, topic: str, qos=None) -> list:
+        received: list = []
+        self.node.create_subscription(msg_type, topic, received.append, qos or stage_input_qos(50))
+        return received
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def status_where(self, name: str, predicate: Callable[[DiagnosticStatus], bool]) -> Optional[DiagnosticStatus]:
+        for status in reversed(self.statuses.get(name, [])):
+            if predicate(status):
+                return status
+        return None
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def diag_value(status: DiagnosticStatus, key: str, default: str = "0") -> str:
+    return next((kv.value for kv in status.values if kv.key == key), default)
+
+
+def send_until(probe: Probe, send: Callable[[], None], arrived: Callable[[], bool], timeout_s: float,
+               attempts: int = 3) -> bool:
+    """Send, and send the same frame again while nothing came of it: camera inputs are best effort,
+    and a large frame can be lost on a loaded machine like on a real camera link."""
+    for _ in range(attempts):
+        send()
+        if probe.spin_until(arrived, timeout_s / attempts):
+            return True
+    return False
+
+
+def wait_ready(probe: Probe, procs: Dict[str, subprocess.Popen], timeout_s: float = 30.0) -> None:
+    """Until every node published diagnostics (it spins, so its subscriptions are live)."""
+    ok = probe.spin_until(lambda: all(name in probe.statuses for name in procs)
+                          or any(p.poll() is not None for p in procs.values()), timeout_s)
+    for name, proc in procs.items():
+        assert proc.poll() is None, f"{name} exited with {proc.returncode}:\n{read_log(proc)[-3000:]}"
+    assert ok, f"nodes not ready: {sorted(set(procs) - set(probe.statuses))}"
+
+
+def stamp_key(header: Header) -> tuple:
+    return (header.stamp.sec, header.stamp.nanosec)
+
+
+def make_header(sec: int, nanosec: int = 0) -> Header:
+    header = Header(frame_id=FRAME_ID)
+    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    return header
+
+
+def by_stamp(messages: list, key: tuple) -> list:
+    return [m for m in messages if stamp_key(m.header) == key]
+
+
+# ----------------------------------------------------------------------------- scene + graph
+
+
+@pytest.fixture(scope="module")
+def scene():
+    body = SMPLXModel.load(ensure_stand_in_body_model("small"))
+    scene = generate_scene(SceneConfig(seed=SCENE_SEED), body)
+    frames = [scene.render(frame_index=i) for i in range(3)]
+    assert frames[0].ground_truth.person_pixel_count > 2000  # the person is well in view
+    return {"scene": scene, "frames": frames, "faces": body.faces.reshape(-1, 3)}
+
+
+def mesh_message(frame, faces: np.ndarray, header: Header) -> HumanMesh:
+    """A HumanMesh as a perfect HMR would give it: GT camera-frame vertices, the real K as virtual K."""
+    truth = frame.ground_truth
+    params = truth.body_params_camera
+    k = frame.K
+    box = np.array([*truth.person_box_xyxy, 1.0], np.float32)
+    arrays = HumanMeshArrays(
+        vertices=truth.vertices_camera.astype(np.float32), faces=faces,
+        virtual_intrinsics=(k[0, 0], k[1, 1], k[0, 2], k[1, 2]), image_size=(640, 480), detection=box,
+        processed_box=np.zeros(4, np.float32), root_pose=params.root_pose, body_pose=params.body_pose,
+        left_hand_pose=params.left_hand_pose, right_hand_pose=params.right_hand_pose, jaw_pose=params.jaw_pose,
+        betas=params.betas, expression=params.expression, cam_translation=truth.translation_camera,
+        model_id="ground_truth")
+    return arrays_to_human_mesh(arrays, header)
+
+
+@pytest.fixture(scope="module")
+def graph(scene, tmp_path_factory):
+    logs = tmp_path_factory.mktemp("geometry_logs")
+    procs = {
+        f"{NS}/raster_node": start_node("leapnbv_geometry.nodes.raster_node", str(logs / "raster.log")),
+        f"{NS}/ground_node": start_node("leapnbv_geometry.nodes.ground_node", str(logs / "ground.log")),
+    }
+    probe = Probe("geometry_nodes_test")
+    try:
+        g = {
+            "probe": probe, "procs": procs,
+            "depth_pub": probe.node.create_publisher(Image, f"{NS}/depth", stage_output_qos(5)),
+            "info_pub": probe.node.create_publisher(CameraInfo, f"{NS}/depth/camera_info", stage_output_qos(1)),
+            "mesh_pub": probe.node.create_publisher(HumanMesh, f"{NS}/human_mesh", stage_output_qos(5)),
+            "targets": probe.collect(TargetGeometry, f"{NS}/target_geometry"),
+            "planes": probe.collect(GroundPlane, f"{NS}/ground_plane"),
+            "masks": probe.collect(Image, f"{NS}/person_mask"),
+        }
+        wait_ready(probe, procs)
+        assert probe.spin_until(lambda: g["depth_pub"].get_subscription_count() >= 2
+                                and g["mesh_pub"].get_subscription_count() >= 1
+                                and g["info_pub"].get_subscription_count() >= 2, 10.0)
+        yield g
+    finally:
+        probe.close()
+        for proc in procs.values():
+            stop_node(proc)
+
+
+def send_depth(graph, depth_msg: Image) -> None:
+    """camera_info (best effort, depth 1) just before its depth frame, as a driver publishes them."""
+    k = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])  # SceneConfig defaults
+    graph["info_pub"].publish(make_camera_info(k, depth_msg.width, depth_msg.height, depth_msg.header))
+    graph["probe"].spin_for(0.05)
+    graph["depth_pub"].publish(depth_msg)
+
+
+def send_frame(graph, depth_msg: Image, mesh_msg: HumanMesh, arrived: Callable[[], bool]) -> bool:
+    """Depth (best effort) then its mesh, sent again while no output came (see send_until)."""
+    def send() -> None:
+        send_depth(graph, depth_msg)
+        graph["probe"].spin_for(0.05)
+        graph["mesh_pub"].publish(mesh_msg)
+
+    return send_until(graph["probe"], send, arrived, 15.0)
+
+
+def diag(graph, node: str, key: str) -> int:
+    status = graph["probe"].status_where(f"{NS}/{node}", lambda s: True)
+    return int(diag_value(status, key)) if status else 0
+
+
+def assert_target_on_body(target: TargetGeometry, frame) -> np.ndarray:
+    """The target points are observed body surface: near GT vertices, finite, in the depth range."""
+    points = pointcloud2_to_xyz(target.target_points)
+    assert points.shape[0] == target.mask_pixel_count > 500
+    assert np.all(np.isfinite(points)) and np.all((points[:, 2] >= 0.1) & (points[:, 2] <= 10.0))
+    vertices = frame.ground_truth.vertices_camera
+    sample = points[:: max(1, len(points) // 1500)]
+    nearest = np.sqrt(((sample[:, None, :] - vertices[None, :, :]) ** 2).sum(-1)).min(axis=1)
+    assert np.percentile(nearest, 90) < 0.06, np.percentile(nearest, [50, 90, 99])
+    visible = vertices[frame.ground_truth.visible_vertices]
+    assert np.linalg.norm(point_to_numpy(target.centroid) - np.median(visible, axis=0)) < 0.15
+    np.testing.assert_allclose(point_to_numpy(target.centroid), np.median(points, axis=0), atol=1e-4)
+    np.testing.assert_allclose(point_to_numpy(target.bbox_min), points.min(axis=0), atol=1e-5)
+    return points
+
+
+# ----------------------------------------------------------------------------- raster_node
+
+
+def test_raster_every_mesh_with_its_depth_gives_a_target_with_its_stamp(graph, scene):
+    probe = graph["probe"]
+    for i, frame in enumerate(scene["frames"]):
+        header = make_header(100 + i, 1000 * i)
+        key = stamp_key(header)
+        assert send_frame(graph, numpy_to_image(frame.depth_mm, "16UC1", header),
+                          mesh_message(frame, scene["faces"], header),
+                          lambda key=key: by_stamp(graph["targets"], key) and by_stamp(graph["masks"], key)), \
+            f"frame {i}: no TargetGeometry; raster: {probe.statuses.get(NS + '/raster_node', ['-'])[-1]}"
+    for i, frame in enumerate(scene["frames"]):
+        key = (100 + i, 1000 * i)
+        target = by_stamp(graph["targets"], key)[0]
+        assert target.header.frame_id == FRAME_ID and target.valid
+        assert stamp_key(target.target_points.header) == key
+        assert (target.camera_info.width, target.camera_info.height) == (640, 480)
+        assert 0.3 < target.visible_fraction <= 1.0
+        # A perfect mesh needs (almost) no depth alignment; depth noise only.
+        assert abs(target.depth_offset) < 0.05
+        assert_target_on_body(target, frame)
+        mask = by_stamp(graph["masks"], key)[0]
+        assert int(np.count_nonzero(np.frombuffer(mask.data, np.uint8))) == target.mask_pixel_count
+
+
+def test_raster_survives_nan_zero_and_out_of_range_depth(graph, scene):
+    probe = graph["probe"]
+    frame = scene["frames"][0]
+    clean = by_stamp(graph["targets"], (100, 0))
+    depth = frame.depth_m.astype(np.float32).copy()
+    x0, y0, x1, y1 = frame.ground_truth.person_box_xyxy
+    depth[y0:y1, x0: x0 + (x1 - x0) // 4] = np.nan            # a quarter of the person unmeasured
+    depth[y0 + (y1 - y0) // 2: y0 + (y1 - y0) // 2 + 15] = 0.0  # a band of no-return pixels
+    depth[:40] = 50.0                                          # beyond max_depth
+    depth[40:50] = np.inf
+    depth[50:55] = -2.0
+    header = make_header(200, 0)
+    assert send_frame(graph, numpy_to_image(depth, "32FC1", header), mesh_message(frame, scene["faces"], header),
+                      lambda: by_stamp(graph["targets"], (200, 0)))
+    all_nan = np.full_like(depth, np.nan)
+    header_nan = make_header(201, 0)
+    assert send_frame(graph, numpy_to_image(all_nan, "32FC1", header_nan),
+                      mesh_message(frame, scene["faces"], header_nan), lambda: by_stamp(graph["targets"], (201, 0)))
+
+    target = by_stamp(graph["targets"], (200, 0))[0]
+    assert target.valid
+    points = assert_target_on_body(target, frame)
+    assert np.all(points[:, 0] * 615.0 / points[:, 2] + 320.0 >= x0 + (x1 - x0) // 4 - 1)  # none from NaN pixels
+    if clean:
+        assert target.mask_pixel_count < clean[0].mask_pixel_count
+    background = pointcloud2_to_xyz(target.background_points)
+    assert np.all(np.isfinite(background)) and np.all((background[:, 2] >= 0.1) & (background[:, 2] <= 10.0))
+
+    empty = by_stamp(graph["targets"], (201, 0))[0]
+    assert not empty.valid and empty.mask_pixel_count == 0
+    assert pointcloud2_to_xyz(empty.target_points).shape == (0, 3)
+    assert probe.spin_until(lambda: diag(graph, "raster_node", "rejected.empty_target") >= 1, 5.0)
+    # ground_node got the same frames: it answers each (the all-NaN one with valid=false).
+    assert probe.spin_until(lambda: by_stamp(graph["planes"], (200, 0)) and by_stamp(graph["planes"], (201, 0)),
+                            5.0)
+    assert not by_stamp(graph["planes"], (201, 0))[0].valid
+    for proc in graph["procs"].values():
+        assert proc.poll() is None
+
+
+def test_raster_drops_a_mesh_without_depth_and_never_mismatches_it(graph, scene):
+    probe = graph["probe"]
+    frame = scene["frames"][1]
+    before = diag(graph, "raster_node", "rejected.no_matching_depth")
+    # Depth at 300.000 s is cached; the mesh at 300.050 s is 50 ms away (slop 5 ms): no partner.
+    send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(300, 0)))
+    probe.spin_for(0.1)
+    graph["mesh_pub"].publish(mesh_message(frame, scene["faces"], make_header(300, 50_000_000)))
+    assert probe.spin_until(lambda: diag(graph, "raster_node", "rejected.no_matching_depth") >= before + 1, 6.0)
+    probe.spin_for(0.3)
+    assert not by_stamp(graph["targets"], (300, 50_000_000))
+    assert not by_stamp(graph["targets"], (300, 0))
+    status = probe.status_where(f"{NS}/raster_node",
+                                lambda s: int(diag_value(s, "rejected.no_matching_depth")) >= before + 1)
+    assert status.level == DiagnosticStatus.WARN
+
+
+def test_raster_pairs_within_the_slop_whichever_arrives_first(graph, scene):
+    probe = graph["probe"]
+    frame = scene["frames"][2]
+    # depth first, mesh 3 ms later
+    send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(400, 0)))
+    probe.spin_for(0.1)
+    graph["mesh_pub"].publish(mesh_message(frame, scene["faces"], make_header(400, 3_000_000)))
+    # mesh first, depth 3 ms later
+    graph["mesh_pub"].publish(mesh_message(frame, scene["faces"], make_header(401, 0)))
+    probe.spin_for(0.1)
+    send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(401, 3_000_000)))
+    assert probe.spin_until(lambda: by_stamp(graph["targets"], (400, 3_000_000))
+                            and by_stamp(graph["targets"], (401, 0)), 5.0), \
+        [stamp_key(t.header) for t in graph["targets"]]
+    for key in ((400, 3_000_000), (401, 0)):
+        (target,) = by_stamp(graph["targets"], key)  # the mesh's stamp, not the depth's
+        assert target.valid
+        assert_target_on_body(target, frame)
+
+
+# ----------------------------------------------------------------------------- ground_node
+
+
+def test_ground_plane_of_the_rendered_floor(graph, scene):
+    probe = graph["probe"]
+    keys = [(600 + i, 1000 * i) for i in range(len(scene["frames"]))]
+    for key, frame in zip(keys, scene["frames"]):
+        depth = numpy_to_image(frame.depth_mm, "16UC1", make_header(*key))
+        assert send_until(probe, lambda depth=depth: send_depth(graph, depth),
+                          lambda key=key: by_stamp(graph["planes"], key), 15.0)
+    for key, frame in zip(keys, scene["frames"]):
+        plane = by_stamp(graph["planes"], key)[0]
+        assert plane.header.frame_id == FRAME_ID and plane.valid
+        rotation = frame.camera_pose.rotation  # columns: optical axes in the world (z up)
+        up_in_camera = rotation.T @ np.array([0.0, 0.0, 1.0])
+        normal = np.array([plane.normal.x, plane.normal.y, plane.normal.z])
+        assert abs(np.linalg.norm(normal) - 1.0) < 1e-6
+        angle = np.degrees(np.arccos(np.clip(normal @ up_in_camera, -1.0, 1.0)))
+        assert angle < 2.0, angle
+        assert abs(plane.offset - frame.camera_pose.position[2]) < 0.03, (plane.offset, frame.camera_pose.position)
+        assert plane.inlier_count >= 200 and 0.05 <= plane.inlier_ratio <= 1.0
+
+
+def test_ground_plane_of_a_wall_only_is_invalid(graph):
+    probe = graph["probe"]
+    before = diag(graph, "ground_node", "rejected.no_ground_plane")
+    wall = np.full((480, 640), 2000, np.uint16)  # a wall 2 m ahead fills the view
+    wall[:, 320:] = np.linspace(2000, 3000, 320).astype(np.uint16)  # and turns away on the right
+    wall_msg = numpy_to_image(wall, "16UC1", make_header(500, 0))
+    assert send_until(probe, lambda: send_depth(graph, wall_msg), lambda: by_stamp(graph["planes"], (500, 0)), 15.0)
+    plane = by_stamp(graph["planes"], (500, 0))[0]
+    assert not plane.valid
+    assert probe.spin_until(lambda: diag(graph, "ground_node", "rejected.no_ground_plane") >= before + 1, 5.0)
+    assert graph["procs"][f"{NS}/ground_node"].poll() is None

@@ -1,0 +1,358 @@
+"""nbv_node as a process over DDS: candidates, the next-best view and base goal geometry, latching."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
+
+from leapnbv_bringup.graph import default_params_file  # noqa: E402
+from leapnbv_common.conversions import (  # noqa: E402
+    make_camera_info,
+    point_msg,
+    point_to_numpy,
+    pose_to_numpy,
+    xyz_to_pointcloud2,
+)
+from leapnbv_common.qos import latched_goal_qos, stage_input_qos, stage_output_qos  # noqa: E402
+from leapnbv_msgs.msg import GroundPlane, TargetGeometry, ViewCandidates  # noqa: E402
+
+pytestmark = [pytest.mark.ros]
+
+NS = "/leapnbv"
+FRAME_ID = "camera_color_optical_frame"
+CAMERA_HEIGHT = 1.2
+UP = np.array([0.0, -1.0, 0.0])  # optical frame: y down, so the floor normal is -y
+K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+# ----------------------------------------------------------------------------- harness
+
+
+def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
+               remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
+    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides)."""
+    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace}",
+           "--params-file", default_params_file()]
+    for name, value in (params or {}).items():
+        cmd += ["-p", f"{name}:={value}"]
+    for source, target in (remaps or {}).items():
+        cmd += ["-r", f"{source}:={target}"]
+    log = open(log_path, "w")  # noqa: SIM115 - the process owns it until stop_node
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            start_new_session=True)
+    proc.log_path = log_path
+    proc.log_handle = log
+    return proc
+
+
+def stop_node(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    proc.log_handle.close()
+
+
+def read_log(proc: subprocess.Popen) -> str:
+    with open(proc.log_path, errors="replace") as handle:
+        return handle.read()
+
+
+class Probe:
+    """The test's own ROS node (own context): publishers, collecting subscriptions, /diagnostics."""
+
+    def __init__(self, name: str) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.statuses: Dict[str, List[DiagnosticStatus]] = {}
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, stage_input_qos(100))
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.statuses.setdefault(status.name, []).append(status)
+
+    def collect(self, msg_type, topic: str, qos=None) -> list:
+        received: list = []
+        self.node.create_subscription(msg_type, topic, received.append, qos or stage_input_qos(50))
+        return received
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def status_where(self, name: str, predicate: Callable[[DiagnosticStatus], bool]) -> Optional[DiagnosticStatus]:
+        for status in reversed(self.statuses.get(name, [])):
+            if predicate(status):
+                return status
+        return None
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def diag_value(status: DiagnosticStatus, key: str, default: str = "0") -> str:
+    return next((kv.value for kv in status.values if kv.key == key), default)
+
+
+def wait_ready(probe: Probe, procs: Dict[str, subprocess.Popen], timeout_s: float = 30.0) -> None:
+    """Until every node published diagnostics (it spins, so its subscriptions are live)."""
+    ok = probe.spin_until(lambda: all(name in probe.statuses for name in procs)
+                          or any(p.poll() is not None for p in procs.values()), timeout_s)
+    for name, proc in procs.items():
+        assert proc.poll() is None, f"{name} exited with {proc.returncode}:\n{read_log(proc)[-3000:]}"
+    assert ok, f"nodes not ready: {sorted(set(procs) - set(probe.statuses))}"
+
+
+def stamp_key(header: Header) -> tuple:
+    return (header.stamp.sec, header.stamp.nanosec)
+
+
+def make_header(sec: int, nanosec: int = 0) -> Header:
+    header = Header(frame_id=FRAME_ID)
+    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    return header
+
+
+def by_stamp(messages: list, key: tuple) -> list:
+    return [m for m in messages if stamp_key(m.header) == key]
+
+
+def marker_arrays_by_stamp(arrays: list, key: tuple) -> list:
+    """MarkerArray has no header of its own: every marker carries the frame's."""
+    return [a for a in arrays if a.markers and all(stamp_key(m.header) == key for m in a.markers)]
+
+
+# ----------------------------------------------------------------------------- scene + graph
+
+
+def observation(header: Header) -> tuple:
+    """A person ~3 m ahead standing on the floor 1.2 m below the camera, a low box in front of
+    their legs, floor and a far wall; returns (TargetGeometry, GroundPlane) for one frame."""
+    rng = np.random.default_rng(7)
+    n = 3000
+    person = np.column_stack([rng.uniform(-0.25, 0.25, n), rng.uniform(-0.5, 1.15, n), rng.uniform(2.85, 3.15, n)])
+    floor = np.column_stack([rng.uniform(-3, 3, 400), np.full(400, CAMERA_HEIGHT), rng.uniform(0.5, 6, 400)])
+    box = np.column_stack([rng.uniform(-0.4, 0.4, 300), rng.uniform(0.2, CAMERA_HEIGHT, 300), np.full(300, 2.0)])
+    wall = np.column_stack([rng.uniform(-3, 3, 400), rng.uniform(-1.0, CAMERA_HEIGHT, 400), np.full(400, 6.0)])
+    background = np.concatenate([floor, box, wall]).astype(np.float32)
+    person = person.astype(np.float32)
+    target = TargetGeometry(header=header, valid=True, mask_pixel_count=n, visible_fraction=0.7)
+    target.target_points = xyz_to_pointcloud2(person, header)
+    target.background_points = xyz_to_pointcloud2(background, header)
+    target.centroid = point_msg(np.median(person, axis=0))
+    target.bbox_min, target.bbox_max = point_msg(person.min(axis=0)), point_msg(person.max(axis=0))
+    target.camera_info = make_camera_info(K, 640, 480, header)
+    plane = GroundPlane(header=header, offset=CAMERA_HEIGHT, inlier_count=400, inlier_ratio=0.3, valid=True)
+    plane.normal.x, plane.normal.y, plane.normal.z = (float(v) for v in UP)
+    return target, plane
+
+
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory):
+    logs = tmp_path_factory.mktemp("nbv_logs")
+    procs = {f"{NS}/nbv_node": start_node("leapnbv_planner.nodes.nbv_node", str(logs / "nbv.log"))}
+    probe = Probe("nbv_node_test")
+    try:
+        g = {
+            "probe": probe, "procs": procs,
+            "target_pub": probe.node.create_publisher(TargetGeometry, f"{NS}/target_geometry", stage_output_qos(5)),
+            "ground_pub": probe.node.create_publisher(GroundPlane, f"{NS}/ground_plane", stage_output_qos(5)),
+            "candidates": probe.collect(ViewCandidates, f"{NS}/view_candidates"),
+            "goals": probe.collect(PoseStamped, f"{NS}/next_best_view", latched_goal_qos()),
+            "base_goals": probe.collect(PoseStamped, f"{NS}/base_goal", latched_goal_qos()),
+            "markers": probe.collect(MarkerArray, f"{NS}/markers"),
+        }
+        wait_ready(probe, procs)
+        assert probe.spin_until(lambda: g["target_pub"].get_subscription_count() >= 1
+                                and g["ground_pub"].get_subscription_count() >= 1, 10.0)
+        probe.spin_for(0.2)  # the node's writers match our readers too
+        yield g
+    finally:
+        probe.close()
+        for proc in procs.values():
+            stop_node(proc)
+
+
+def plane_distance(point: np.ndarray) -> float:
+    return float(UP @ point + CAMERA_HEIGHT)
+
+
+def axis_miss_distance(rotation: np.ndarray, position: np.ndarray, point: np.ndarray) -> float:
+    """Distance from `point` to the optical axis (z column) ray of a camera pose."""
+    axis = rotation[:, 2]
+    along = float((point - position) @ axis)
+    assert along > 0, "the target is behind the camera"
+    return float(np.linalg.norm(point - position - along * axis))
+
+
+@pytest.fixture(scope="module")
+def planned(graph):
+    """One frame planned: target and ground plane of stamp 100.25 s (ground first, as it is faster)."""
+    probe = graph["probe"]
+    header = make_header(100, 250_000_000)
+    target, plane = observation(header)
+    graph["ground_pub"].publish(plane)
+    probe.spin_for(0.1)
+    graph["target_pub"].publish(target)
+    key = stamp_key(header)
+    assert probe.spin_until(lambda: by_stamp(graph["candidates"], key) and by_stamp(graph["goals"], key)
+                            and by_stamp(graph["base_goals"], key)
+                            and marker_arrays_by_stamp(graph["markers"], key), 15.0), \
+        f"nbv_node: {probe.statuses.get(NS + '/nbv_node', ['-'])[-1]}\n{read_log(graph['procs'][NS + '/nbv_node'])}"
+    return {"key": key, "target": target, "centroid": point_to_numpy(target.centroid)}
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_view_candidates_ring_and_choice(graph, planned):
+    (views,) = by_stamp(graph["candidates"], planned["key"])
+    centroid = planned["centroid"]
+    assert views.header.frame_id == FRAME_ID
+    count = len(views.poses)
+    assert count == 17 and views.includes_current_view
+    for field in ("score", "s_visibility", "s_area", "s_occlusion", "feasible", "infeasible_reason"):
+        assert len(getattr(views, field)) == count, field
+    rotation0, position0 = pose_to_numpy(views.poses[0])
+    np.testing.assert_allclose(rotation0, np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(position0, np.zeros(3), atol=1e-9)
+    ring_center = point_to_numpy(views.ring_center)
+    np.testing.assert_allclose(ring_center, centroid - plane_distance(centroid) * UP, atol=1e-6)
+    assert abs(views.ring_radius - 1.5) < 1e-6
+    for i in range(1, count):  # ring candidates: camera height kept, looking at the target, x level
+        rotation, position = pose_to_numpy(views.poses[i])
+        assert abs(plane_distance(position) - CAMERA_HEIGHT) < 1e-3, i
+        foot = position - plane_distance(position) * UP
+        assert abs(np.linalg.norm(foot - ring_center) - 1.5) < 1e-3, i
+        assert axis_miss_distance(rotation, position, centroid) < 0.01, i
+        assert abs(rotation[:, 0] @ UP) < 1e-6, i
+    scores = np.asarray(views.score)
+    feasible = np.asarray(views.feasible, bool)
+    assert np.all(np.isfinite(scores)) and feasible.any()
+    assert np.all(np.asarray(views.infeasible_reason)[feasible] == 0)
+    assert np.all(np.asarray(views.infeasible_reason)[~feasible] > 0)
+    np.testing.assert_allclose(
+        scores, views.weight_visibility * np.asarray(views.s_visibility) + views.weight_area * np.asarray(
+            views.s_area) + views.weight_occlusion * np.asarray(views.s_occlusion), atol=1e-5)
+    assert views.chosen_index >= 1  # the box hides the legs from here: moving beats staying
+    assert feasible[views.chosen_index]
+    assert scores[views.chosen_index] >= scores[feasible].max() - 1e-6
+    assert scores[views.chosen_index] > scores[0]
+
+
+def test_next_best_view_and_base_goal(graph, planned):
+    key, centroid = planned["key"], planned["centroid"]
+    (views,) = by_stamp(graph["candidates"], key)
+    (goal,) = by_stamp(graph["goals"], key)
+    (base,) = by_stamp(graph["base_goals"], key)
+    assert goal.header.frame_id == base.header.frame_id == FRAME_ID
+    rotation, position = pose_to_numpy(goal.pose)
+    chosen_rotation, chosen_position = pose_to_numpy(views.poses[views.chosen_index])
+    np.testing.assert_allclose(position, chosen_position, atol=1e-9)
+    np.testing.assert_allclose(rotation, chosen_rotation, atol=1e-9)
+    assert axis_miss_distance(rotation, position, centroid) < 0.01
+    assert abs(plane_distance(position) - CAMERA_HEIGHT) < 1e-3
+    assert np.linalg.norm(position) > 0.5  # it moves
+
+    base_rotation, base_position = pose_to_numpy(base.pose)
+    assert abs(plane_distance(base_position)) < 1e-3  # on the floor
+    np.testing.assert_allclose(base_position, position - CAMERA_HEIGHT * UP, atol=1e-3)  # under the camera
+    np.testing.assert_allclose(base_rotation[:, 2], UP, atol=1e-6)  # base z up
+    heading = point_to_numpy(views.ring_center) - base_position
+    assert base_rotation[:, 0] @ (heading / np.linalg.norm(heading)) > 0.9999  # facing the target
+    np.testing.assert_allclose(base_rotation.T @ base_rotation, np.eye(3), atol=1e-6)
+    assert np.linalg.det(base_rotation) > 0.999
+
+
+def test_markers_show_candidates_and_choice(graph, planned):
+    (views,) = by_stamp(graph["candidates"], planned["key"])
+    (markers,) = marker_arrays_by_stamp(graph["markers"], planned["key"])
+    items = markers.markers
+    assert items[0].action == Marker.DELETEALL
+    candidates = [m for m in items if m.ns == "leapnbv_candidates" and m.action == Marker.ADD]
+    assert len(candidates) == len(views.poses)
+    for i, marker in enumerate(candidates):
+        assert marker.id == i and stamp_key(marker.header) == planned["key"]
+        assert marker.type == (Marker.SPHERE if views.feasible[i] else Marker.CUBE)
+    (arrow,) = (m for m in items if m.ns == "leapnbv_chosen")
+    _, chosen_position = pose_to_numpy(views.poses[views.chosen_index])
+    np.testing.assert_allclose(point_to_numpy(arrow.points[0]), chosen_position, atol=1e-9)
+    assert len(items) == 1 + len(views.poses) + 1 + 1  # clear, candidates, arrow, ring centre
+
+
+def test_goal_is_latched_for_a_late_subscriber(graph, planned):
+    probe = graph["probe"]
+    late_goals = probe.collect(PoseStamped, f"{NS}/next_best_view", latched_goal_qos())
+    late_bases = probe.collect(PoseStamped, f"{NS}/base_goal", latched_goal_qos())
+    assert probe.spin_until(lambda: late_goals and late_bases, 5.0), "transient-local goal not replayed"
+    assert stamp_key(late_goals[-1].header) == planned["key"]
+    (goal,) = by_stamp(graph["goals"], planned["key"])
+    assert late_goals[-1].pose == goal.pose
+    assert stamp_key(late_bases[-1].header) == planned["key"]
+    # A volatile subscriber that comes late gets nothing: the latching is the goal's QoS, not luck.
+    late_volatile = probe.collect(ViewCandidates, f"{NS}/view_candidates")
+    probe.spin_for(0.5)
+    assert not by_stamp(late_volatile, planned["key"])
+
+
+def test_invalid_ground_plane_gives_no_goal(graph, planned):
+    probe = graph["probe"]
+    name = f"{NS}/nbv_node"
+
+    def rejected() -> int:
+        status = probe.status_where(name, lambda s: True)
+        return int(diag_value(status, "rejected.no_ground_plane")) if status else 0
+
+    before = rejected()
+    header = make_header(200, 0)
+    target, plane = observation(header)
+    plane.valid = False
+    plane.inlier_count, plane.inlier_ratio = 12, 0.01
+    graph["ground_pub"].publish(plane)
+    probe.spin_for(0.1)
+    graph["target_pub"].publish(target)
+    assert probe.spin_until(lambda: rejected() >= before + 1, 5.0)
+    probe.spin_for(0.5)
+    key = stamp_key(header)
+    assert not by_stamp(graph["goals"], key) and not by_stamp(graph["base_goals"], key)
+    assert not by_stamp(graph["candidates"], key)
+    status = probe.status_where(name, lambda s: int(diag_value(s, "rejected.no_ground_plane")) >= before + 1)
+    assert status.level == DiagnosticStatus.WARN and "no_ground_plane" in status.message
+    assert graph["procs"][name].poll() is None
+
+    # The node keeps planning: the next frame with a valid plane gets its goal.
+    header = make_header(201, 0)
+    target, plane = observation(header)
+    graph["ground_pub"].publish(plane)
+    probe.spin_for(0.1)
+    graph["target_pub"].publish(target)
+    assert probe.spin_until(lambda: by_stamp(graph["goals"], stamp_key(header)), 10.0)

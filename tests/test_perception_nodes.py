@@ -1,0 +1,403 @@
+"""detector_node and hmr_node as processes over DDS: every frame served, bad input survived, GT pairing."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from leapnbv_bringup.graph import default_params_file  # noqa: E402
+from leapnbv_common.conversions import detection_to_box, human_mesh_to_arrays, numpy_to_image  # noqa: E402
+from leapnbv_common.qos import stage_input_qos, stage_output_qos  # noqa: E402
+from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth  # noqa: E402
+from leapnbv_perception.hmr_tail import depth_scale, virtual_intrinsics  # noqa: E402
+from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
+from leapnbv_sim.stand_ins import ensure_contract_models, ensure_stand_in_body_model  # noqa: E402
+
+pytestmark = [pytest.mark.ros]
+
+NS = "/leapnbv"
+MISSING_NS = "/leapnbv_missing_model"
+GT_NS = "/leapnbv_gt"
+FRAME_ID = "camera_color_optical_frame"
+WIDTH, HEIGHT = 640, 480
+MISSING_MODEL = "/nonexistent/leapnbv_models/yolov8_missing.onnx"
+
+
+# ----------------------------------------------------------------------------- harness
+
+
+def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
+               remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
+    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides)."""
+    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace}",
+           "--params-file", default_params_file()]
+    for name, value in (params or {}).items():
+        cmd += ["-p", f"{name}:={value}"]
+    for source, target in (remaps or {}).items():
+        cmd += ["-r", f"{source}:={target}"]
+    log = open(log_path, "w")  # noqa: SIM115 - the process owns it until stop_node
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            start_new_session=True)
+    proc.log_path = log_path
+    proc.log_handle = log
+    return proc
+
+
+def stop_node(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    proc.log_handle.close()
+
+
+def read_log(proc: subprocess.Popen) -> str:
+    with open(proc.log_path, errors="replace") as handle:
+        return handle.read()
+
+
+class Probe:
+    """The test's own ROS node (own context): publishers, collecting subscriptions, /diagnostics."""
+
+    def __init__(self, name: str) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.statuses: Dict[str, List[DiagnosticStatus]] = {}
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, stage_input_qos(100))
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.statuses.setdefault(status.name, []).append(status)
+
+    def collect(self, msg_type, topic: str, qos=None) -> list:
+        received: list = []
+        self.node.create_subscription(msg_type, topic, received.append, qos or stage_input_qos(50))
+        return received
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def status_where(self, name: str, predicate: Callable[[DiagnosticStatus], bool]) -> Optional[DiagnosticStatus]:
+        for status in reversed(self.statuses.get(name, [])):
+            if predicate(status):
+                return status
+        return None
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def diag_value(status: DiagnosticStatus, key: str, default: str = "0") -> str:
+    return next((kv.value for kv in status.values if kv.key == key), default)
+
+
+def send_until(probe: Probe, send: Callable[[], None], arrived: Callable[[], bool], timeout_s: float,
+               attempts: int = 3) -> bool:
+    """Send, and send the same frame again while nothing came of it: camera inputs are best effort,
+    and a large frame can be lost on a loaded machine like on a real camera link."""
+    for _ in range(attempts):
+        send()
+        if probe.spin_until(arrived, timeout_s / attempts):
+            return True
+    return False
+
+
+def wait_ready(probe: Probe, procs: Dict[str, subprocess.Popen], timeout_s: float = 30.0) -> None:
+    """Until every node published diagnostics (it spins, so its subscriptions are live)."""
+    ok = probe.spin_until(lambda: all(name in probe.statuses for name in procs)
+                          or any(p.poll() is not None for p in procs.values()), timeout_s)
+    for name, proc in procs.items():
+        assert proc.poll() is None, f"{name} exited with {proc.returncode}:\n{read_log(proc)[-3000:]}"
+    assert ok, f"nodes not ready: {sorted(set(procs) - set(probe.statuses))}"
+
+
+def stamp_key(header: Header) -> tuple:
+    return (header.stamp.sec, header.stamp.nanosec)
+
+
+def make_header(sec: int, nanosec: int = 0) -> Header:
+    header = Header(frame_id=FRAME_ID)
+    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    return header
+
+
+# ----------------------------------------------------------------------------- scene
+
+
+def person_blob_image(left: int, top: int) -> tuple:
+    """A grey image with a saturated red person-shaped figure (head, torso, legs); returns (rgb, box xyxy)."""
+    rgb = np.full((HEIGHT, WIDTH, 3), 90, np.uint8)
+    rgb[:, :, 2] = 110
+    mask = np.zeros((HEIGHT, WIDTH), bool)
+    yy, xx = np.mgrid[:HEIGHT, :WIDTH]
+    mask |= (xx - (left + 40)) ** 2 + (yy - (top + 25)) ** 2 <= 22 ** 2          # head
+    mask[top + 50: top + 170, left + 10: left + 71] = True                      # torso
+    mask[top + 170: top + 300, left + 12: left + 35] = True                     # legs
+    mask[top + 170: top + 300, left + 46: left + 69] = True
+    rgb[mask] = (230, 10, 10)
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    return rgb, np.array([cols[0], rows[0], cols[-1] + 1, rows[-1] + 1], float)
+
+
+@pytest.fixture(scope="module")
+def models():
+    detector, hmr = ensure_contract_models()
+    body = ensure_stand_in_body_model("small")
+    return {"detector": detector, "hmr": hmr, "body": body}
+
+
+@pytest.fixture(scope="module")
+def graph(models, tmp_path_factory):
+    logs = tmp_path_factory.mktemp("perception_logs")
+    engine = {"backend": "onnxruntime", "precision": "fp32", "intra_op_threads": "1"}
+    procs = {
+        f"{NS}/detector_node": start_node("leapnbv_perception.nodes.detector_node", str(logs / "detector.log"),
+                                          params={**engine, "model_file_path": models["detector"]}),
+        f"{NS}/hmr_node": start_node("leapnbv_perception.nodes.hmr_node", str(logs / "hmr.log"),
+                                     params={**engine, "model_file_path": models["hmr"],
+                                             "body_model_path": models["body"]}),
+        f"{MISSING_NS}/detector_node": start_node(
+            "leapnbv_perception.nodes.detector_node", str(logs / "detector_missing.log"), namespace=MISSING_NS,
+            params={**engine, "model_file_path": MISSING_MODEL, "model_retry_period_s": "0.5"}),
+        f"{GT_NS}/detector_node": start_node("leapnbv_perception.nodes.detector_node",
+                                             str(logs / "detector_gt.log"), namespace=GT_NS,
+                                             params={"backend": "ground_truth"}),
+    }
+    probe = Probe("perception_nodes_test")
+    try:
+        image_pub = probe.node.create_publisher(Image, f"{NS}/image", stage_output_qos(5))
+        detections = probe.collect(PersonDetections, f"{NS}/detections")
+        meshes = probe.collect(HumanMesh, f"{NS}/human_mesh")
+        wait_ready(probe, procs)
+        assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 2, 10.0)
+        yield {"probe": probe, "procs": procs, "image_pub": image_pub, "detections": detections,
+               "meshes": meshes, "body": SMPLXModel.load(models["body"])}
+    finally:
+        probe.close()
+        for proc in procs.values():
+            stop_node(proc)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = w * h
+    return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
+
+
+def by_stamp(messages: list, key: tuple) -> list:
+    return [m for m in messages if stamp_key(m.header) == key]
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_every_frame_gets_detections_and_mesh_with_its_header(graph):
+    probe, pub = graph["probe"], graph["image_pub"]
+    body = graph["body"]
+    frames = []
+    for i in range(5):
+        rgb, blob_box = person_blob_image(left=120 + 70 * i, top=60 + 20 * i)
+        header = make_header(1000 + i, 1000 * i + 7)
+        key = stamp_key(header)
+        image = numpy_to_image(rgb, "rgb8", header)
+        # Paced like a camera: the engine input keeps the latest frame only (depth 1).
+        got = send_until(probe, lambda image=image: pub.publish(image),
+                         lambda key=key: by_stamp(graph["detections"], key) and by_stamp(graph["meshes"], key), 24.0)
+        assert got, f"frame {i}: detections {len(by_stamp(graph['detections'], key))}, " \
+                    f"meshes {len(by_stamp(graph['meshes'], key))}; hmr_node: " \
+                    f"{probe.statuses[NS + '/hmr_node'][-1]}\n{read_log(graph['procs'][NS + '/hmr_node'])[-2000:]}"
+        frames.append((key, blob_box))
+
+    for key, blob_box in frames:
+        det = by_stamp(graph["detections"], key)[0]
+        assert det.header.frame_id == FRAME_ID
+        assert (det.image_width, det.image_height) == (WIDTH, HEIGHT)
+        assert det.backend == "onnxruntime"
+        assert len(det.detections) == 1
+        box = detection_to_box(det.detections[0])
+        assert box[4] >= 0.25
+        # The contract detector's box is the red figure's, snapped to its 8-px cells.
+        assert np.all(np.abs(box[:4] - blob_box) <= 8.5), (box, blob_box)
+        assert box_iou(box[:4], blob_box) > 0.85, (box, blob_box)
+
+        mesh_msg = by_stamp(graph["meshes"], key)[0]
+        assert mesh_msg.header.frame_id == FRAME_ID
+        mesh = human_mesh_to_arrays(mesh_msg)  # raises on non-finite vertices / bad faces
+        assert mesh.vertices.shape == (body.num_vertices, 3)
+        assert np.array_equal(mesh.faces, body.faces.reshape(-1, 3))
+        assert np.all(np.isfinite(mesh.vertices)) and np.all(mesh.vertices[:, 2] > 0)
+        np.testing.assert_allclose(mesh.detection, box, atol=1e-4)  # the mesh names the box it came from
+        assert mesh.image_size == (WIDTH, HEIGHT)
+        assert mesh.model_id == "contract_smplerx.onnx"
+        # The crop is the detection box grown to 3:4 and scaled by box_scale 1.25 about its centre,
+        # and the virtual camera is the one of that crop.
+        processed = mesh.processed_box
+        np.testing.assert_allclose(processed[:2] + processed[2:] / 2, (box[:2] + box[2:4]) / 2, atol=1e-3)
+        box_w, box_h = box[2] - box[0], box[3] - box[1]
+        np.testing.assert_allclose(processed[3], 1.25 * max(box_h, box_w * 4 / 3), rtol=1e-5)
+        np.testing.assert_allclose(processed[2], processed[3] * 0.75, rtol=1e-5)
+        np.testing.assert_allclose(mesh.virtual_intrinsics, virtual_intrinsics(processed), rtol=1e-5)
+        # Vertices = body + cam_translation; t_z = k * sigmoid(gamma), gamma bounded by the contract.
+        k = depth_scale()
+        assert 0.3 * k < mesh.cam_translation[2] < 0.7 * k, mesh.cam_translation
+        body_only = mesh.vertices - mesh.cam_translation
+        assert 1.0 < np.ptp(body_only[:, 1]) < 2.5 and np.all(np.abs(body_only) < 2.0)
+    assert len({stamp_key(m.header) for m in graph["meshes"]}) >= 5
+
+
+def test_bad_images_are_rejected_and_the_next_frame_is_served(graph):
+    probe, pub = graph["probe"], graph["image_pub"]
+    name = f"{NS}/detector_node"
+
+    def bad_image_count() -> int:
+        status = probe.status_where(name, lambda s: True)
+        return int(diag_value(status, "rejected.bad_image")) if status else 0
+
+    before = bad_image_count()
+    yuv = Image(header=make_header(2000), height=HEIGHT, width=WIDTH, encoding="yuv422", step=WIDTH * 2)
+    yuv.data = bytes(WIDTH * HEIGHT * 2)
+    pub.publish(yuv)
+    assert probe.spin_until(lambda: bad_image_count() >= before + 1, 10.0), "yuv422 image not counted"
+    short = numpy_to_image(person_blob_image(200, 100)[0], "rgb8", make_header(2001))
+    short.data = bytes(short.data[: len(short.data) // 2])  # half the rows missing
+    pub.publish(short)
+    assert probe.spin_until(lambda: bad_image_count() >= before + 2, 10.0), "truncated image not counted"
+
+    warn = probe.status_where(name, lambda s: s.level == DiagnosticStatus.WARN
+                              and int(diag_value(s, "rejected.bad_image")) >= before + 2)
+    assert warn is not None and "bad_image" in warn.message and "needs" in warn.message, warn
+    assert "yuv422" in diag_value(warn, "last_rejection") or "bytes" in diag_value(warn, "last_rejection")
+    assert not by_stamp(graph["detections"], (2000, 0)) and not by_stamp(graph["detections"], (2001, 0))
+
+    rgb, blob_box = person_blob_image(300, 120)
+    good = numpy_to_image(rgb, "rgb8", make_header(2002))
+    assert send_until(probe, lambda: pub.publish(good), lambda: by_stamp(graph["detections"], (2002, 0))
+                      and by_stamp(graph["meshes"], (2002, 0)), 24.0)
+    det = by_stamp(graph["detections"], (2002, 0))[0]
+    assert len(det.detections) == 1
+    assert np.all(np.abs(detection_to_box(det.detections[0])[:4] - blob_box) <= 8.5)
+    for proc in graph["procs"].values():
+        assert proc.poll() is None
+
+
+def test_hmr_survives_a_detection_paired_with_an_undecodable_image(graph):
+    """hmr_node caches images undecoded; the bad one fails only when its detections come."""
+    probe, pub = graph["probe"], graph["image_pub"]
+    name = f"{NS}/hmr_node"
+    det_pub = probe.node.create_publisher(PersonDetections, f"{NS}/detections", stage_output_qos(5))
+    assert probe.spin_until(lambda: det_pub.get_subscription_count() >= 1, 10.0)
+    bad = Image(header=make_header(3000), height=HEIGHT, width=WIDTH, encoding="yuv422", step=WIDTH * 2)
+    bad.data = bytes(WIDTH * HEIGHT * 2)
+    pub.publish(bad)
+    probe.spin_for(0.3)
+    dets = PersonDetections(header=make_header(3000), image_width=WIDTH, image_height=HEIGHT, backend="test")
+    dets.detections = [PersonDetection(x_min=200.0, y_min=100.0, x_max=300.0, y_max=400.0, score=0.9)]
+    det_pub.publish(dets)
+    assert probe.spin_until(lambda: probe.status_where(
+        name, lambda s: int(diag_value(s, "rejected.bad_frame")) >= 1 and s.level == DiagnosticStatus.WARN), 10.0)
+    assert not by_stamp(graph["meshes"], (3000, 0))
+    probe.node.destroy_publisher(det_pub)
+
+    rgb, _ = person_blob_image(150, 90)
+    good = numpy_to_image(rgb, "rgb8", make_header(3001))
+    assert send_until(probe, lambda: pub.publish(good), lambda: by_stamp(graph["meshes"], (3001, 0)), 24.0), \
+        "hmr_node stopped serving"
+    assert graph["procs"][name].poll() is None
+
+
+def test_missing_model_file_keeps_the_detector_running_with_an_error(graph):
+    probe = graph["probe"]
+    name = f"{MISSING_NS}/detector_node"
+    proc = graph["procs"][name]
+    error = probe.status_where(name, lambda s: s.level == DiagnosticStatus.ERROR)
+    assert error is not None, [s.message for s in probe.statuses.get(name, [])]
+    assert MISSING_MODEL in error.message
+    assert MISSING_MODEL in diag_value(error, "engine_state")
+
+    # It keeps serving: frames are counted as rejected (engine not ready), and retries never crash it.
+    image_pub = probe.node.create_publisher(Image, f"{MISSING_NS}/image", stage_output_qos(5))
+    assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 1, 10.0)
+    image_pub.publish(numpy_to_image(person_blob_image(100, 100)[0], "rgb8", make_header(4000)))
+    assert probe.spin_until(lambda: probe.status_where(
+        name, lambda s: int(diag_value(s, "rejected.engine_not_ready")) >= 1), 10.0)
+    latest = probe.statuses[name][-1]
+    assert latest.level == DiagnosticStatus.ERROR and MISSING_MODEL in latest.message
+    assert proc.poll() is None
+    assert MISSING_MODEL in read_log(proc)
+
+
+def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph):
+    probe = graph["probe"]
+    image_pub = probe.node.create_publisher(Image, f"{GT_NS}/image", stage_output_qos(5))
+    truth_pub = probe.node.create_publisher(SceneGroundTruth, f"{GT_NS}/ground_truth", stage_output_qos(10))
+    detections = probe.collect(PersonDetections, f"{GT_NS}/detections")
+    assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 1
+                            and truth_pub.get_subscription_count() >= 1, 10.0)
+    probe.spin_for(0.3)  # let the node's writer match our reader as well
+    small = np.zeros((120, 160, 3), np.uint8)
+
+    def truth(header: Header, box) -> SceneGroundTruth:
+        msg = SceneGroundTruth(header=header, body_model_id="stand_in_small")
+        msg.person_box = PersonDetection(x_min=box[0], y_min=box[1], x_max=box[2], y_max=box[3], score=1.0)
+        return msg
+
+    cases = {  # stamp -> (box, image first?)
+        (5000, 1): ((10.0, 20.0, 60.0, 110.0), True),
+        (5001, 2): ((40.5, 5.0, 90.25, 100.0), False),
+        (5002, 3): ((30.0, 30.0, 30.0, 90.0), True),  # zero-width: person not visible
+    }
+    for (sec, nsec), (box, image_first) in cases.items():
+        header = make_header(sec, nsec)
+        image = numpy_to_image(small, "rgb8", header)
+        if image_first:
+            image_pub.publish(image)
+            probe.spin_for(0.2)
+            truth_pub.publish(truth(header, box))
+        else:
+            truth_pub.publish(truth(header, box))
+            probe.spin_for(0.2)
+            image_pub.publish(image)
+        assert probe.spin_until(lambda key=(sec, nsec): by_stamp(detections, key), 10.0), f"no detections for {sec}"
+    truth_pub.publish(truth(make_header(5003, 4), (1.0, 2.0, 3.0, 4.0)))  # no image: never published
+    probe.spin_for(0.5)
+
+    assert not by_stamp(detections, (5003, 4))
+    for key, (box, _) in cases.items():
+        (det,) = by_stamp(detections, key)
+        assert det.header.frame_id == FRAME_ID and det.backend == "ground_truth"
+        assert (det.image_width, det.image_height) == (160, 120)
+        if box[2] > box[0]:
+            assert len(det.detections) == 1
+            np.testing.assert_allclose(detection_to_box(det.detections[0]), [*box, 1.0], atol=1e-5)
+        else:
+            assert len(det.detections) == 0
