@@ -231,6 +231,14 @@ def planned(graph):
     return {"key": key, "target": target, "centroid": point_to_numpy(target.centroid)}
 
 
+def deployed_ring_radius() -> float:
+    """The ring radius the node runs with: the deployed YAML's value."""
+    import yaml
+
+    with open(default_params_file()) as handle:
+        return float(yaml.safe_load(handle)["/**/nbv_node"]["ros__parameters"]["radius"])
+
+
 # ----------------------------------------------------------------------------- tests
 
 
@@ -247,12 +255,12 @@ def test_view_candidates_ring_and_choice(graph, planned):
     np.testing.assert_allclose(position0, np.zeros(3), atol=1e-9)
     ring_center = point_to_numpy(views.ring_center)
     np.testing.assert_allclose(ring_center, centroid - plane_distance(centroid) * UP, atol=1e-6)
-    assert abs(views.ring_radius - 1.5) < 1e-6
+    assert abs(views.ring_radius - deployed_ring_radius()) < 1e-6
     for i in range(1, count):  # ring candidates: camera height kept, looking at the target, x level
         rotation, position = pose_to_numpy(views.poses[i])
         assert abs(plane_distance(position) - CAMERA_HEIGHT) < 1e-3, i
         foot = position - plane_distance(position) * UP
-        assert abs(np.linalg.norm(foot - ring_center) - 1.5) < 1e-3, i
+        assert abs(np.linalg.norm(foot - ring_center) - deployed_ring_radius()) < 1e-3, i
         assert axis_miss_distance(rotation, position, centroid) < 0.01, i
         assert abs(rotation[:, 0] @ UP) < 1e-6, i
     scores = np.asarray(views.score)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from typing import Any, Generic, Optional, Tuple, TypeVar
+from typing import OrderedDict as OrderedDictType
 
 T = TypeVar("T")
 
@@ -18,7 +19,7 @@ class StampCache(Generic[T]):
         if capacity < 1:
             raise ValueError(f"StampCache capacity must be >= 1, got {capacity}")
         self.capacity = capacity
-        self._items: OrderedDict[int, T] = OrderedDict()
+        self._items: OrderedDictType[int, T] = OrderedDict()
         self.evicted = 0
 
     def __len__(self) -> int:
