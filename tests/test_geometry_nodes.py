@@ -1,24 +1,19 @@
 """raster_node and ground_node as processes over DDS, fed a rendered scene: stamps, pairing, bad depth."""
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import time
-from typing import Callable, Dict, List, Optional
+from typing import Callable
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+import node_harness as harness  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from node_harness import NS, by_stamp, diag_value, send_until, stamp_key  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from leapnbv_bringup.graph import default_params_file  # noqa: E402
 from leapnbv_common.conversions import (  # noqa: E402
     HumanMeshArrays,
     arrays_to_human_mesh,
@@ -27,7 +22,7 @@ from leapnbv_common.conversions import (  # noqa: E402
     point_to_numpy,
     pointcloud2_to_xyz,
 )
-from leapnbv_common.qos import stage_input_qos, stage_output_qos  # noqa: E402
+from leapnbv_common.qos import stage_output_qos  # noqa: E402
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
 from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
@@ -35,127 +30,10 @@ from leapnbv_sim.stand_ins import ensure_stand_in_body_model  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
 
-NS = "/leapnbv"
 FRAME_ID = "camera_depth_optical_frame"
 SCENE_SEED = 6
 
-
-# ----------------------------------------------------------------------------- harness
-
-
-def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
-               remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
-    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides)."""
-    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace}",
-           "--params-file", default_params_file()]
-    for name, value in (params or {}).items():
-        cmd += ["-p", f"{name}:={value}"]
-    for source, target in (remaps or {}).items():
-        cmd += ["-r", f"{source}:={target}"]
-    log = open(log_path, "w")  # noqa: SIM115 - the process owns it until stop_node
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                            start_new_session=True)
-    proc.log_path = log_path
-    proc.log_handle = log
-    return proc
-
-
-def stop_node(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-    proc.log_handle.close()
-
-
-def read_log(proc: subprocess.Popen) -> str:
-    with open(proc.log_path, errors="replace") as handle:
-        return handle.read()
-
-
-class Probe:
-    """The test's own ROS node (own context): publishers, collecting subscriptions, /diagnostics."""
-
-    def __init__(self, name: str) -> None:
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.statuses: Dict[str, List[DiagnosticStatus]] = {}
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, stage_input_qos(100))
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            self.statuses.setdefault(status.name, []).append(status)
-
-    def collect(self, msg_type, topic: str, qos=None) -> list:
-        received: list = []
-        self.node.create_subscription(msg_type, topic, received.append, qos or stage_input_qos(50))
-        return received
-
-    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return predicate()
-
-    def spin_for(self, seconds: float) -> None:
-        self.spin_until(lambda: False, seconds)
-
-    def status_where(self, name: str, predicate: Callable[[DiagnosticStatus], bool]) -> Optional[DiagnosticStatus]:
-        for status in reversed(self.statuses.get(name, [])):
-            if predicate(status):
-                return status
-        return None
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
-def diag_value(status: DiagnosticStatus, key: str, default: str = "0") -> str:
-    return next((kv.value for kv in status.values if kv.key == key), default)
-
-
-def send_until(probe: Probe, send: Callable[[], None], arrived: Callable[[], bool], timeout_s: float,
-               attempts: int = 3) -> bool:
-    """Send, and send the same frame again while nothing came of it: camera inputs are best effort,
-    and a large frame can be lost on a loaded machine like on a real camera link."""
-    for _ in range(attempts):
-        send()
-        if probe.spin_until(arrived, timeout_s / attempts):
-            return True
-    return False
-
-
-def wait_ready(probe: Probe, procs: Dict[str, subprocess.Popen], timeout_s: float = 30.0) -> None:
-    """Until every node published diagnostics (it spins, so its subscriptions are live)."""
-    ok = probe.spin_until(lambda: all(name in probe.statuses for name in procs)
-                          or any(p.poll() is not None for p in procs.values()), timeout_s)
-    for name, proc in procs.items():
-        assert proc.poll() is None, f"{name} exited with {proc.returncode}:\n{read_log(proc)[-3000:]}"
-    assert ok, f"nodes not ready: {sorted(set(procs) - set(probe.statuses))}"
-
-
-def stamp_key(header: Header) -> tuple:
-    return (header.stamp.sec, header.stamp.nanosec)
-
-
-def make_header(sec: int, nanosec: int = 0) -> Header:
-    header = Header(frame_id=FRAME_ID)
-    header.stamp.sec, header.stamp.nanosec = sec, nanosec
-    return header
-
-
-def by_stamp(messages: list, key: tuple) -> list:
-    return [m for m in messages if stamp_key(m.header) == key]
+make_header = harness.header_factory(FRAME_ID)  # headers stamped in this file's camera frame
 
 
 # ----------------------------------------------------------------------------- scene + graph
@@ -190,11 +68,10 @@ def mesh_message(frame, faces: np.ndarray, header: Header) -> HumanMesh:
 def graph(scene, tmp_path_factory):
     logs = tmp_path_factory.mktemp("geometry_logs")
     procs = {
-        f"{NS}/raster_node": start_node("leapnbv_geometry.nodes.raster_node", str(logs / "raster.log")),
-        f"{NS}/ground_node": start_node("leapnbv_geometry.nodes.ground_node", str(logs / "ground.log")),
+        f"{NS}/raster_node": harness.start_node("leapnbv_geometry.nodes.raster_node", str(logs / "raster.log")),
+        f"{NS}/ground_node": harness.start_node("leapnbv_geometry.nodes.ground_node", str(logs / "ground.log")),
     }
-    probe = Probe("geometry_nodes_test")
-    try:
+    with harness.running_graph("geometry_nodes_test", procs) as probe:
         g = {
             "probe": probe, "procs": procs,
             "depth_pub": probe.node.create_publisher(Image, f"{NS}/depth", stage_output_qos(5)),
@@ -204,15 +81,11 @@ def graph(scene, tmp_path_factory):
             "planes": probe.collect(GroundPlane, f"{NS}/ground_plane"),
             "masks": probe.collect(Image, f"{NS}/person_mask"),
         }
-        wait_ready(probe, procs)
+        harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: g["depth_pub"].get_subscription_count() >= 2
                                 and g["mesh_pub"].get_subscription_count() >= 1
                                 and g["info_pub"].get_subscription_count() >= 2, 10.0)
         yield g
-    finally:
-        probe.close()
-        for proc in procs.values():
-            stop_node(proc)
 
 
 def send_depth(graph, depth_msg: Image) -> None:

@@ -1,26 +1,19 @@
 """detector_node and hmr_node as processes over DDS: every frame served, bad input survived, GT pairing."""
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import time
-from typing import Callable, Dict, List, Optional
-
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+import node_harness as harness  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from node_harness import NS, by_stamp, diag_value, read_log, send_until, stamp_key  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from leapnbv_bringup.graph import default_params_file  # noqa: E402
 from leapnbv_common.conversions import detection_to_box, human_mesh_to_arrays, numpy_to_image  # noqa: E402
-from leapnbv_common.qos import stage_input_qos, stage_output_qos  # noqa: E402
+from leapnbv_common.qos import stage_output_qos  # noqa: E402
 from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth  # noqa: E402
 from leapnbv_perception.hmr_tail import depth_scale, virtual_intrinsics  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
@@ -28,126 +21,13 @@ from leapnbv_sim.stand_ins import ensure_contract_models, ensure_stand_in_body_m
 
 pytestmark = [pytest.mark.ros]
 
-NS = "/leapnbv"
 MISSING_NS = "/leapnbv_missing_model"
 GT_NS = "/leapnbv_gt"
 FRAME_ID = "camera_color_optical_frame"
 WIDTH, HEIGHT = 640, 480
 MISSING_MODEL = "/nonexistent/leapnbv_models/yolov8_missing.onnx"
 
-
-# ----------------------------------------------------------------------------- harness
-
-
-def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
-               remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
-    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides)."""
-    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace}",
-           "--params-file", default_params_file()]
-    for name, value in (params or {}).items():
-        cmd += ["-p", f"{name}:={value}"]
-    for source, target in (remaps or {}).items():
-        cmd += ["-r", f"{source}:={target}"]
-    log = open(log_path, "w")  # noqa: SIM115 - the process owns it until stop_node
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                            start_new_session=True)
-    proc.log_path = log_path
-    proc.log_handle = log
-    return proc
-
-
-def stop_node(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-    proc.log_handle.close()
-
-
-def read_log(proc: subprocess.Popen) -> str:
-    with open(proc.log_path, errors="replace") as handle:
-        return handle.read()
-
-
-class Probe:
-    """The test's own ROS node (own context): publishers, collecting subscriptions, /diagnostics."""
-
-    def __init__(self, name: str) -> None:
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.statuses: Dict[str, List[DiagnosticStatus]] = {}
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, stage_input_qos(100))
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            self.statuses.setdefault(status.name, []).append(status)
-
-    def collect(self, msg_type, topic: str, qos=None) -> list:
-        received: list = []
-        self.node.create_subscription(msg_type, topic, received.append, qos or stage_input_qos(50))
-        return received
-
-    def spin_until(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return predicate()
-
-    def spin_for(self, seconds: float) -> None:
-        self.spin_until(lambda: False, seconds)
-
-    def status_where(self, name: str, predicate: Callable[[DiagnosticStatus], bool]) -> Optional[DiagnosticStatus]:
-        for status in reversed(self.statuses.get(name, [])):
-            if predicate(status):
-                return status
-        return None
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
-def diag_value(status: DiagnosticStatus, key: str, default: str = "0") -> str:
-    return next((kv.value for kv in status.values if kv.key == key), default)
-
-
-def send_until(probe: Probe, send: Callable[[], None], arrived: Callable[[], bool], timeout_s: float,
-               attempts: int = 3) -> bool:
-    """Send, and send the same frame again while nothing came of it: camera inputs are best effort,
-    and a large frame can be lost on a loaded machine like on a real camera link."""
-    for _ in range(attempts):
-        send()
-        if probe.spin_until(arrived, timeout_s / attempts):
-            return True
-    return False
-
-
-def wait_ready(probe: Probe, procs: Dict[str, subprocess.Popen], timeout_s: float = 30.0) -> None:
-    """Until every node published diagnostics (it spins, so its subscriptions are live)."""
-    ok = probe.spin_until(lambda: all(name in probe.statuses for name in procs)
-                          or any(p.poll() is not None for p in procs.values()), timeout_s)
-    for name, proc in procs.items():
-        assert proc.poll() is None, f"{name} exited with {proc.returncode}:\n{read_log(proc)[-3000:]}"
-    assert ok, f"nodes not ready: {sorted(set(procs) - set(probe.statuses))}"
-
-
-def stamp_key(header: Header) -> tuple:
-    return (header.stamp.sec, header.stamp.nanosec)
-
-
-def make_header(sec: int, nanosec: int = 0) -> Header:
-    header = Header(frame_id=FRAME_ID)
-    header.stamp.sec, header.stamp.nanosec = sec, nanosec
-    return header
+make_header = harness.header_factory(FRAME_ID)  # headers stamped in this file's camera frame
 
 
 # ----------------------------------------------------------------------------- scene
@@ -180,31 +60,27 @@ def graph(models, tmp_path_factory):
     logs = tmp_path_factory.mktemp("perception_logs")
     engine = {"backend": "onnxruntime", "precision": "fp32", "intra_op_threads": "1"}
     procs = {
-        f"{NS}/detector_node": start_node("leapnbv_perception.nodes.detector_node", str(logs / "detector.log"),
-                                          params={**engine, "model_file_path": models["detector"]}),
-        f"{NS}/hmr_node": start_node("leapnbv_perception.nodes.hmr_node", str(logs / "hmr.log"),
-                                     params={**engine, "model_file_path": models["hmr"],
-                                             "body_model_path": models["body"]}),
-        f"{MISSING_NS}/detector_node": start_node(
+        f"{NS}/detector_node": harness.start_node("leapnbv_perception.nodes.detector_node",
+                                                  str(logs / "detector.log"),
+                                                  params={**engine, "model_file_path": models["detector"]}),
+        f"{NS}/hmr_node": harness.start_node("leapnbv_perception.nodes.hmr_node", str(logs / "hmr.log"),
+                                             params={**engine, "model_file_path": models["hmr"],
+                                                     "body_model_path": models["body"]}),
+        f"{MISSING_NS}/detector_node": harness.start_node(
             "leapnbv_perception.nodes.detector_node", str(logs / "detector_missing.log"), namespace=MISSING_NS,
             params={**engine, "model_file_path": MISSING_MODEL, "model_retry_period_s": "0.5"}),
-        f"{GT_NS}/detector_node": start_node("leapnbv_perception.nodes.detector_node",
-                                             str(logs / "detector_gt.log"), namespace=GT_NS,
-                                             params={"backend": "ground_truth"}),
+        f"{GT_NS}/detector_node": harness.start_node("leapnbv_perception.nodes.detector_node",
+                                                     str(logs / "detector_gt.log"), namespace=GT_NS,
+                                                     params={"backend": "ground_truth"}),
     }
-    probe = Probe("perception_nodes_test")
-    try:
+    with harness.running_graph("perception_nodes_test", procs) as probe:
         image_pub = probe.node.create_publisher(Image, f"{NS}/image", stage_output_qos(5))
         detections = probe.collect(PersonDetections, f"{NS}/detections")
         meshes = probe.collect(HumanMesh, f"{NS}/human_mesh")
-        wait_ready(probe, procs)
+        harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 2, 10.0)
         yield {"probe": probe, "procs": procs, "image_pub": image_pub, "detections": detections,
                "meshes": meshes, "body": SMPLXModel.load(models["body"])}
-    finally:
-        probe.close()
-        for proc in procs.values():
-            stop_node(proc)
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -212,10 +88,6 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> float:
     h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
     inter = w * h
     return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
-
-
-def by_stamp(messages: list, key: tuple) -> list:
-    return [m for m in messages if stamp_key(m.header) == key]
 
 
 # ----------------------------------------------------------------------------- tests
