@@ -168,9 +168,18 @@ def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
         assert log["per_method"]["leap_nbv"]["goal_position_error_m"] < 1e-6
         assert log["per_method"]["leap_nbv"]["closed_loop_matches_render"]
     stages = [stage for stage, _ in STAGE_TOPICS] + [END_TO_END]
+    # Three start views and three after-move views went through the graph; an after-move view
+    # may end without a plan (in a furnished room it can look mostly at furniture: no ground
+    # plane), and then the planner stage and the end-to-end time have no sample for it.
+    after_failures = [log["per_method"]["leap_nbv"]["after_graph_failure"] for log in first["scene_logs"]]
+    planned = 3 + sum(failure is None for failure in after_failures)
+    assert planned >= 5
     for stage in stages:
-        # Three start views and three after-move views went through the graph.
-        assert len(first["latency_ms"][stage]) == 6, stage
+        count = len(first["latency_ms"][stage])
+        if stage in ("nbv_node", END_TO_END):
+            assert count == planned, stage
+        else:
+            assert planned <= count <= 6, stage
         assert all(value >= 0.0 for value in first["latency_ms"][stage])
 
     # Same seeds, same chosen views and metrics (the second pass runs on later stamps).

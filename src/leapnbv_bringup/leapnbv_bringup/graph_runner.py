@@ -29,6 +29,17 @@ from leapnbv_bringup.graph import (
 Overrides = Dict[str, Dict[str, str]]
 
 
+def _die_with_parent() -> None:
+    """In the child before exec: Linux sends it SIGTERM when the runner dies, even by SIGKILL,
+    so no node outlives a crashed or killed runner (its own session hides it from Ctrl-C)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass  # not Linux/glibc: stop() still ends the nodes on a normal exit
+
+
 class GraphError(RuntimeError):
     """A node of the graph failed to start or died; the message names it and its log."""
 
@@ -123,7 +134,8 @@ class GraphRunner:
                 self._logs[spec.name] = out
             self.processes[spec.name] = subprocess.Popen(
                 cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT if out else None,
-                start_new_session=True)  # Ctrl-C in a terminal reaches the runner, which stops them in order
+                start_new_session=True,  # Ctrl-C in a terminal reaches the runner, which stops them in order
+                preexec_fn=_die_with_parent)
 
     def check_alive(self) -> None:
         for name, proc in self.processes.items():
@@ -216,6 +228,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     runner = runner_from_arguments(args)
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(True))
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # also when started in the background
     try:
         runner.start()
         took = runner.wait_ready(probe, args.ready_timeout)

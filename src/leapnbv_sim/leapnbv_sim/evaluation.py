@@ -286,6 +286,8 @@ class EvaluationOptions:
         ready_timeout_s: Longest wait for the graph's nodes to appear.
         stamp_base_ns: Sim time of the first scene's first frame.
         log_dir: Node logs folder (None: inherit the terminal).
+        room: "furnished" (the benchmark: 2-4 pieces of furniture around the person) or "open"
+            (only the occluders in front of the person and the walls).
         score_all_candidates: Render every candidate of every scene, log its coverage and add
             the "oracle" row (the best feasible candidate by ground-truth surface coverage: the
             ceiling of the candidate ring). About 0.3 s per scene.
@@ -303,6 +305,7 @@ class EvaluationOptions:
     stamp_base_ns: int = DEFAULT_STAMP_BASE_NS
     log_dir: Optional[str] = None
     score_all_candidates: bool = True
+    room: str = "furnished"
 
     @property
     def methods(self) -> List[str]:
@@ -474,9 +477,13 @@ class ClosedLoopEvaluator:
     def _load_scene(self, seed: int) -> Scene:
         import dataclasses
 
-        from leapnbv_sim.scene import SceneConfig, generate_scene
+        from leapnbv_sim.benchmark_set import BENCHMARK_CONFIG
+        from leapnbv_sim.scene import generate_scene
 
-        return generate_scene(dataclasses.replace(SceneConfig(), seed=int(seed)), self.scene_body_model())
+        # The seeds qualify under both rooms: the furniture keeps off the start view.
+        clutter = BENCHMARK_CONFIG.clutter_count_range if self.options.room == "furnished" else (0, 0)
+        config = dataclasses.replace(BENCHMARK_CONFIG, seed=int(seed), clutter_count_range=clutter)
+        return generate_scene(config, self.scene_body_model())
 
     def _subscribe_outputs(self) -> None:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -877,12 +884,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                         help="override one graph parameter (repeatable)")
     parser.add_argument("--frame-timeout", type=float, default=15.0, help="seconds to wait for a frame's plan")
+    parser.add_argument("--room", choices=["furnished", "open"], default="furnished",
+                        help="benchmark rooms with furniture around the person (default) or without")
     args = parser.parse_args(argv)
 
     options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
                                 hmr_model=args.hmr_model, body_model=args.body_model,
                                 scene_body_model=args.scene_body_model, params_file=args.params,
-                                set_parameters=list(args.set), frame_timeout_s=args.frame_timeout)
+                                set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
+                                room=args.room)
     try:
         seeds = benchmark_seeds(args.scenes, args.seed_offset)
         results = run_evaluation(seeds, args.out, options)

@@ -9,7 +9,8 @@ rotation's columns are the optical axes (x right, y down, z forward) in world co
 the position is the optical centre in the world.
 
 Object ids in ``RenderedFrame.object_id``: -1 background, 0 floor, 1 person, 2.. occluders,
-then walls (see ``Scene.object_names``).
+then walls, then clutter (furniture around the person, when the config asks for it; see
+``Scene.object_names``).
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ FIRST_OCCLUDER_ID = 2
 _FLOOR_COLOUR = np.array([0.55, 0.55, 0.52])
 _WALL_COLOUR = np.array([0.80, 0.78, 0.70])
 _OCCLUDER_COLOURS = np.array([[0.25, 0.45, 0.75], [0.70, 0.45, 0.20], [0.35, 0.60, 0.35]])
+# Furniture: light wood, white laminate, dark grey metal, grey-green fabric (screens).
+_CLUTTER_COLOURS = np.array([[0.62, 0.47, 0.30], [0.86, 0.86, 0.83], [0.30, 0.31, 0.34], [0.45, 0.52, 0.47]])
+# Mixed with the seed into the clutter's own random stream.
+_CLUTTER_STREAM = 7
 _PERSON_COLOUR = np.array([0.85, 0.35, 0.30])
 _BACKGROUND_RGB = np.array([40, 40, 48], dtype=np.uint8)
 # Light travelling down and slightly sideways (world frame), plus ambient.
@@ -73,6 +78,19 @@ class SceneConfig:
         depth_noise: Corrupt rendered depth with :mod:`leapnbv_sim.depth_noise`.
         noise: Noise parameters.
         max_attempts: Occluder layouts tried before giving up.
+        clutter_count_range: Inclusive range of the number of furniture boxes (shelves,
+            cabinets, standing screens) around the person; (0, 0) = none, and then the scene is
+            exactly the one generated without clutter support (clutter has its own random stream).
+        clutter_distance_range: Horizontal distance from the person (pelvis, the world origin) to
+            a clutter box's centre (m), uniform.
+        clutter_width_range: Clutter box width (m, the side facing the person), uniform.
+        clutter_height_range: Clutter box height (m), uniform.
+        clutter_depth_range: Clutter box depth (m, along the line to the person), uniform.
+        clutter_clearance: Smallest horizontal gap (m) between a clutter box and the start view's
+            line of sight to the body (so the box cannot hide the body from the start camera,
+            nor touch the body or the camera), the occluders, the walls and the other clutter.
+        clutter_max_tries: Placements drawn per clutter box; a box that finds no free spot in as
+            many draws is left out (so a scene may hold fewer boxes than drawn).
     """
 
     seed: int = 0
@@ -92,6 +110,13 @@ class SceneConfig:
     depth_noise: bool = True
     noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     max_attempts: int = 40
+    clutter_count_range: Tuple[int, int] = (0, 0)
+    clutter_distance_range: Tuple[float, float] = (0.6, 2.0)
+    clutter_width_range: Tuple[float, float] = (0.4, 1.2)
+    clutter_height_range: Tuple[float, float] = (0.8, 2.0)
+    clutter_depth_range: Tuple[float, float] = (0.3, 0.6)
+    clutter_clearance: float = 0.15
+    clutter_max_tries: int = 100
 
     @property
     def K(self) -> np.ndarray:
@@ -609,7 +634,12 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
     (30-60 % of the way from the person, lateral offset up to 0.5 m, 0.3-1.1 m wide); its
     height is found by bisection so that the start view's occluder share hits a target drawn
     uniformly from the config's range; a second box, when drawn, stands to one side. A layout
-    whose share cannot reach the range is discarded and another drawn.
+    whose share cannot reach the range is discarded and another drawn. Last, when
+    ``config.clutter_count_range`` allows any, furniture boxes are placed around the person
+    from a separate stream, ``np.random.default_rng([seed, 7])`` (see :func:`_place_clutter`):
+    they keep clear of the start view's line of sight to the body, so the occluder share found
+    above holds (it is measured again on the full scene), and a config without clutter gives
+    exactly the scene it gave before clutter existed.
 
     Args:
         config: Scene parameters and seed.
@@ -669,8 +699,12 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
     objects.append(("person", body_world, body_faces, _PERSON_COLOUR))
 
     walls: List[Tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+    # Wall planes (x of the back wall, y of the side wall) that clutter must stay inside.
+    wall_back_x: Optional[float] = None
+    wall_side_y: Optional[float] = None
     if config.walls:
         back = rng.uniform(2.0, 3.0)
+        wall_back_x = float(back)
         walls.append(
             (
                 "wall_back",
@@ -680,6 +714,7 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
         )
         if rng.random() < 0.5:
             side = rng.choice([-1.0, 1.0]) * rng.uniform(2.5, 3.5)
+            wall_side_y = float(side)
             walls.append(
                 (
                     "wall_side",
@@ -758,12 +793,175 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
             _body_model_id(body_model, config),
         )
         scene.start_occluder_share, _ = scene.occluder_share(start_camera)
+        if not low <= scene.start_occluder_share <= high:
+            continue
+        if config.clutter_count_range[1] <= 0:
+            return scene
+        # Clutter comes last, from its own random stream, so the draws above (and every scene
+        # without clutter) stay as they were. It stays clear of the start view's line of sight
+        # to the body, so it cannot change the start view's occluder share; the share is
+        # measured again on the full scene all the same.
+        clutter = _place_clutter(
+            config,
+            body_world,
+            start_camera,
+            layout.boxes(best_height),
+            wall_back_x,
+            wall_side_y,
+        )
+        scene = _assemble(
+            config,
+            objects + occluders + walls + clutter,
+            params_world,
+            forward_vertices,
+            root_joint,
+            translation_world,
+            body_faces,
+            start_camera,
+            _body_model_id(body_model, config),
+        )
+        scene.start_occluder_share, _ = scene.occluder_share(start_camera)
         if low <= scene.start_occluder_share <= high:
             return scene
     raise SceneError(
         f"seed {config.seed}: no occluder layout reached an occluder share in [{low}, {high}] "
         f"in {config.max_attempts} attempts"
     )
+
+
+def _clutter_rng(seed: int) -> np.random.Generator:
+    """The clutter's random stream: independent of ``default_rng(seed)``, which draws the rest."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, _CLUTTER_STREAM])
+
+
+def _place_clutter(
+    config: SceneConfig,
+    body_world: np.ndarray,
+    start_camera: CameraPose,
+    occluder_boxes: List[Tuple[np.ndarray, np.ndarray, float]],
+    wall_back_x: Optional[float],
+    wall_side_y: Optional[float],
+) -> List[Tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Furniture-like boxes standing around the person, off the start view's line of sight.
+
+    Per box (count uniform in ``config.clutter_count_range``): a direction uniform around the
+    person, a centre distance, width, depth and height uniform in the config's ranges, the broad
+    side turned toward the person (yaw jitter +-0.3 rad), a colour from the furniture palette.
+    A draw is kept when its footprint keeps ``config.clutter_clearance`` from: the convex hull of
+    the start camera (a disc of the robot's 0.3 m radius) and the body's footprint, which holds
+    every ray from the camera to the body (so the box hides nothing of the body in the start view
+    and touches neither the body nor the camera); the occluders; the earlier clutter; and the
+    inside of the walls. Up to ``config.clutter_max_tries`` draws per box; then the box is left out.
+
+    Args:
+        config: Scene parameters (clutter ranges; the seed selects the clutter stream).
+        body_world: (V,3) body vertices in the world.
+        start_camera: The start camera (T_world_camera).
+        occluder_boxes: (centre (3,), size (3,), yaw) of each occluder box.
+        wall_back_x: x of the back wall plane behind the person, None without one.
+        wall_side_y: y of the side wall plane, None without one.
+
+    Returns:
+        ("clutter_<i>", vertices (8,3), faces (12,3), base colour (3,)) per placed box.
+    """
+    rng = _clutter_rng(config.seed)
+    clearance = float(config.clutter_clearance)
+    body_min = body_world[:, :2].min(axis=0)
+    body_max = body_world[:, :2].max(axis=0)
+    body_corners = np.array(
+        [[body_min[0], body_min[1]], [body_max[0], body_min[1]], [body_max[0], body_max[1]], [body_min[0], body_max[1]]]
+    )
+    # The camera as a 16-gon around its foot point, scaled so the polygon contains the disc.
+    robot_radius = 0.3
+    angles = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
+    camera_disc = start_camera.position[:2] + (robot_radius / np.cos(np.pi / 16)) * np.stack(
+        [np.cos(angles), np.sin(angles)], axis=1
+    )
+    keep_out = [_convex_hull_2d(np.concatenate([body_corners, camera_disc]))]
+    keep_out += [_box_footprint(centre, size, yaw) for centre, size, yaw in occluder_boxes]
+
+    count = int(rng.integers(config.clutter_count_range[0], config.clutter_count_range[1] + 1))
+    placed: List[Tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+    for _ in range(count):
+        for _try in range(config.clutter_max_tries):
+            azimuth = rng.uniform(-np.pi, np.pi)
+            distance = rng.uniform(*config.clutter_distance_range)
+            size = np.array(
+                [
+                    rng.uniform(*config.clutter_depth_range),
+                    rng.uniform(*config.clutter_width_range),
+                    rng.uniform(*config.clutter_height_range),
+                ]
+            )
+            yaw = azimuth + rng.uniform(-0.3, 0.3)
+            colour = _CLUTTER_COLOURS[int(rng.integers(len(_CLUTTER_COLOURS)))]
+            centre = np.array([distance * np.cos(azimuth), distance * np.sin(azimuth), 0.5 * size[2]])
+            footprint = _box_footprint(centre, size, yaw)
+            if wall_back_x is not None and footprint[:, 0].max() > wall_back_x - clearance:
+                continue
+            if wall_side_y is not None and (
+                footprint[:, 1].max() > wall_side_y - clearance
+                if wall_side_y > 0
+                else footprint[:, 1].min() < wall_side_y + clearance
+            ):
+                continue
+            if not all(_convex_polygons_apart(footprint, other, clearance) for other in keep_out):
+                continue
+            keep_out.append(footprint)
+            vertices, faces = _box_mesh(centre, size, yaw)
+            placed.append(("clutter_%d" % len(placed), vertices, faces, colour))
+            break
+    return placed
+
+
+def _box_footprint(centre: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
+    """(4,2) floor footprint of a box of :func:`_box_mesh`, counter-clockwise."""
+    half = 0.5 * np.asarray(size, dtype=np.float64)[:2]
+    corners = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * half
+    c, s = np.cos(yaw), np.sin(yaw)
+    return corners @ np.array([[c, s], [-s, c]]) + np.asarray(centre, dtype=np.float64)[:2]
+
+
+def _convex_hull_2d(points: np.ndarray) -> np.ndarray:
+    """(K,2) convex hull, counter-clockwise (Andrew's monotone chain) of (N,2) points."""
+    unique = sorted(set(map(tuple, np.asarray(points, dtype=np.float64).tolist())))
+    if len(unique) < 3:
+        return np.asarray(unique, dtype=np.float64)
+
+    def cross(o: Tuple[float, float], a: Tuple[float, float], b: Tuple[float, float]) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower: List[Tuple[float, float]] = []
+    for point in unique:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], point) <= 0:
+            lower.pop()
+        lower.append(point)
+    upper: List[Tuple[float, float]] = []
+    for point in reversed(unique):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], point) <= 0:
+            upper.pop()
+        upper.append(point)
+    return np.asarray(lower[:-1] + upper[:-1], dtype=np.float64)
+
+
+def _convex_polygons_apart(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
+    """Whether two convex polygons (K,2) are at least ``gap`` apart along one of their edge normals.
+
+    A separating axis with a gap of ``gap`` proves a distance of at least ``gap`` (conservative:
+    polygons whose closest points are vertex to vertex may be refused a little early).
+    """
+    for polygon in (a, b):
+        edges = np.roll(polygon, -1, axis=0) - polygon
+        normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        project_a = a @ normals.T
+        project_b = b @ normals.T
+        apart = (project_a.min(axis=0) - project_b.max(axis=0) >= gap) | (
+            project_b.min(axis=0) - project_a.max(axis=0) >= gap
+        )
+        if np.any(apart):
+            return True
+    return False
 
 
 @dataclass

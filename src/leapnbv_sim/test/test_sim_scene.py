@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from leapnbv_perception.rotations import axis_angle_to_matrix
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
 from leapnbv_sim import bag_io
-from leapnbv_sim.benchmark_set import BENCHMARK_SEEDS, load_benchmark_scenes
+from leapnbv_sim.benchmark_set import BENCHMARK_CONFIG, BENCHMARK_SEEDS, load_benchmark_scenes
 from leapnbv_sim.metrics import body_coverage
 from leapnbv_sim.scene import (
     FLOOR_ID,
@@ -56,11 +57,121 @@ def test_benchmark_seeds_start_occluded_within_range(body_model: SMPLXModel) -> 
     assert len(BENCHMARK_SEEDS) >= 60 and len(set(BENCHMARK_SEEDS)) == len(BENCHMARK_SEEDS)
     for scene in load_benchmark_scenes(3, body_model):
         frame = scene.render()
+        assert scene.config.clutter_count_range == BENCHMARK_CONFIG.clutter_count_range
         assert 0.2 <= scene.start_occluder_share <= 0.6
         assert frame.ground_truth.occluder_share == pytest.approx(scene.start_occluder_share)
         assert frame.ground_truth.person_box_xyxy is not None
         assert scene.object_names[PERSON_ID] == "person"
         assert any(name.startswith("occluder") for name in scene.object_names.values())
+
+
+def test_sample_of_benchmark_seeds_under_the_benchmark_config(body_model: SMPLXModel) -> None:
+    low, high = BENCHMARK_CONFIG.clutter_count_range
+    assert low >= 1  # the benchmark rooms are furnished
+    for seed in BENCHMARK_SEEDS[::9]:
+        scene = generate_scene(dataclasses.replace(BENCHMARK_CONFIG, seed=seed), body_model)
+        share, _ = scene.occluder_share(scene.start_camera)
+        assert 0.2 <= share <= 0.6, seed
+        assert share == scene.start_occluder_share
+        assert low <= len(_clutter_boxes(scene)) <= high, seed
+
+
+def _clutter_boxes(scene) -> list:
+    """(8,3) world vertices per clutter object of a scene."""
+    boxes = []
+    for object_id, name in sorted(scene.object_names.items()):
+        if name.startswith("clutter"):
+            faces = scene.faces[scene.face_object_id == object_id]
+            boxes.append(scene.vertices_world[np.unique(faces)])
+    return boxes
+
+
+def _footprint_distance(box: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Horizontal distance of (N,2) points to a box's footprint (0 inside), from its (8,3) vertices."""
+    corners = box[box[:, 2] < 1e-9][:, :2]  # the four floor corners
+    centre = corners.mean(axis=0)
+    order = np.argsort(np.arctan2(corners[:, 1] - centre[1], corners[:, 0] - centre[0]))
+    polygon = corners[order]
+    distances = np.full(len(points_xy), np.inf)
+    inside = np.ones(len(points_xy), dtype=bool)
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
+        edge = b - a
+        t = np.clip(((points_xy - a) @ edge) / (edge @ edge), 0.0, 1.0)
+        distances = np.minimum(distances, np.linalg.norm(points_xy - (a + t[:, None] * edge), axis=1))
+        inside &= (edge[0] * (points_xy[:, 1] - a[1]) - edge[1] * (points_xy[:, 0] - a[0])) >= 0
+    return np.where(inside, 0.0, distances)
+
+
+@pytest.mark.parametrize("seed", [BENCHMARK_SEEDS[0], BENCHMARK_SEEDS[5], 101, 202])
+def test_clutter_keeps_clear_of_person_camera_and_each_other(body_model: SMPLXModel, seed: int) -> None:
+    config = dataclasses.replace(BENCHMARK_CONFIG, seed=seed, clutter_count_range=(4, 4))
+    scene = generate_scene(config, body_model)
+    boxes = _clutter_boxes(scene)
+    assert 1 <= len(boxes) <= 4
+    clearance = config.clutter_clearance - 1e-9
+    body_xy = scene.body_vertices_world[:, :2]
+    camera_xy = scene.start_camera.position[None, :2]
+    for index, box in enumerate(boxes):
+        # Standing on the floor, furniture-sized, around the person.
+        assert box[:, 2].min() == pytest.approx(0.0, abs=1e-12)
+        assert config.clutter_height_range[0] <= box[:, 2].max() <= config.clutter_height_range[1]
+        centre_distance = np.linalg.norm(box[:, :2].mean(axis=0))
+        assert config.clutter_distance_range[0] <= centre_distance <= config.clutter_distance_range[1]
+        assert _footprint_distance(box, body_xy).min() >= clearance
+        assert _footprint_distance(box, camera_xy)[0] >= 0.3 + clearance  # robot radius + gap
+        for other in boxes[index + 1:]:
+            assert _footprint_distance(box, other[:, :2]).min() >= clearance
+            assert _footprint_distance(other, box[:, :2]).min() >= clearance
+    # Clutter ids come after the walls; the clutter changes nothing of the start view's occlusion.
+    plain = generate_scene(dataclasses.replace(config, clutter_count_range=(0, 0)), body_model)
+    assert max(plain.object_names) < min(i for i, n in scene.object_names.items() if n.startswith("clutter"))
+    assert scene.start_occluder_share == plain.start_occluder_share
+    frame = scene.render()
+    assert frame.ground_truth.occluder_share == plain.render().ground_truth.occluder_share
+
+
+def test_clutter_comes_from_its_own_stream_after_everything_else(body_model: SMPLXModel) -> None:
+    plain = generate_scene(SceneConfig(seed=7), body_model)
+    furnished = generate_scene(SceneConfig(seed=7, clutter_count_range=(2, 4)), body_model)
+    # The same body, camera, occluders and walls, then the clutter appended.
+    count = len(plain.vertices_world)
+    assert np.array_equal(furnished.vertices_world[:count], plain.vertices_world)
+    assert np.array_equal(furnished.faces[: len(plain.faces)], plain.faces)
+    assert np.array_equal(furnished.face_rgb[: len(plain.faces)], plain.face_rgb)
+    assert {k: v for k, v in furnished.object_names.items() if k in plain.object_names} == plain.object_names
+    assert len(furnished.vertices_world) - count == 8 * len(_clutter_boxes(furnished)) >= 16
+    np.testing.assert_array_equal(furnished.start_camera.as_matrix(), plain.start_camera.as_matrix())
+    # The clutter draw depends on the seed.
+    other = generate_scene(SceneConfig(seed=8, clutter_count_range=(2, 4)), body_model)
+    assert not np.array_equal(_clutter_boxes(other)[0], _clutter_boxes(furnished)[0])
+
+
+def _scene_digest(scene) -> str:
+    digest = hashlib.sha256()
+    digest.update(np.round(scene.vertices_world, 6).tobytes())
+    digest.update(scene.faces.astype(np.int32).tobytes())
+    digest.update(scene.face_object_id.astype(np.int32).tobytes())
+    digest.update(repr(sorted(scene.object_names.items())).encode())
+    digest.update(("%.6f" % scene.start_occluder_share).encode())
+    return digest.hexdigest()
+
+
+# Digests of scenes generated before clutter existed (default SceneConfig, small stand-in body).
+# A change here means every clutter-free scene, sample bag and golden file changed too (or the
+# stand-in body model / rasterizer did).
+_CLUTTER_FREE_DIGESTS = {
+    3: "b1fee2af2dd1e7b011664582b503a5b2fda618b42617117e85e5c84bd02d0047",
+    11: "6196a9e762c51e95df61e233846bc8639c920f3728675f240c00f4654632dec4",
+}
+
+
+@pytest.mark.parametrize("seed", sorted(_CLUTTER_FREE_DIGESTS))
+def test_clutter_free_config_reproduces_the_scenes_from_before_clutter(body_model: SMPLXModel, seed: int) -> None:
+    assert SceneConfig().clutter_count_range == (0, 0)
+    for config in (SceneConfig(seed=seed), SceneConfig(seed=seed, clutter_count_range=(0, 0))):
+        scene = generate_scene(config, body_model)
+        assert not any(name.startswith("clutter") for name in scene.object_names.values())
+        assert _scene_digest(scene) == _CLUTTER_FREE_DIGESTS[seed]
 
 
 def test_ground_truth_translation_reproduces_camera_vertices(scene, body_model: SMPLXModel) -> None:
