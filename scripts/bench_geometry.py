@@ -95,11 +95,17 @@ def synthetic_person(z: float = 2.4):
 def person_mesh():
     """The full-size stand-in body when its generator exists, else the synthetic mesh."""
     try:
-        from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: F401
-        from leapnbv_perception.stand_in_body_model import build_stand_in_body_model  # noqa: F401
+        from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
+        from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
     except ImportError:
         return synthetic_person(), "synthetic ellipsoid person"
-    return synthetic_person(), "synthetic ellipsoid person (stand-in body not wired here yet)"
+    model = SMPLXModel(build_stand_in_body_model("full"))
+    body = np.zeros(63)
+    body[15 * 3 + 2], body[16 * 3 + 2] = -1.1, 1.1  # arms down
+    params = SMPLXParams.from_axis_angle(np.array([np.pi, 0.0, 0.0]), body, np.zeros(45), np.zeros(45),
+                                         np.zeros(3))  # y up -> optical y down, facing the camera
+    vertices = model.forward(params).vertices.astype(np.float64) + np.array([0.0, 0.05, 3.0])
+    return (vertices, np.asarray(model.faces, dtype=np.int64)), "posed full-size stand-in body"
 
 
 def scene_depth(person_vertices, person_faces):
