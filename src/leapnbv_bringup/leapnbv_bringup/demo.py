@@ -108,13 +108,8 @@ def stage_latency_summary(run: Dict[str, object]) -> Dict[str, str]:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    from leapnbv_bringup.graph_runner import (
-        add_graph_arguments,
-        merge_overrides,
-        parse_set_arguments,
-        perception_overrides,
-    )
-    from leapnbv_bringup.regression import default_body_model, run_graph_on_bag
+    from leapnbv_bringup.graph_runner import add_graph_arguments
+    from leapnbv_bringup.regression import overrides_for_bag_run, run_graph_on_bag
     from leapnbv_sim.metrics import latency_summary
     from leapnbv_sim.report import write_demo_report
 
@@ -125,14 +120,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(argv)
 
     started = time.monotonic()
-    real_models = bool(args.detector_model and args.hmr_model)
-    perception = args.perception or ("onnxruntime" if real_models else "ground_truth")
-    body = args.body_model or (default_body_model() if perception == "ground_truth" else None)
-    if perception != "ground_truth" and not body:
-        print("[demo] real models need --body-model SMPLX_NEUTRAL.npz", file=sys.stderr)
+    try:
+        perception, overrides = overrides_for_bag_run(args)
+    except ValueError as exc:
+        print(f"[demo] {exc}", file=sys.stderr)
         return 2
-    overrides = merge_overrides(perception_overrides(perception, args.detector_model, args.hmr_model, body),
-                                parse_set_arguments(args.set))
     print(f"[demo] graph on {args.bag} with {perception} perception ...", flush=True)
     run = run_graph_on_bag(args.bag, os.path.join(args.out, "graph_run"), overrides, args.params)
     frames = _frames_for_report(run, args.bag)

@@ -274,6 +274,24 @@ def default_body_model() -> str:
     return ensure_stand_in_body_model("small")
 
 
+def overrides_for_bag_run(args: argparse.Namespace):
+    """(perception, parameter overrides) for a bag run from the shared graph arguments.
+
+    Ground-truth perception with the stand-in body the sample bags were made with, unless real
+    models are given (then onnxruntime, or the backend named by --perception).
+    """
+    from leapnbv_bringup.graph_runner import merge_overrides, parse_set_arguments, perception_overrides
+
+    real_models = bool(args.detector_model and args.hmr_model)
+    perception = args.perception or ("onnxruntime" if real_models else "ground_truth")
+    body = args.body_model or (default_body_model() if perception == "ground_truth" else None)
+    if perception != "ground_truth" and not body:
+        raise ValueError("real models need --body-model SMPLX_NEUTRAL.npz")
+    overrides = merge_overrides(perception_overrides(perception, args.detector_model, args.hmr_model, body),
+                                parse_set_arguments(args.set))
+    return perception, overrides
+
+
 def run_graph_on_bag(bag: str, out_dir: str, overrides, params_file: Optional[str] = None,
                      frame_timeout_s: float = 20.0) -> Dict[str, object]:
     """Start the graph, replay `bag` in keep-up mode, record the outputs to out_dir/outputs.
@@ -316,12 +334,7 @@ def run_graph_on_bag(bag: str, out_dir: str, overrides, params_file: Optional[st
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    from leapnbv_bringup.graph_runner import (
-        add_graph_arguments,
-        merge_overrides,
-        parse_set_arguments,
-        perception_overrides,
-    )
+    from leapnbv_bringup.graph_runner import add_graph_arguments
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", help="input rosbag2 directory (MCAP)")
@@ -335,10 +348,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     golden_npz, golden_json = golden_paths(bag)
     golden_npz = args.golden or golden_npz
     out_dir = args.out or os.path.join("out", "regression", os.path.basename(bag))
-    perception = args.perception or "ground_truth"
-    body = args.body_model or (default_body_model() if perception == "ground_truth" else None)
-    overrides = merge_overrides(perception_overrides(perception, args.detector_model, args.hmr_model, body),
-                                parse_set_arguments(args.set))
+    try:
+        _, overrides = overrides_for_bag_run(args)
+    except ValueError as exc:
+        print(f"[regression] {exc}", file=sys.stderr)
+        return 2
     if not args.update_golden and not os.path.exists(golden_npz):
         print(f"[regression] golden file not found: {golden_npz} (run with --update-golden)", file=sys.stderr)
         return 2
