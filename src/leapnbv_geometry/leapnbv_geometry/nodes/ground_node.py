@@ -8,7 +8,7 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from leapnbv_common.conversions import camera_info_to_k, depth_to_metres, image_to_numpy
+from leapnbv_common.conversions import camera_info_to_k, depth_to_metres, image_to_numpy, stamp_to_ns
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import declare_parameters, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
@@ -30,6 +30,7 @@ PARAMETERS = {
     "max_depth": (10.0, "metres: farther depth readings are invalid"),
     "seed": (0, "RANSAC random seed (deterministic results for replay)"),
     "mask_max_age_s": (1.0, "the person mask is excluded only when it is at most this much older than the depth"),
+    "mask_wait_s": (0.3, "wait this long for the previous frame's person mask before fitting (0 = never)"),
 }
 
 
@@ -45,6 +46,12 @@ class GroundNode(Node):
         self.create_subscription(Image, "person_mask", self.on_mask, stage_input_qos(1))
         self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(5))
         self.rng_seed = int(p["seed"])
+        # The mask excluded from frame t is the previous frame's. Waiting briefly for it (when
+        # masks are flowing) makes the fit independent of message timing, so replays repeat.
+        self.previous_depth_stamp: Optional[int] = None
+        self.masks_flowing = False
+        self.pending: Optional[tuple] = None  # (depth message, arrival ns) waiting for its mask
+        self.create_timer(0.02, self.expire_wait)
 
     @rejects_bad_input("bad_camera_info")
     def on_camera_info(self, msg: CameraInfo) -> None:
@@ -53,6 +60,30 @@ class GroundNode(Node):
 
     def on_mask(self, msg: Image) -> None:
         self.person_mask = msg
+        self.masks_flowing = True
+        if self.pending is not None and stamp_to_ns(msg.header.stamp) == self.previous_depth_stamp:
+            depth, self.pending = self.pending[0], None
+            self.fit(depth)
+
+    def on_depth(self, msg: Image) -> None:
+        self.diagnostics.frame_in()
+        if self.pending is not None:  # a newer frame: the waiting one is served now
+            depth, self.pending = self.pending[0], None
+            self.fit(depth)
+        mask_stamp = stamp_to_ns(self.person_mask.header.stamp) if self.person_mask is not None else None
+        if (self.params["mask_wait_s"] > 0 and self.masks_flowing and self.previous_depth_stamp is not None
+                and mask_stamp != self.previous_depth_stamp):
+            self.pending = (msg, self.get_clock().now().nanoseconds)
+            return
+        self.fit(msg)
+
+    def expire_wait(self) -> None:
+        if self.pending is None:
+            return
+        if self.get_clock().now().nanoseconds - self.pending[1] >= self.params["mask_wait_s"] * 1e9:
+            depth, self.pending = self.pending[0], None
+            self.masks_flowing = False  # no mask for that frame: do not wait again until one comes
+            self.fit(depth)
 
     def exclusion_mask(self, depth_msg: Image, shape) -> Optional[np.ndarray]:
         """The latest person mask, if recent and of the same size (the person is not floor)."""
@@ -66,9 +97,9 @@ class GroundNode(Node):
         return image_to_numpy(mask) > 0
 
     @rejects_bad_input("bad_depth")
-    def on_depth(self, msg: Image) -> None:
-        self.diagnostics.frame_in()
+    def fit(self, msg: Image) -> None:
         started = time.perf_counter()
+        self.previous_depth_stamp = stamp_to_ns(msg.header.stamp)
         if self.camera_info is None:
             raise ValueError("no depth camera_info received yet")
         p = self.params
