@@ -151,24 +151,36 @@ class GraphRunner:
             return "\n" + "".join(handle.readlines()[-lines:])
 
     def wait_ready(self, probe_node, timeout_s: float = 30.0) -> float:
-        """Spin `probe_node` until every node of the graph is discovered; returns the seconds it took.
+        """Spin `probe_node` until every node of the graph is serving; returns the seconds it took.
+
+        A node is serving once it published on /diagnostics: that timer runs only after the
+        node's constructor finished (models loaded, kernels compiled, subscriptions made), so
+        the first frame sent after this is not lost to a node still starting up.
 
         Raises:
-            GraphError: a node died, or not all were seen before the timeout.
+            GraphError: a node died, or not all were ready before the timeout.
         """
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
 
-        expected = {(spec.name, NAMESPACE) for spec in self.nodes}
+        expected = {f"{NAMESPACE}/{spec.name}" for spec in self.nodes}
+        serving = set()
+
+        def on_diagnostics(msg: DiagnosticArray) -> None:
+            serving.update(status.name for status in msg.status)
+
+        subscription = probe_node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 50)
         started = time.monotonic()
-        while True:
-            self.check_alive()
-            seen = set(probe_node.get_node_names_and_namespaces())
-            if expected <= seen:
-                return time.monotonic() - started
-            if time.monotonic() - started > timeout_s:
-                missing = sorted(name for name, _ in expected - seen)
-                raise GraphError(f"graph not ready after {timeout_s:.0f} s: missing {missing}")
-            rclpy.spin_once(probe_node, timeout_sec=0.1)
+        try:
+            while not expected <= serving:
+                self.check_alive()
+                if time.monotonic() - started > timeout_s:
+                    raise GraphError(f"graph not ready after {timeout_s:.0f} s: "
+                                     f"waiting for {sorted(expected - serving)}")
+                rclpy.spin_once(probe_node, timeout_sec=0.1)
+        finally:
+            probe_node.destroy_subscription(subscription)
+        return time.monotonic() - started
 
     def stop(self, timeout_s: float = 10.0) -> Dict[str, int]:
         """SIGINT every node, then SIGTERM / SIGKILL what is left; returns the exit codes."""

@@ -52,12 +52,12 @@ class RasterNode(Node):
         self.target_pub = self.create_publisher(TargetGeometry, "target_geometry", stage_output_qos())
         self.mask_pub = self.create_publisher(Image, "person_mask", stage_output_qos())
         self.mesh_pub = self.create_publisher(HumanMesh, "human_mesh_metric", stage_output_qos())
+        warm_up()  # compile the rasterizer before subscribing: the graph is ready only after it
         self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(p["depth_cache_size"]))
         self.create_subscription(CameraInfo, "depth/camera_info", self.on_camera_info, camera_input_qos(1))
         self.create_subscription(HumanMesh, "human_mesh", self.on_mesh, stage_input_qos(5))
         self.create_subscription(GroundPlane, "ground_plane", self.on_ground, stage_input_qos(5))
         self.create_timer(0.02, self.expire_waits)
-        warm_up()  # compile the rasterizer now, not on the first frame
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds

@@ -55,10 +55,10 @@ class NbvNode(Node):
         self.goal_pub = self.create_publisher(PoseStamped, "next_best_view", latched_goal_qos())
         self.base_goal_pub = self.create_publisher(PoseStamped, "base_goal", latched_goal_qos())
         self.markers_pub = self.create_publisher(MarkerArray, "markers", stage_output_qos())
+        warm_up_scoring()  # compile the kernels before subscribing: the graph is ready only after it
         self.create_subscription(TargetGeometry, "target_geometry", self.on_target, stage_input_qos(5))
         self.create_subscription(GroundPlane, "ground_plane", self.on_ground, stage_input_qos(5))
         self.create_timer(0.02, self.expire_waits)
-        warm_up_scoring()  # compile the kernels now, not on the first frame
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
