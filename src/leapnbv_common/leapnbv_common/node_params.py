@@ -20,13 +20,13 @@ def declare_parameters(node, table: ParamTable) -> Dict[str, Any]:
     return values
 
 
-def run_node(node_class, args=None) -> None:
-    """Standard main(): init, spin until Ctrl-C or shutdown, clean up."""
+def run_node(make_node, args=None) -> None:
+    """Standard main(): init, make the node (a class or any factory), spin until Ctrl-C or shutdown, clean up."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
     rclpy.init(args=args)
-    node = node_class()
+    node = make_node()
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -781,18 +781,13 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
             occluders.append(
                 ("occluder_%d" % index, vertices, faces, _OCCLUDER_COLOURS[index % len(_OCCLUDER_COLOURS)])
             )
-        scene = _assemble(
-            config,
-            objects + occluders + walls,
-            params_world,
-            forward_vertices,
-            root_joint,
-            translation_world,
-            body_faces,
-            start_camera,
-            _body_model_id(body_model, config),
-        )
-        scene.start_occluder_share, _ = scene.occluder_share(start_camera)
+        def assemble(scene_objects: List) -> Scene:
+            assembled = _assemble(config, scene_objects, params_world, forward_vertices, root_joint,
+                                  translation_world, body_faces, start_camera, _body_model_id(body_model, config))
+            assembled.start_occluder_share, _ = assembled.occluder_share(start_camera)
+            return assembled
+
+        scene = assemble(objects + occluders + walls)
         if not low <= scene.start_occluder_share <= high:
             continue
         if config.clutter_count_range[1] <= 0:
@@ -809,18 +804,7 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
             wall_back_x,
             wall_side_y,
         )
-        scene = _assemble(
-            config,
-            objects + occluders + walls + clutter,
-            params_world,
-            forward_vertices,
-            root_joint,
-            translation_world,
-            body_faces,
-            start_camera,
-            _body_model_id(body_model, config),
-        )
-        scene.start_occluder_share, _ = scene.occluder_share(start_camera)
+        scene = assemble(objects + occluders + walls + clutter)
         if low <= scene.start_occluder_share <= high:
             return scene
     raise SceneError(

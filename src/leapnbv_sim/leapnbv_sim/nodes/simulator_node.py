@@ -53,7 +53,7 @@ from leapnbv_common.conversions import (
     stamp_to_ns,
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
-from leapnbv_common.node_params import declare_parameters
+from leapnbv_common.node_params import declare_parameters, run_node
 from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_output_qos
 from leapnbv_msgs.msg import SceneGroundTruth
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -342,21 +342,10 @@ def _global_args_remap_goal(args: Optional[List[str]]) -> bool:
 
 def main(args: Optional[List[str]] = None) -> None:
     """Run the node from parameters (``--ros-args -p scene_seed:=N ...``) until Ctrl-C."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
-    rclpy.init(args=args)
     kwargs: Dict[str, Any] = {}
     if _global_args_remap_goal(args):
         kwargs["cli_args"] = []  # the command line remaps the goal itself (local rules would win)
-    node = SimulatorNode(**kwargs)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(lambda: SimulatorNode(**kwargs), args)
 
 
 if __name__ == "__main__":
