@@ -17,7 +17,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
@@ -25,6 +24,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from leapnbv_bringup.graph import NAMESPACE, OUTPUT_TOPICS
+from leapnbv_common.atomic_files import write_bytes_atomically
 
 # (topic short name, field) -> absolute tolerance; fields not listed must match exactly.
 TOLERANCES: Dict[Tuple[str, str], float] = {
@@ -197,7 +197,7 @@ def save_golden(path: str, values: Dict[str, Dict[int, Dict[str, np.ndarray]]]) 
               for topic, frames in values.items() for stamp, fields in frames.items() for key, v in fields.items()}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
-    write_atomically(path, buffer.getvalue())
+    write_bytes_atomically(path, buffer.getvalue())
 
 
 def load_golden(path: str) -> Dict[str, Dict[int, Dict[str, np.ndarray]]]:
@@ -209,21 +209,6 @@ def load_golden(path: str) -> Dict[str, Dict[int, Dict[str, np.ndarray]]]:
             topic, stamp, key = name.split("|")
             out.setdefault(topic, {}).setdefault(int(stamp), {})[key] = data[name]
     return out
-
-
-def write_atomically(path: str, data: bytes) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".")
-    try:
-        with os.fdopen(handle, "wb") as out:
-            out.write(data)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; these are shared artefacts
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def golden_paths(bag: str) -> Tuple[str, str]:
@@ -369,7 +354,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                   file=sys.stderr)
             return 1
         save_golden(golden_npz, values)
-        write_atomically(golden_json, json.dumps(golden_summary(values), indent=1).encode())
+        write_bytes_atomically(golden_json, json.dumps(golden_summary(values), indent=1).encode())
         print(f"[regression] wrote {golden_npz} and {golden_json}")
         return 0
     golden = load_golden(golden_npz)

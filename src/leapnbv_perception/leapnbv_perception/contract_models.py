@@ -21,12 +21,11 @@ weights. Their outputs depend on the pixels (a wrong crop or letterbox changes t
 
 from __future__ import annotations
 
-import os
-import tempfile
 from typing import Dict, List, Tuple
 
 import numpy as np
 
+from leapnbv_common.atomic_files import write_file_atomically
 from leapnbv_perception.model_contracts import (
     HMR_INPUT_NAME,
     HMR_OUTPUT_SIZES,
@@ -55,17 +54,7 @@ def _save_atomically(model: object, path: str) -> None:
     import onnx
 
     onnx.checker.check_model(model)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=".tmp-", suffix=".onnx", dir=folder)
-    os.close(handle)
-    try:
-        onnx.save(model, temporary)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
+    write_file_atomically(path, lambda temporary: onnx.save(model, temporary))
 
 
 def _yolo_anchor_constants() -> Tuple[np.ndarray, np.ndarray]:

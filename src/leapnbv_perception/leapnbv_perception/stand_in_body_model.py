@@ -36,12 +36,12 @@ Other arrays:
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+
+from leapnbv_common.atomic_files import write_file_atomically
 
 NUM_JOINTS = 55
 SMPLX_PARENTS = (
@@ -755,15 +755,4 @@ def write_stand_in_body_model(path: str, resolution: str = "small") -> str:
         The path written.
     """
     arrays = build_stand_in_body_model(resolution)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            np.savez_compressed(stream, **arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
-    return path
+    return write_file_atomically(path, lambda temporary: np.savez_compressed(temporary, **arrays))

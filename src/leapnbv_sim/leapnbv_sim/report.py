@@ -6,12 +6,12 @@ import json
 import logging
 import math
 import os
-import tempfile
-from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 
+from leapnbv_common.atomic_files import write_file_atomically
 from leapnbv_sim.metrics import latency_summary
 
 LOGGER = logging.getLogger(__name__)
@@ -55,44 +55,12 @@ class GroundFrame(NamedTuple):
 # ---------------------------------------------------------------------------------------------
 
 
-def _write_atomically(path: str, write_to: Callable[[str], None]) -> str:
-    """Write a file through a temporary sibling, then rename it over `path`.
-
-    The rename is atomic on POSIX, so a reader (or a later failure) never sees a half-written
-    file and a failing writer leaves the previous file at `path` untouched.
-
-    Args:
-        path: Destination file.
-        write_to: Called with the temporary path; must create the file there.
-
-    Returns:
-        `path`.
-
-    Raises:
-        Whatever `write_to` raises (the temporary file is removed first).
-    """
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    base, extension = os.path.splitext(os.path.basename(path))
-    # Keep the extension: cv2.imwrite picks the encoder from it.
-    handle, temporary = tempfile.mkstemp(prefix=f".{base}.", suffix=f".tmp{extension}", dir=directory)
-    os.close(handle)
-    try:
-        write_to(temporary)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
-    return path
-
-
 def _write_text_atomically(path: str, text: str) -> str:
     def write(temporary: str) -> None:
         with open(temporary, "w", encoding="utf-8") as stream:
             stream.write(text)
 
-    return _write_atomically(path, write)
+    return write_file_atomically(path, write)
 
 
 def _write_json_atomically(path: str, payload: Any) -> str:
@@ -106,11 +74,11 @@ def _write_rgb_png_atomically(path: str, rgb: np.ndarray) -> str:
         if not cv2.imwrite(temporary, bgr):
             raise ReportError(f"cv2.imwrite could not write {path}")
 
-    return _write_atomically(path, write)
+    return write_file_atomically(path, write)
 
 
 def _save_figure_atomically(figure: Any, path: str) -> str:
-    return _write_atomically(path, lambda temporary: figure.savefig(temporary, format="png", dpi=110))
+    return write_file_atomically(path, lambda temporary: figure.savefig(temporary, format="png", dpi=110))
 
 
 def _to_plain(value: Any) -> Any:

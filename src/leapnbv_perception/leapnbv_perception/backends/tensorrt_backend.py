@@ -21,12 +21,12 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import tempfile
 from collections import OrderedDict
 from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_common.atomic_files import write_bytes_atomically
 from leapnbv_perception.backends.base import (
     BackendError,
     EngineBackend,
@@ -87,21 +87,6 @@ def engine_cache_path(cache_dir: Optional[str], onnx_path: str, precision: str, 
     folder = cache_dir if cache_dir else default_engine_cache_dir()
     stem = os.path.splitext(os.path.basename(onnx_path))[0]
     return os.path.join(folder, "%s.%s.%s.engine" % (stem, normalize_precision(precision), key[:20]))
-
-
-def write_bytes_atomically(path: str, data: bytes) -> None:
-    """Write to a temporary file in the same folder, then rename over `path`."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=".tmp-", suffix=".engine", dir=folder)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(data)
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
 
 
 # ----------------------------------------------------------------------------------------
