@@ -212,6 +212,7 @@ def score_candidates(
     height: int,
     weights: Optional[ScoreWeights] = None,
     delta_px: float = 4.0,
+    line_of_sight_clear: Optional[np.ndarray] = None,
 ) -> CandidateScores:
     """Score C candidate views of the target.
 
@@ -225,7 +226,10 @@ def score_candidates(
         |i_b - i| <= h, |j_b - j| <= h and z_b < z_t (depth is the optical-axis z, not
         the range). Background points outside the image still count inside the window.
         S_o is kept separate from S_v on purpose: S_v measures framing, S_o occlusion of
-        what is framed.
+        what is framed. With ``line_of_sight_clear`` (the share of target points that each
+        candidate sees through free space of the robot's obstacle map, see
+        :mod:`leapnbv_planner.obstacle_map`) S_o is multiplied by it: the background only
+        holds what the current view saw, the map also what it did not.
       - score = w_v S_v + w_a S_a + w_o S_o.
     Rows with a non-finite coordinate are dropped from both clouds before anything is
     counted. The first call compiles the occlusion kernel (see warm_up_scoring).
@@ -239,6 +243,7 @@ def score_candidates(
         width, height: image size in pixels.
         weights: score weights; ScoreWeights() when None.
         delta_px: occlusion neighbourhood half-width in pixels (floored to an integer).
+        line_of_sight_clear: optional (C,) factors in [0, 1] applied to S_o.
 
     Returns:
         CandidateScores with (C,) arrays.
@@ -263,6 +268,12 @@ def score_candidates(
     num_targets = targets.shape[0]
     s_visibility = in_view / float(num_targets) if num_targets else np.zeros(len(in_view))
     s_occlusion = np.where(in_view > 0, not_hidden / np.maximum(in_view, 1), 0.0)
+    if line_of_sight_clear is not None:
+        clear = np.asarray(line_of_sight_clear, dtype=np.float64).reshape(-1)
+        if clear.shape != s_occlusion.shape or not np.all((clear >= 0.0) & (clear <= 1.0)):
+            raise ScoringInputError(
+                f"line_of_sight_clear must be {s_occlusion.shape[0]} values in [0, 1], got shape {clear.shape}")
+        s_occlusion = s_occlusion * clear
     s_area = _box_area_fraction(targets, rotation_array, position_array, camera)
     score = (
         weights.visibility * s_visibility

@@ -1,0 +1,244 @@
+"""The robot's map of static obstacles as a voxel grid, and line-of-sight tests through it.
+
+The start view sees only what lies in its field of view: furniture beside or behind the
+person, outside that view, cannot lower S_o, and the planner then sends the robot behind a
+shelf. A robot that maps its surroundings knows that furniture. This module takes such a map
+as the centres of its occupied voxels (what an OctoMap server publishes as
+``octomap_point_cloud_centers``), in a fixed frame ``map`` in which the camera pose of the
+observation is known, and answers two questions:
+
+- which target points a candidate camera sees through free map space (a 3D DDA walk,
+  Amanatides & Woo 1987, along each camera-to-point segment): ``line_of_sight_clear_fraction``;
+- where the map's obstacles lie in the observation frame (for the footprint test of the
+  candidate feasibility): ``centres_in_observation``.
+
+Voxel convention (OctoMap's): voxel (i, j, k) spans [i r, (i+1) r) x [j r, (j+1) r) x
+[k r, (k+1) r) in the map frame, r the resolution, and its centre is ((i, j, k) + 0.5) r.
+Space outside the map's voxels counts as free (unknown space is not an obstacle here).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Tuple
+
+import numpy as np
+
+from leapnbv_planner.jit import njit
+
+#: Largest dense grid built from a map (cells); 20 m x 20 m x 3 m at 5 cm is 9.6 M.
+MAX_GRID_CELLS = 64_000_000
+
+
+class ObstacleMapError(ValueError):
+    """The obstacle map or the camera pose cannot be used; the text says which value is at fault."""
+
+
+@dataclass
+class VoxelObstacleMap:
+    """A dense occupancy grid over the bounding box of a map's occupied voxels.
+
+    Attributes:
+        occupied: (X, Y, Z) bool; cell (a, b, c) is the map voxel lower_index + (a, b, c).
+        lower_index: (3,) int64 voxel index of cell (0, 0, 0).
+        resolution: voxel edge r (m).
+        centres: (N, 3) float64 centres of the occupied voxels, map frame.
+    """
+
+    occupied: np.ndarray
+    lower_index: np.ndarray
+    resolution: float
+    centres: np.ndarray
+
+    @property
+    def voxel_count(self) -> int:
+        return int(self.centres.shape[0])
+
+
+def voxel_map_from_centres(centres: np.ndarray, resolution: float) -> VoxelObstacleMap:
+    """Build the dense grid from occupied voxel centres.
+
+    Args:
+        centres: (N, 3) voxel centres in the map frame (N may be 0); non-finite rows are
+            dropped. A point that is not exactly a centre marks the voxel it falls in.
+        resolution: voxel edge r (m), as the map was built with.
+
+    Returns:
+        The VoxelObstacleMap.
+
+    Raises:
+        ObstacleMapError: resolution <= 0 or not finite, centres not (N, 3), or a grid larger
+            than MAX_GRID_CELLS (a map far larger than the room, or a wrong resolution).
+    """
+    if not (np.isfinite(resolution) and resolution > 0.0):
+        raise ObstacleMapError(f"obstacle map resolution must be a finite number > 0, got {resolution}")
+    points = np.asarray(centres, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ObstacleMapError(f"obstacle map centres must have shape (N, 3), got {points.shape}")
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if points.shape[0] == 0:
+        return VoxelObstacleMap(np.zeros((1, 1, 1), dtype=bool), np.zeros(3, dtype=np.int64),
+                                float(resolution), np.zeros((0, 3)))
+    index = np.floor(points / resolution).astype(np.int64)
+    lower = index.min(axis=0)
+    shape = index.max(axis=0) - lower + 1
+    cells = int(np.prod(shape))
+    if cells > MAX_GRID_CELLS:
+        raise ObstacleMapError(
+            f"obstacle map spans {shape.tolist()} voxels of {resolution} m ({cells} cells, more than"
+            f" {MAX_GRID_CELLS}): wrong resolution, or points far outside the mapped area")
+    occupied = np.zeros(tuple(int(s) for s in shape), dtype=bool)
+    local = index - lower
+    occupied[local[:, 0], local[:, 1], local[:, 2]] = True
+    unique_index = np.argwhere(occupied) + lower
+    return VoxelObstacleMap(occupied, lower, float(resolution), (unique_index + 0.5) * resolution)
+
+
+def _check_pose(rotation: np.ndarray, position: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    rotation = np.asarray(rotation, dtype=np.float64)
+    position = np.asarray(position, dtype=np.float64).reshape(-1)
+    if rotation.shape != (3, 3) or position.shape != (3,):
+        raise ObstacleMapError(f"camera pose must be a (3, 3) rotation and a (3,) position, got"
+                               f" {rotation.shape} and {position.shape}")
+    if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(position))):
+        raise ObstacleMapError("camera pose is not finite")
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0.0:
+        raise ObstacleMapError("camera pose rotation is not a rotation matrix")
+    return rotation, position
+
+
+def centres_in_observation(obstacle_map: VoxelObstacleMap, rotation: np.ndarray,
+                           position: np.ndarray) -> np.ndarray:
+    """The occupied voxel centres in the observation's camera frame.
+
+    Args:
+        obstacle_map: the map.
+        rotation, position: T_map_observation, the observation camera's pose in the map
+            (rotation columns = its optical axes in the map, position = its optical centre).
+
+    Returns:
+        (N, 3) R^T (c - t) for every centre c.
+    """
+    rotation, position = _check_pose(rotation, position)
+    return (obstacle_map.centres - position[None, :]) @ rotation
+
+
+def line_of_sight_clear_fraction(
+    obstacle_map: VoxelObstacleMap,
+    rotation: np.ndarray,
+    position: np.ndarray,
+    camera_positions: np.ndarray,
+    target_points: np.ndarray,
+    max_targets: int = 1500,
+    target_margin: float = 0.1,
+) -> np.ndarray:
+    """Per candidate camera, the share of target points whose line of sight crosses no occupied voxel.
+
+    The segment from a camera centre o to a target point q is walked voxel by voxel up to
+    ``target_margin`` metres before q (the target's own surface may touch a voxel of a wall
+    it stands at); it is blocked when any voxel it enters is occupied, including the one o
+    lies in (a camera inside furniture sees nothing).
+
+    Args:
+        obstacle_map: the map.
+        rotation, position: T_map_observation (see centres_in_observation).
+        camera_positions: (C, 3) candidate camera centres, observation frame.
+        target_points: (M, 3) target points, observation frame (non-finite rows dropped).
+        max_targets: at most this many target points are walked (an even stride through
+            them: the points come in raster order, so a stride keeps the body's extent).
+        target_margin: metres of each segment, at the target end, that are not checked.
+
+    Returns:
+        (C,) float64 in [0, 1]; 1 for every candidate when there are no target points.
+    """
+    rotation, position = _check_pose(rotation, position)
+    cameras = np.asarray(camera_positions, dtype=np.float64).reshape(-1, 3)
+    targets = np.asarray(target_points, dtype=np.float64).reshape(-1, 3)
+    targets = targets[np.all(np.isfinite(targets), axis=1)]
+    if targets.shape[0] == 0 or cameras.shape[0] == 0:
+        return np.ones(cameras.shape[0])
+    stride = max(1, int(np.ceil(targets.shape[0] / max(1, int(max_targets)))))
+    targets = targets[::stride]
+    # Observation frame -> map frame: x_map = R x + t.
+    cameras_map = cameras @ rotation.T + position[None, :]
+    targets_map = targets @ rotation.T + position[None, :]
+    clear = segments_clear(obstacle_map.occupied, obstacle_map.lower_index.astype(np.float64),
+                           obstacle_map.resolution, np.ascontiguousarray(cameras_map),
+                           np.ascontiguousarray(targets_map), float(target_margin))
+    return clear.mean(axis=1)
+
+
+@njit(cache=True)
+def segments_clear(
+    occupied: np.ndarray,
+    lower_index: np.ndarray,
+    resolution: float,
+    origins: np.ndarray,
+    targets: np.ndarray,
+    target_margin: float,
+) -> np.ndarray:
+    """(C, M) bool: segment origins[c] -> targets[m] (shortened by target_margin) is free.
+
+    Amanatides-Woo traversal in grid coordinates g = x / r - lower_index: the walk starts in
+    the cell holding the origin and steps, one cell at a time, across whichever cell
+    boundary the segment meets first, until it passes the shortened end. Cells outside the
+    grid are free.
+    """
+    num_origins = origins.shape[0]
+    num_targets = targets.shape[0]
+    size_x, size_y, size_z = occupied.shape[0], occupied.shape[1], occupied.shape[2]
+    clear = np.ones((num_origins, num_targets), dtype=np.bool_)
+    start = np.empty(3)
+    delta = np.empty(3)
+    cell = np.empty(3, dtype=np.int64)
+    step = np.empty(3, dtype=np.int64)
+    t_max = np.empty(3)
+    t_delta = np.empty(3)
+    for c in range(num_origins):
+        for m in range(num_targets):
+            length = 0.0
+            for a in range(3):
+                delta[a] = targets[m, a] - origins[c, a]
+                length += delta[a] * delta[a]
+            length = np.sqrt(length)
+            if length <= target_margin:
+                continue  # nothing left to check
+            t_end = 1.0 - target_margin / length
+            for a in range(3):
+                start[a] = origins[c, a] / resolution - lower_index[a]
+                delta[a] = delta[a] / resolution
+                cell[a] = np.int64(np.floor(start[a]))
+                if delta[a] > 0.0:
+                    step[a] = 1
+                    t_delta[a] = 1.0 / delta[a]
+                    t_max[a] = (cell[a] + 1.0 - start[a]) / delta[a]
+                elif delta[a] < 0.0:
+                    step[a] = -1
+                    t_delta[a] = -1.0 / delta[a]
+                    t_max[a] = (start[a] - cell[a]) / -delta[a]
+                else:
+                    step[a] = 0
+                    t_delta[a] = np.inf
+                    t_max[a] = np.inf
+            t = 0.0
+            while t <= t_end:
+                if (0 <= cell[0] < size_x and 0 <= cell[1] < size_y and 0 <= cell[2] < size_z
+                        and occupied[cell[0], cell[1], cell[2]]):
+                    clear[c, m] = False
+                    break
+                axis = 0
+                if t_max[1] < t_max[axis]:
+                    axis = 1
+                if t_max[2] < t_max[axis]:
+                    axis = 2
+                t = t_max[axis]
+                cell[axis] += step[axis]
+                t_max[axis] += t_delta[axis]
+    return clear
+
+
+def warm_up_obstacle_map() -> None:
+    """Compile the traversal kernel now (a node calls this at start-up, not on frame one)."""
+    grid = voxel_map_from_centres(np.array([[0.05, 0.05, 0.05]]), 0.1)
+    line_of_sight_clear_fraction(grid, np.eye(3), np.zeros(3), np.array([[0.05, 0.05, -1.0]]),
+                                 np.array([[0.05, 0.05, 1.0]]))
