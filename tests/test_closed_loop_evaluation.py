@@ -65,7 +65,7 @@ class _Listener(Node):
             self.create_subscription(msg_type, topic, lambda m, n=name: self._keep(n, m), camera_input_qos(5))
         self.create_subscription(SceneGroundTruth, "/leapnbv/sim/ground_truth",
                                  lambda m: self._keep("ground_truth", m), stage_input_qos(10))
-        self.create_subscription(PoseStamped, "/leapnbv/sim/camera_pose",
+        self.create_subscription(PoseStamped, "/leapnbv/camera_pose",
                                  lambda m: self._keep("camera_pose", m), stage_input_qos(10))
         self.goal_pub = self.create_publisher(PoseStamped, "/leapnbv/next_best_view", latched_goal_qos())
 

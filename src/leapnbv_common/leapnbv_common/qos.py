@@ -50,3 +50,14 @@ def latched_goal_qos() -> QoSProfile:
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )
+
+
+def latched_map_qos() -> QoSProfile:
+    """Maps (e.g. the obstacle map): reliable and transient-local with depth 1, so a node that
+    starts late still gets the current map, and only the latest map is kept."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )

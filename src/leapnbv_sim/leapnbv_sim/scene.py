@@ -10,7 +10,9 @@ the position is the optical centre in the world.
 
 Object ids in ``RenderedFrame.object_id``: -1 background, 0 floor, 1 person, 2.. occluders,
 then walls, then clutter (furniture around the person, when the config asks for it; see
-``Scene.object_names``).
+``Scene.object_names``). The static obstacles (occluders, walls, clutter: everything but the
+floor and the person) are also available as a voxel map, :meth:`Scene.obstacle_voxel_centres`,
+the ground truth of what a robot's mapping stack (e.g. OctoMap's occupied voxel centres) holds.
 """
 
 from __future__ import annotations
@@ -444,6 +446,62 @@ class Scene:
         )
 
 
+    def obstacle_voxel_centres(self, resolution: float = 0.1) -> np.ndarray:
+        """World-frame centres of the voxels that the scene's static obstacles occupy.
+
+        The obstacles are every object but the floor and the person: the occluder boxes, the
+        walls and the clutter (furniture) boxes. Voxels follow OctoMap's convention: voxel
+        (i, j, k) spans [i r, (i+1) r) on each axis (r = ``resolution``) and its centre is
+        ((i, j, k) + 0.5) r. A voxel is occupied when an obstacle's solid reaches into it; a
+        box that only touches a voxel's face does not occupy it. A wall (a rectangle of zero
+        thickness) occupies every voxel it passes through, so it is one voxel thick unless its
+        plane lies exactly on a voxel boundary (then both layers). Voxels entirely below the
+        floor (k < 0) are left out. Boxes and rectangles are voxelized exactly (separating-axis
+        test of each candidate voxel against the oriented box); an obstacle of another shape
+        (none is generated today) is voxelized from samples of its triangles at r/4 spacing.
+
+        The result is computed once per resolution and cached.
+
+        Args:
+            resolution: Voxel edge length in metres, > 0.
+
+        Returns:
+            (N, 3) float64 voxel centres, sorted by (i, j, k); a fresh copy on every call.
+
+        Raises:
+            SceneError: ``resolution`` is not a finite number > 0.
+        """
+        try:
+            res = float(resolution)
+        except (TypeError, ValueError):
+            res = float("nan")
+        if not (np.isfinite(res) and res > 0.0):
+            raise SceneError(f"obstacle voxel resolution must be a finite number of metres > 0, got {resolution!r}")
+        cache: Dict[float, np.ndarray] = getattr(self, "_obstacle_voxel_cache", None) or {}
+        self._obstacle_voxel_cache = cache
+        if res not in cache:
+            blocks = [np.zeros((0, 3), dtype=np.int64)]
+            for object_id in sorted(self.object_names):
+                if object_id in (FLOOR_ID, PERSON_ID):
+                    continue
+                faces = self.faces[self.face_object_id == object_id]
+                if len(faces) == 0:
+                    continue
+                used = np.unique(faces)
+                vertices = self.vertices_world[used]
+                box = _oriented_box_of(vertices, len(faces))
+                if box is not None:
+                    blocks.append(_oriented_box_voxels(box[0], box[1], box[2], res))
+                else:
+                    local_faces = np.searchsorted(used, faces)
+                    blocks.append(_triangle_voxels(vertices, local_faces, res))
+            indices = np.concatenate(blocks, axis=0)
+            indices = indices[indices[:, 2] >= 0]
+            indices = np.unique(indices, axis=0) if len(indices) else indices
+            cache[res] = (indices.astype(np.float64) + 0.5) * res
+        return cache[res].copy()
+
+
 # ----------------------------------------------------------------------------- camera poses
 
 
@@ -563,6 +621,89 @@ def _box_mesh(centre: np.ndarray, size: np.ndarray, yaw: float) -> Tuple[np.ndar
 def _quad_mesh(corners: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Planar quad from 4 corners in order: 4 vertices, 2 triangles."""
     return np.asarray(corners, dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+
+
+# Half thickness (m) given to a flat obstacle (a wall quad) so that it occupies the voxels its
+# plane passes through, and the slack of the separating-axis test against round-off.
+_FLAT_HALF_THICKNESS = 1e-6
+_SEPARATION_SLACK = 1e-9
+
+
+def _oriented_box_of(vertices: np.ndarray, face_count: int) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(centre (3,), axes (3,3) unit rows, half extents (3,)) of a :func:`_box_mesh` or :func:`_quad_mesh` object.
+
+    A box has 8 vertices (corner index 4 ix + 2 iy + iz) and 12 faces; a quad has 4 corners in
+    order and 2 faces (a flat box: half extent 0 along its normal). Returns None when the
+    vertices do not form a rectangular box or rectangle in that order.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if len(vertices) == 8 and face_count == 12:
+        origin = vertices[0]
+        edges = np.stack([vertices[4] - origin, vertices[2] - origin, vertices[1] - origin])
+        signs = np.array([[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)], dtype=np.float64)
+        rebuilt = origin + signs @ edges
+    elif len(vertices) == 4 and face_count == 2:
+        origin = vertices[0]
+        u, v = vertices[1] - origin, vertices[3] - origin
+        edges = np.stack([u, v, np.cross(u, v)])
+        rebuilt = np.stack([origin, origin + u, origin + u + v, origin + v])
+    else:
+        return None
+    lengths = np.linalg.norm(edges, axis=1)
+    if np.any(lengths < 1e-12):
+        return None
+    axes = edges / lengths[:, None]
+    scale = max(1.0, float(np.abs(vertices).max()))
+    if np.abs(axes @ axes.T - np.eye(3)).max() > 1e-6 or np.abs(rebuilt - vertices).max() > 1e-9 * scale:
+        return None
+    half = 0.5 * lengths
+    if len(vertices) == 4:
+        half[2] = 0.0
+    return vertices.mean(axis=0), axes, half
+
+
+def _oriented_box_voxels(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, res: float) -> np.ndarray:
+    """(N,3) int64 indices of the voxels (edge ``res``, OctoMap convention) an oriented box reaches into.
+
+    Separating-axis test of every voxel of the box's bounding range: the 3 world axes, the 3
+    box axes and their 9 cross products; a voxel is kept when no axis separates it from the
+    box (touching counts as separated). Flat boxes get ``_FLAT_HALF_THICKNESS``.
+    """
+    half = np.maximum(np.asarray(half, dtype=np.float64), _FLAT_HALF_THICKNESS)
+    extent = np.abs(axes).T @ half  # world-axis half extents of the box
+    low = np.floor((centre - extent) / res).astype(np.int64)
+    high = np.floor((centre + extent) / res).astype(np.int64)
+    low[2] = max(low[2], 0)  # nothing entirely below the floor
+    if np.any(high < low):
+        return np.zeros((0, 3), dtype=np.int64)
+    grids = np.meshgrid(*[np.arange(low[i], high[i] + 1) for i in range(3)], indexing="ij")
+    indices = np.stack([grid.reshape(-1) for grid in grids], axis=1)
+    offsets = (indices + 0.5) * res - centre
+    test_axes = [np.eye(3)[i] for i in range(3)] + [axes[j] for j in range(3)]
+    test_axes += [np.cross(np.eye(3)[i], axes[j]) for i in range(3) for j in range(3)]
+    keep = np.ones(len(indices), dtype=bool)
+    for axis in test_axes:
+        norm = np.linalg.norm(axis)
+        if norm < 1e-9:  # parallel edges: no axis
+            continue
+        axis = axis / norm
+        reach = 0.5 * res * np.abs(axis).sum() + np.abs(axes @ axis) @ half
+        keep &= np.abs(offsets @ axis) < reach - _SEPARATION_SLACK
+    return indices[keep]
+
+
+def _triangle_voxels(vertices: np.ndarray, faces: np.ndarray, res: float) -> np.ndarray:
+    """(N,3) int64 indices of the voxels (edge ``res``) holding samples of triangles at <= res/4 spacing."""
+    blocks = [np.zeros((0, 3), dtype=np.int64)]
+    for a, b, c in np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]:
+        longest = max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c))
+        steps = max(1, int(np.ceil(longest / (0.25 * res))))
+        i, j = np.meshgrid(np.arange(steps + 1), np.arange(steps + 1), indexing="ij")
+        inside = i + j <= steps
+        u, v = i[inside] / steps, j[inside] / steps
+        points = a + u[:, None] * (b - a) + v[:, None] * (c - a)
+        blocks.append(np.floor(points / res).astype(np.int64))
+    return np.concatenate(blocks, axis=0)
 
 
 def _face_colours(vertices: np.ndarray, faces: np.ndarray, base_rgb: np.ndarray) -> np.ndarray:

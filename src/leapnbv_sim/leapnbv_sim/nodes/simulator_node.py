@@ -3,8 +3,18 @@
 The node holds one synthetic scene (:mod:`leapnbv_sim.scene`) and renders it from the robot's
 current camera pose, publishing what a RealSense driver would (colour, aligned depth in mm, both
 camera infos) plus the simulator's ground truth, all five with one header (stamp = the sim time of
-the frame, frame_id = the camera's optical frame), and the world pose of the camera it rendered
-from on ``/leapnbv/sim/camera_pose`` (frame ``world_frame_id``).
+the frame, frame_id = the camera's optical frame). Before the images it publishes the world pose of
+the camera it rendered from on ``/leapnbv/camera_pose`` (geometry_msgs/PoseStamped,
+T_world_camera_optical, frame ``world_frame_id``, stamp = the frame's stamp): what the robot's
+localization would give the graph, so a node that needs the pose of a frame has it when the frame
+arrives.
+
+Every scene it switches to (:meth:`SimulatorNode.set_scene`, also the first one) it publishes once
+as a map of its static obstacles (occluders, walls, furniture: not the floor, not the person) on
+``/leapnbv/obstacle_map``: a sensor_msgs/PointCloud2 of the occupied voxel centres
+(:meth:`~leapnbv_sim.scene.Scene.obstacle_voxel_centres` at ``obstacle_map_resolution``, like
+OctoMap's ``octomap_point_cloud_centers``) in frame ``world_frame_id``, reliable and
+transient-local (a node that starts late still gets the current map).
 
 It remembers the world camera pose of every stamp it published (a bounded memory) and
 subscribes to the next-best-view goal (``goal``, remapped to ``/leapnbv/next_best_view`` by
@@ -40,7 +50,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 
 from leapnbv_common.conversions import (
@@ -51,10 +61,11 @@ from leapnbv_common.conversions import (
     pose_msg,
     pose_to_numpy,
     stamp_to_ns,
+    xyz_to_pointcloud2,
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import declare_parameters, run_node
-from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_output_qos
+from leapnbv_common.qos import camera_input_qos, latched_goal_qos, latched_map_qos, stage_output_qos
 from leapnbv_msgs.msg import SceneGroundTruth
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_sim.bag_io import (
@@ -66,7 +77,10 @@ from leapnbv_sim.bag_io import (
 )
 from leapnbv_sim.scene import CameraPose, RenderedFrame, Scene, pose_in_world
 
-CAMERA_POSE_TOPIC = "/leapnbv/sim/camera_pose"
+# The camera's world pose per frame, as the robot's localization would provide it to the graph.
+CAMERA_POSE_TOPIC = "/leapnbv/camera_pose"
+# The scene's static obstacles as occupied voxel centres, as the robot's mapping stack would.
+OBSTACLE_MAP_TOPIC = "/leapnbv/obstacle_map"
 DEFAULT_GOAL_TOPIC = "/leapnbv/next_best_view"
 # Local remap of the relative goal topic applied unless the caller remaps it itself.
 DEFAULT_GOAL_REMAP = ["--ros-args", "-r", "goal:=" + DEFAULT_GOAL_TOPIC]
@@ -82,8 +96,13 @@ PARAMETERS = {
     "rate_hz": (10.0, "frames per second from a timer; 0 = only when an in-process caller asks"),
     "move_speed_m_s": (0.0, "0 = jump to each goal; > 0 = drive there on a straight line at this speed"),
     "frame_id": ("camera_color_optical_frame", "frame_id of every published frame"),
-    "world_frame_id": ("sim_world", "frame_id of the published camera pose (the simulator's world)"),
+    "world_frame_id": ("sim_world", "frame_id of the published camera pose and obstacle map (the simulator's world)"),
     "pose_memory": (300, "how many published stamps keep their camera pose for goal lookups"),
+    "obstacle_map_resolution": (0.1, "metres: voxel edge of the published obstacle map"),
+    "publish_obstacle_map": (
+        True,
+        "publish the scene's static obstacles as a voxel map, as a robot's mapping stack would",
+    ),
 }
 
 
@@ -204,6 +223,8 @@ class SimulatorNode(Node):
         # The detector and HMR nodes pair every image with its ground truth: deliver it reliably.
         self.truth_pub = self.create_publisher(SceneGroundTruth, GROUND_TRUTH_TOPIC, stage_output_qos(10))
         self.pose_pub = self.create_publisher(PoseStamped, CAMERA_POSE_TOPIC, stage_output_qos(10))
+        # Created before the first set_scene below, which publishes the first scene's map.
+        self.map_pub = self.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
         self.create_subscription(PoseStamped, "goal", self.on_goal, latched_goal_qos())
 
         self.scene: Optional[Scene] = None
@@ -227,7 +248,11 @@ class SimulatorNode(Node):
         """Switch to a scene: camera at its start pose (or ``camera``), no motion, no remembered stamps.
 
         Forgetting the stamps makes any goal planned in the previous scene (e.g. the latched
-        last goal) a rejected one instead of a jump to nonsense.
+        last goal) a rejected one instead of a jump to nonsense. The new scene's obstacle map is
+        published once (unless ``publish_obstacle_map`` is off).
+
+        Raises:
+            SceneError: ``obstacle_map_resolution`` is not > 0 (the scene is switched all the same).
         """
         self.scene = scene
         start = camera if camera is not None else scene.start_camera
@@ -236,6 +261,23 @@ class SimulatorNode(Node):
         self.frame_count = 0
         self._poses.clear()
         self.last_goal_stamp_ns = None
+        if bool(self.params["publish_obstacle_map"]):
+            self.publish_obstacle_map()
+
+    def publish_obstacle_map(self) -> PointCloud2:
+        """Publish the current scene's obstacle voxel centres (world frame, stamp = now) and return the message.
+
+        Raises:
+            SimulatorError: No scene.
+            SceneError: ``obstacle_map_resolution`` is not > 0.
+        """
+        if self.scene is None:
+            raise SimulatorError("no scene loaded")
+        centres = self.scene.obstacle_voxel_centres(float(self.params["obstacle_map_resolution"]))
+        header = Header(frame_id=str(self.params["world_frame_id"]), stamp=self.get_clock().now().to_msg())
+        msg = xyz_to_pointcloud2(centres, header)
+        self.map_pub.publish(msg)
+        return msg
 
     @property
     def body_model_id(self) -> str:
@@ -267,7 +309,7 @@ class SimulatorNode(Node):
         self.publish_frame()
 
     def publish_frame(self, stamp_ns: Optional[int] = None) -> Tuple[int, RenderedFrame]:
-        """Render the scene from the current camera and publish the five topics and the camera pose.
+        """Render the scene from the current camera and publish the camera pose, then the five topics.
 
         Args:
             stamp_ns: Sim time of the frame (header stamp); the node clock's now when None.
@@ -299,14 +341,15 @@ class SimulatorNode(Node):
         header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         height, width = frame.depth_mm.shape
         info = make_camera_info(frame.K, width, height, header)
-        # Calibration first: a node that pairs images with their intrinsics has them on arrival.
+        # Calibration and the camera pose first: a node that pairs images with their intrinsics
+        # or their pose has them on arrival.
         self.image_info_pub.publish(info)
         self.depth_info_pub.publish(info)
+        pose_header = Header(frame_id=str(self.params["world_frame_id"]), stamp=header.stamp)
+        self.pose_pub.publish(PoseStamped(header=pose_header, pose=pose_msg(camera.rotation, camera.position)))
         self.truth_pub.publish(scene_ground_truth_msg(header, frame, self.body_model_id))
         self.image_pub.publish(numpy_to_image(np.ascontiguousarray(frame.rgb), "rgb8", header))
         self.depth_pub.publish(numpy_to_image(np.ascontiguousarray(frame.depth_mm), "16UC1", header))
-        pose_header = Header(frame_id=str(self.params["world_frame_id"]), stamp=header.stamp)
-        self.pose_pub.publish(PoseStamped(header=pose_header, pose=pose_msg(camera.rotation, camera.position)))
 
         self._poses[stamp_ns] = CameraPose(camera.rotation.copy(), camera.position.copy())
         while len(self._poses) > max(1, int(self.params["pose_memory"])):
