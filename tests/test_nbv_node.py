@@ -247,3 +247,91 @@ def test_invalid_ground_plane_gives_no_goal(graph, planned):
     probe.spin_for(0.1)
     graph["target_pub"].publish(target)
     assert probe.spin_until(lambda: by_stamp(graph["goals"], stamp_key(header)), 10.0)
+
+
+# ----------------------------------------------------------------------------- the obstacle map
+# Last in the file: the node keeps the (latched) map for every later frame.
+
+MAP_FRAME = "map"
+# The observation camera in the map: at (0, 0, 1.2) looking along map +x, level
+# (optical z = map x, optical x = -map y, optical y = -map z).
+CAMERA_IN_MAP = (np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]), np.array([0.0, 0.0, CAMERA_HEIGHT]))
+VOXEL = 0.1
+
+
+def to_map(point_obs: np.ndarray) -> np.ndarray:
+    rotation, position = CAMERA_IN_MAP
+    return rotation @ point_obs + position
+
+
+def voxel_box(centre_xy: np.ndarray, half_xy: float, height: float) -> np.ndarray:
+    """Voxel centres of an upright box standing on the map floor."""
+    lo = np.floor((np.asarray(centre_xy) - half_xy) / VOXEL).astype(int)
+    hi = np.ceil((np.asarray(centre_xy) + half_xy) / VOXEL).astype(int)
+    index = np.stack(np.meshgrid(np.arange(lo[0], hi[0]), np.arange(lo[1], hi[1]),
+                                 np.arange(0, int(round(height / VOXEL))), indexing="ij"), -1).reshape(-1, 3)
+    return (index + 0.5) * VOXEL
+
+
+def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
+    from sensor_msgs.msg import PointCloud2
+
+    from leapnbv_common.conversions import pose_msg
+    from leapnbv_common.qos import latched_map_qos
+
+    probe = graph["probe"]
+    (plain,) = by_stamp(graph["candidates"], planned["key"])  # planned without a map
+    chosen = plain.chosen_index
+    centroid_map = to_map(planned["centroid"])
+    # A pillar on the foot point of the view chosen without the map, and a tall screen halfway
+    # between the person and another feasible ring view: neither is in the frame's background.
+    _, chosen_position = pose_to_numpy(plain.poses[chosen])
+    pillar = voxel_box(to_map(chosen_position)[:2], 0.1, 2.0)
+    feasible = np.asarray(plain.feasible, bool)
+    screened = next(i for i in range(1, len(plain.poses)) if feasible[i] and i != chosen
+                    and abs(i - chosen) > 2)
+    _, screened_position = pose_to_numpy(plain.poses[screened])
+    middle = 0.5 * (to_map(screened_position)[:2] + centroid_map[:2])
+    screen = voxel_box(middle, 0.3, 2.0)
+
+    map_pub = probe.node.create_publisher(PointCloud2, f"{NS}/obstacle_map", latched_map_qos())
+    pose_pub = probe.node.create_publisher(PoseStamped, f"{NS}/camera_pose", stage_output_qos(10))
+    map_header = Header(frame_id=MAP_FRAME)
+    map_pub.publish(xyz_to_pointcloud2(np.concatenate([pillar, screen]).astype(np.float32), map_header))
+    assert probe.spin_until(lambda: pose_pub.get_subscription_count() >= 1, 5.0)
+    probe.spin_for(0.5)
+
+    header = make_header(300, 0)
+    target, plane = observation(header)
+    pose_pub.publish(PoseStamped(header=Header(frame_id=MAP_FRAME, stamp=header.stamp), pose=pose_msg(*CAMERA_IN_MAP)))
+    probe.spin_for(0.1)
+    graph["ground_pub"].publish(plane)
+    probe.spin_for(0.1)
+    graph["target_pub"].publish(target)
+    key = stamp_key(header)
+    assert probe.spin_until(lambda: by_stamp(graph["candidates"], key), 10.0)
+    (mapped,) = by_stamp(graph["candidates"], key)
+    assert not mapped.feasible[chosen] and mapped.infeasible_reason[chosen] == 2  # OBSTACLE
+    assert mapped.s_occlusion[screened] < 0.2 < plain.s_occlusion[screened] - 0.5
+    assert mapped.chosen_index not in (chosen, screened) and mapped.chosen_index >= 1
+    # Views away from both (ring neighbours may look past the pillar or the screen) keep their S_o.
+    unaffected = [i for i in range(len(plain.poses)) if abs(i - screened) > 1 and abs(i - chosen) > 1]
+    assert len(unaffected) >= 8
+    np.testing.assert_allclose(np.asarray(mapped.s_occlusion)[unaffected], np.asarray(plain.s_occlusion)[unaffected],
+                               atol=0.05)
+
+    # A frame whose camera pose never came is planned without the map, and counted.
+    def no_pose() -> int:
+        status = probe.status_where(f"{NS}/nbv_node", lambda s: True)
+        return int(diag_value(status, "rejected.no_camera_pose")) if status else 0
+
+    before = no_pose()
+    header = make_header(301, 0)
+    target, plane = observation(header)
+    graph["ground_pub"].publish(plane)
+    probe.spin_for(0.1)
+    graph["target_pub"].publish(target)
+    assert probe.spin_until(lambda: by_stamp(graph["candidates"], stamp_key(header)), 10.0)
+    (unmapped,) = by_stamp(graph["candidates"], stamp_key(header))
+    assert unmapped.feasible[chosen] and unmapped.chosen_index == chosen
+    assert probe.spin_until(lambda: no_pose() >= before + 1, 5.0)

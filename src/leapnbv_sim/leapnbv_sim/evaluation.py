@@ -291,6 +291,9 @@ class EvaluationOptions:
         score_all_candidates: Render every candidate of every scene, log its coverage and add
             the "oracle" row (the best feasible candidate by ground-truth surface coverage: the
             ceiling of the candidate ring). About 0.3 s per scene.
+        obstacle_map: The simulator publishes each scene's static obstacles as a voxel map (what
+            a robot's mapping stack knows of the room) and the nbv node uses it, with the
+            camera pose of every frame; False: the planner knows only what each frame shows.
     """
 
     perception: str = "ground_truth"
@@ -306,6 +309,7 @@ class EvaluationOptions:
     log_dir: Optional[str] = None
     score_all_candidates: bool = True
     room: str = "furnished"
+    obstacle_map: bool = True
 
     @property
     def methods(self) -> List[str]:
@@ -413,8 +417,9 @@ class ClosedLoopEvaluator:
         body = o.body_model or (ensure_stand_in_body_model("small") if not o.real_models else None)
         if o.real_models and not (o.detector_model and o.hmr_model and o.body_model):
             raise EvaluationError("real perception needs --detector-model, --hmr-model and --body-model")
+        map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
         return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body),
-                               parse_set_arguments(list(o.set_parameters)))
+                               parse_set_arguments(map_switch + list(o.set_parameters)))
 
     def start(self) -> None:
         """Start the graph's processes and the in-process nodes; wait until all are connected.
@@ -442,7 +447,7 @@ class ClosedLoopEvaluator:
             self.ready_s = self.runner.wait_ready(self.collector, timeout_s=self.options.ready_timeout_s)
         except GraphError as exc:
             raise EvaluationError(f"the graph did not start: {exc}") from exc
-        self.sim = SimulatorNode(scene=first_scene, parameter_overrides=_sim_parameters())
+        self.sim = SimulatorNode(scene=first_scene, parameter_overrides=_sim_parameters(self.options.obstacle_map))
         self._subscribe_outputs()
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.sim)
@@ -746,10 +751,11 @@ class ClosedLoopEvaluator:
         return pa_mpvpe_mm(predicted, truth)
 
 
-def _sim_parameters() -> List[Any]:
+def _sim_parameters(publish_obstacle_map: bool = True) -> List[Any]:
     from rclpy.parameter import Parameter
 
-    return [Parameter("rate_hz", value=0.0), Parameter("move_speed_m_s", value=0.0)]
+    return [Parameter("rate_hz", value=0.0), Parameter("move_speed_m_s", value=0.0),
+            Parameter("publish_obstacle_map", value=bool(publish_obstacle_map))]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -784,7 +790,8 @@ def evaluation_summary_markdown(results: Mapping[str, Any], options: EvaluationO
     lines = [
         "# LEAP-NBV closed-loop evaluation",
         "",
-        f"Scenes: {len(scenes)} (seeds {', '.join(str(scene['seed']) for scene in scenes)}); perception: "
+        f"Scenes: {len(scenes)} (seeds {', '.join(str(scene['seed']) for scene in scenes)}); rooms: "
+        f"{options.room}; obstacle map: {'used' if options.obstacle_map else 'not used'}; perception: "
         f"{options.perception}; wall time {wall_s:.1f} s (graph ready in {results.get('ready_s', float('nan')):.1f} s, "
         f"scenes {results.get('wall_s', float('nan')):.1f} s).",
         "",
@@ -886,13 +893,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--frame-timeout", type=float, default=15.0, help="seconds to wait for a frame's plan")
     parser.add_argument("--room", choices=["furnished", "open"], default="furnished",
                         help="benchmark rooms with furniture around the person (default) or without")
+    parser.add_argument("--no-obstacle-map", action="store_true",
+                        help="the planner gets no map of the room: it knows only what each frame shows")
     args = parser.parse_args(argv)
 
     options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
                                 hmr_model=args.hmr_model, body_model=args.body_model,
                                 scene_body_model=args.scene_body_model, params_file=args.params,
                                 set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
-                                room=args.room)
+                                room=args.room, obstacle_map=not args.no_obstacle_map)
     try:
         seeds = benchmark_seeds(args.scenes, args.seed_offset)
         results = run_evaluation(seeds, args.out, options)

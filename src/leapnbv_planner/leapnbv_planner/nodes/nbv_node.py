@@ -1,4 +1,12 @@
-"""nbv_node: TargetGeometry + the frame's GroundPlane -> ViewCandidates, next-best-view goal, markers."""
+"""nbv_node: TargetGeometry + the frame's GroundPlane -> ViewCandidates, next-best-view goal, markers.
+
+Optional inputs: ``obstacle_map`` (PointCloud2 of occupied voxel centres in a fixed frame, latched,
+as a mapping stack publishes it) and ``camera_pose`` (PoseStamped: the camera's optical frame in
+that fixed frame, stamped with each camera frame). With both, the map's obstacles join the
+footprint test and S_o counts only target points whose line of sight crosses free map space:
+furniture the current view cannot see still keeps the robot from choosing a view behind it.
+Without them (or for a frame whose pose is missing) the node plans from the frame alone.
+"""
 from __future__ import annotations
 
 import time
@@ -7,6 +15,7 @@ from typing import Optional
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
 from leapnbv_common.conversions import (
@@ -15,14 +24,21 @@ from leapnbv_common.conversions import (
     point_to_numpy,
     pointcloud2_to_xyz,
     pose_msg,
+    pose_to_numpy,
     stamp_to_ns,
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import declare_parameters, run_node
-from leapnbv_common.qos import latched_goal_qos, stage_input_qos, stage_output_qos
-from leapnbv_common.stamp_cache import CompanionWait
+from leapnbv_common.qos import latched_goal_qos, latched_map_qos, stage_input_qos, stage_output_qos
+from leapnbv_common.stamp_cache import CompanionWait, StampCache
 from leapnbv_msgs.msg import GroundPlane, TargetGeometry, ViewCandidates
 from leapnbv_planner.candidates import CandidateRingParams, check_feasibility, generate_candidates
+from leapnbv_planner.obstacle_map import (
+    centres_in_observation,
+    line_of_sight_clear_fraction,
+    voxel_map_from_centres,
+    warm_up_obstacle_map,
+)
 from leapnbv_planner.scoring import ScoreWeights, choose_best, score_candidates, warm_up_scoring
 
 PARAMETERS = {
@@ -38,6 +54,11 @@ PARAMETERS = {
     "delta_px": (4.0, "pixels: neighbourhood of the background depth test in S_o"),
     "ground_wait_s": (1.0, "how long a frame waits for the ground plane of the same stamp, then uses the latest"),
     "ground_max_age_s": (2.0, "a fallback ground plane older than this is not used"),
+    "use_obstacle_map": (True, "use the robot's obstacle map (obstacle_map + camera_pose topics) when they arrive"),
+    "obstacle_map_resolution": (0.1, "metres: voxel edge of the obstacle map (its points are voxel centres)"),
+    "map_max_target_points": (1500, "target points whose line of sight is walked through the map, per candidate"),
+    "map_target_margin": (0.1, "metres: the end of each line of sight, at the target, not checked in the map"),
+    "camera_pose_cache": (30, "camera poses remembered by stamp, to find the pose of each planned frame"),
 }
 
 
@@ -56,12 +77,47 @@ class NbvNode(Node):
         self.base_goal_pub = self.create_publisher(PoseStamped, "base_goal", latched_goal_qos())
         self.markers_pub = self.create_publisher(MarkerArray, "markers", stage_output_qos())
         warm_up_scoring()  # compile the kernels before subscribing: the graph is ready only after it
+        warm_up_obstacle_map()
+        # Optional: the robot's map of static obstacles (voxel centres, latched) and the camera's
+        # pose in that map per frame. Without them the planner sees only what the frame shows.
+        self.obstacle_map = None
+        self.obstacle_map_frame = ""
+        self.camera_poses: StampCache = StampCache(max(1, int(p["camera_pose_cache"])))
+        if p["use_obstacle_map"]:
+            self.create_subscription(PointCloud2, "obstacle_map", self.on_obstacle_map, latched_map_qos())
+            self.create_subscription(PoseStamped, "camera_pose", self.on_camera_pose, stage_input_qos(20))
         self.create_subscription(TargetGeometry, "target_geometry", self.on_target, stage_input_qos(5))
         self.create_subscription(GroundPlane, "ground_plane", self.on_ground, stage_input_qos(5))
         self.create_timer(0.02, self.expire_waits)
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
+
+    @rejects_bad_input("bad_obstacle_map")
+    def on_obstacle_map(self, msg: PointCloud2) -> None:
+        self.obstacle_map = voxel_map_from_centres(pointcloud2_to_xyz(msg), self.params["obstacle_map_resolution"])
+        self.obstacle_map_frame = msg.header.frame_id
+        self.get_logger().info(f"obstacle map: {self.obstacle_map.voxel_count} voxels in frame {msg.header.frame_id!r}")
+
+    @rejects_bad_input("bad_camera_pose")
+    def on_camera_pose(self, msg: PoseStamped) -> None:
+        rotation, position = pose_to_numpy(msg.pose)
+        self.camera_poses.put(stamp_to_ns(msg.header.stamp), (msg.header.frame_id, rotation, position))
+
+    def map_for_frame(self, target: TargetGeometry):
+        """(obstacle map, R, t of the frame's camera in the map), or None when the frame cannot use it."""
+        if self.obstacle_map is None:
+            return None
+        pose = self.camera_poses.get_exact(stamp_to_ns(target.header.stamp))
+        if pose is None:
+            self.diagnostics.reject("no_camera_pose", "no camera pose with this frame's stamp: planned without the map")
+            return None
+        frame_id, rotation, position = pose
+        if frame_id != self.obstacle_map_frame:
+            self.diagnostics.reject("camera_pose_frame", f"camera pose in frame {frame_id!r}, the obstacle map in"
+                                    f" {self.obstacle_map_frame!r}: planned without the map")
+            return None
+        return self.obstacle_map, rotation, position
 
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:
@@ -102,10 +158,18 @@ class NbvNode(Node):
         background = pointcloud2_to_xyz(target.background_points)
         k = camera_info_to_k(target.camera_info)
         candidates = generate_candidates(centroid, normal, ground.offset, self.ring)
-        feasibility = check_feasibility(candidates, background, normal, ground.offset, self.ring)
+        obstacles, line_of_sight_clear = background, None
+        mapped = self.map_for_frame(target)
+        if mapped is not None:
+            obstacle_map, rotation, position = mapped
+            obstacles = np.concatenate([background, centres_in_observation(obstacle_map, rotation, position)])
+            line_of_sight_clear = line_of_sight_clear_fraction(
+                obstacle_map, rotation, position, candidates.positions, target_points,
+                self.params["map_max_target_points"], self.params["map_target_margin"])
+        feasibility = check_feasibility(candidates, obstacles, normal, ground.offset, self.ring)
         scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, k,
                                   target.camera_info.width, target.camera_info.height, self.weights,
-                                  delta_px=self.params["delta_px"])
+                                  delta_px=self.params["delta_px"], line_of_sight_clear=line_of_sight_clear)
         chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
 
         out = ViewCandidates(header=target.header, chosen_index=int(chosen),
