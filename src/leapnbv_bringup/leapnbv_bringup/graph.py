@@ -18,6 +18,17 @@ CAMERA_TOPICS = {
     "depth": "/camera/aligned_depth_to_color/image_raw",
     "depth/camera_info": "/camera/aligned_depth_to_color/camera_info",
 }
+# Optional robot inputs (remappable like the camera topics): the camera's optical frame in a
+# fixed, floor-aligned frame (z up, floor z = 0; from the robot's localization / TF), stamped
+# with each camera frame, and the robot's map of static obstacles as occupied voxel centres in
+# that frame (latched). ground_node falls back on the pose's floor when RANSAC finds none;
+# nbv_node adds the map's obstacles to its footprint and line-of-sight tests.
+ROBOT_TOPICS = {
+    "camera_pose": "/leapnbv/camera_pose",
+    "obstacle_map": "/leapnbv/obstacle_map",
+}
+# Every remappable input of the graph.
+INPUT_TOPICS = {**CAMERA_TOPICS, **ROBOT_TOPICS}
 GROUND_TRUTH_TOPIC = "/leapnbv/sim/ground_truth"
 
 
@@ -36,8 +47,8 @@ class NodeSpec:
 
 
 def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
-    """The five nodes, inputs remapped to the camera topics given (RealSense names by default)."""
-    cam = dict(CAMERA_TOPICS)
+    """The five nodes, inputs remapped to the topics given (keys of INPUT_TOPICS; RealSense names by default)."""
+    cam = dict(INPUT_TOPICS)
     cam.update(camera_topics or {})
     gt = {"ground_truth": GROUND_TRUTH_TOPIC}
     return [
@@ -48,8 +59,10 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
         NodeSpec("raster_node", "leapnbv_geometry", "leapnbv_geometry.nodes.raster_node",
                  {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"]}),
         NodeSpec("ground_node", "leapnbv_geometry", "leapnbv_geometry.nodes.ground_node",
-                 {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"]}),
-        NodeSpec("nbv_node", "leapnbv_planner", "leapnbv_planner.nodes.nbv_node", {}),
+                 {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"],
+                  "camera_pose": cam["camera_pose"]}),
+        NodeSpec("nbv_node", "leapnbv_planner", "leapnbv_planner.nodes.nbv_node",
+                 {"camera_pose": cam["camera_pose"], "obstacle_map": cam["obstacle_map"]}),
     ]
 
 

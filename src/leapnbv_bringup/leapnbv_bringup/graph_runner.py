@@ -18,7 +18,7 @@ import time
 from typing import Dict, List, Optional
 
 from leapnbv_bringup.graph import (
-    CAMERA_TOPICS,
+    INPUT_TOPICS,
     NAMESPACE,
     NodeSpec,
     default_params_file,
@@ -212,7 +212,7 @@ def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--body-model", default=None, help="SMPL-X .npz body model")
     parser.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                         help="override one parameter, e.g. --set nbv_node.weight_area=0.5 (repeatable)")
-    for key, topic in CAMERA_TOPICS.items():
+    for key, topic in INPUT_TOPICS.items():
         parser.add_argument("--" + key.replace("/", "-").replace("_", "-") + "-topic", default=topic,
                             dest="topic_" + key.replace("/", "_"), help=f"input topic for '{key}'")
     parser.add_argument("--log-dir", default=None, help="write each node's output to DIR/<node>.log")
@@ -222,7 +222,7 @@ def runner_from_arguments(args: argparse.Namespace) -> GraphRunner:
     overrides = merge_overrides(
         perception_overrides(args.perception, args.detector_model, args.hmr_model, args.body_model),
         parse_set_arguments(args.set))
-    topics = {key: getattr(args, "topic_" + key.replace("/", "_")) for key in CAMERA_TOPICS}
+    topics = {key: getattr(args, "topic_" + key.replace("/", "_")) for key in INPUT_TOPICS}
     return GraphRunner(args.params, overrides, topics, args.log_dir)
 
 
