@@ -1,6 +1,8 @@
-"""raster_node and ground_node as processes over DDS, fed a rendered scene: stamps, pairing, bad depth."""
+"""raster_node and ground_node as processes over DDS, fed a rendered scene: stamps, pairing, bad depth,
+and ground_node's fallback on the camera pose's floor."""
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 import numpy as np
@@ -10,6 +12,7 @@ rclpy = pytest.importorskip("rclpy")
 
 import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
 from node_harness import NS, by_stamp, diag_value, send_until, stamp_key  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
@@ -21,8 +24,11 @@ from leapnbv_common.conversions import (  # noqa: E402
     numpy_to_image,
     point_to_numpy,
     pointcloud2_to_xyz,
+    pose_msg,
+    pose_to_numpy,
 )
 from leapnbv_common.qos import stage_output_qos  # noqa: E402
+from leapnbv_geometry.ground import floor_plane_from_camera_pose  # noqa: E402
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
 from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
@@ -77,6 +83,7 @@ def graph(scene, tmp_path_factory):
             "depth_pub": probe.node.create_publisher(Image, f"{NS}/depth", stage_output_qos(5)),
             "info_pub": probe.node.create_publisher(CameraInfo, f"{NS}/depth/camera_info", stage_output_qos(1)),
             "mesh_pub": probe.node.create_publisher(HumanMesh, f"{NS}/human_mesh", stage_output_qos(5)),
+            "pose_pub": probe.node.create_publisher(PoseStamped, f"{NS}/camera_pose", stage_output_qos(10)),
             "targets": probe.collect(TargetGeometry, f"{NS}/target_geometry"),
             "planes": probe.collect(GroundPlane, f"{NS}/ground_plane"),
             "masks": probe.collect(Image, f"{NS}/person_mask"),
@@ -84,7 +91,8 @@ def graph(scene, tmp_path_factory):
         harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: g["depth_pub"].get_subscription_count() >= 2
                                 and g["mesh_pub"].get_subscription_count() >= 1
-                                and g["info_pub"].get_subscription_count() >= 2, 10.0)
+                                and g["info_pub"].get_subscription_count() >= 2
+                                and g["pose_pub"].get_subscription_count() >= 1, 10.0)
         yield g
 
 
@@ -253,14 +261,150 @@ def test_ground_plane_of_the_rendered_floor(graph, scene):
         assert plane.inlier_count >= 200 and 0.05 <= plane.inlier_ratio <= 1.0
 
 
+def wall_depth(header: Header) -> Image:
+    """A wall 2 m ahead filling the view, turning away on the right: no floor for RANSAC."""
+    wall = np.full((480, 640), 2000, np.uint16)
+    wall[:, 320:] = np.linspace(2000, 3000, 320).astype(np.uint16)
+    return numpy_to_image(wall, "16UC1", header)
+
+
 def test_ground_plane_of_a_wall_only_is_invalid(graph):
     probe = graph["probe"]
     before = diag(graph, "ground_node", "rejected.no_ground_plane")
-    wall = np.full((480, 640), 2000, np.uint16)  # a wall 2 m ahead fills the view
-    wall[:, 320:] = np.linspace(2000, 3000, 320).astype(np.uint16)  # and turns away on the right
-    wall_msg = numpy_to_image(wall, "16UC1", make_header(500, 0))
+    wall_msg = wall_depth(make_header(500, 0))  # and no camera pose: nothing to fall back on
     assert send_until(probe, lambda: send_depth(graph, wall_msg), lambda: by_stamp(graph["planes"], (500, 0)), 15.0)
     plane = by_stamp(graph["planes"], (500, 0))[0]
     assert not plane.valid
     assert probe.spin_until(lambda: diag(graph, "ground_node", "rejected.no_ground_plane") >= before + 1, 5.0)
     assert graph["procs"][f"{NS}/ground_node"].poll() is None
+
+
+# ----------------------------------------------------------------------------- ground_node: camera-pose floor
+
+
+def camera_pose(key: tuple, height: float = 1.2, pitch_down_deg: float = 10.0, yaw_deg: float = 30.0) -> PoseStamped:
+    """T_map_cameraOptical of a camera ``height`` m above the floor, pitched down, as localization gives it."""
+    yaw, pitch = np.radians(yaw_deg), np.radians(pitch_down_deg)
+    heading, up = np.array([np.cos(yaw), np.sin(yaw), 0.0]), np.array([0.0, 0.0, 1.0])
+    right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+    forward = np.cos(pitch) * heading - np.sin(pitch) * up
+    down = -np.sin(pitch) * heading - np.cos(pitch) * up
+    header = Header(frame_id="map")
+    header.stamp.sec, header.stamp.nanosec = key
+    return PoseStamped(header=header, pose=pose_msg(np.column_stack([right, down, forward]),
+                                                    np.array([2.0, -1.0, height])))
+
+
+def plane_arrays(plane: GroundPlane):
+    return np.array([plane.normal.x, plane.normal.y, plane.normal.z]), plane.offset
+
+
+def test_ground_falls_back_on_the_camera_pose_when_no_floor_is_in_view(graph):
+    probe = graph["probe"]
+    pose_pub = graph["pose_pub"]
+    fallbacks_before = diag(graph, "ground_node", "planes.camera_pose")
+    rejects_before = diag(graph, "ground_node", "rejected.no_ground_plane")
+
+    # No pose of the frame's stamp (one 5 ms later only): the invalid plane, after the wait.
+    key_none = (520, 0)
+    started = time.monotonic()
+    assert send_until(probe, lambda: (pose_pub.publish(camera_pose((520, 5_000_000))),
+                                      send_depth(graph, wall_depth(make_header(*key_none)))),
+                      lambda: by_stamp(graph["planes"], key_none), 15.0)
+    waited = time.monotonic() - started
+    invalid = by_stamp(graph["planes"], key_none)[0]
+    assert not invalid.valid and invalid.source == GroundPlane.SOURCE_RANSAC
+    assert waited >= 0.18, waited  # camera_pose_wait_s = 0.2 (the node's clock, ours monotonic)
+    assert probe.spin_until(lambda: diag(graph, "ground_node", "rejected.no_ground_plane") >= rejects_before + 1, 5.0)
+
+    # The pose before its depth frame (the simulator's order), and after it (DDS does not order topics).
+    key_before, key_after = (521, 0), (522, 0)
+    pose_before, pose_after = camera_pose(key_before), camera_pose(key_after, height=1.45, pitch_down_deg=20.0)
+
+    def before() -> None:
+        pose_pub.publish(pose_before)
+        probe.spin_for(0.05)
+        send_depth(graph, wall_depth(make_header(*key_before)))
+
+    def after() -> None:
+        send_depth(graph, wall_depth(make_header(*key_after)))
+        probe.spin_for(0.1)
+        pose_pub.publish(pose_after)
+
+    assert send_until(probe, before, lambda: by_stamp(graph["planes"], key_before), 15.0)
+    assert send_until(probe, after, lambda: by_stamp(graph["planes"], key_after), 15.0)
+    for key, pose, height, pitch in ((key_before, pose_before, 1.2, 10.0), (key_after, pose_after, 1.45, 20.0)):
+        plane = by_stamp(graph["planes"], key)[0]
+        assert plane.valid and plane.source == GroundPlane.SOURCE_CAMERA_POSE
+        assert plane.header.frame_id == FRAME_ID  # the depth frame's header, not the pose's
+        normal, offset = plane_arrays(plane)
+        expected_normal, expected_offset = floor_plane_from_camera_pose(*pose_to_numpy(pose.pose))
+        np.testing.assert_allclose(normal, expected_normal, atol=1e-9)
+        assert offset == pytest.approx(expected_offset, abs=1e-9)
+        # and the floor itself: up leans back by the pitch, d is the height
+        angle = np.radians(pitch)
+        np.testing.assert_allclose(normal, [0.0, -np.cos(angle), -np.sin(angle)], atol=1e-6)
+        assert offset == pytest.approx(height, abs=1e-6)
+        # RANSAC's own numbers on the same wall, as the invalid plane reported them
+        assert (plane.inlier_count, plane.inlier_ratio) == (invalid.inlier_count, invalid.inlier_ratio)
+    assert probe.spin_until(lambda: diag(graph, "ground_node", "planes.camera_pose") >= fallbacks_before + 2, 5.0)
+    assert diag(graph, "ground_node", "rejected.no_ground_plane") == rejects_before + 1  # served, not rejected
+    assert graph["procs"][f"{NS}/ground_node"].poll() is None
+
+
+def test_ground_keeps_ransac_when_the_floor_is_in_view_even_with_a_pose(graph, scene):
+    probe = graph["probe"]
+    frame = scene["frames"][0]
+    key = (530, 0)
+    # A pose that disagrees with the rendered camera (0.5 m higher, pitched 25 deg): RANSAC must win.
+    pose = camera_pose(key, height=frame.camera_pose.position[2] + 0.5, pitch_down_deg=25.0)
+
+    def send() -> None:
+        graph["pose_pub"].publish(pose)
+        probe.spin_for(0.05)
+        send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(*key)))
+
+    assert send_until(probe, send, lambda: by_stamp(graph["planes"], key), 15.0)
+    plane = by_stamp(graph["planes"], key)[0]
+    assert plane.valid and plane.source == GroundPlane.SOURCE_RANSAC
+    normal, offset = plane_arrays(plane)
+    assert abs(offset - frame.camera_pose.position[2]) < 0.03
+    up_in_camera = frame.camera_pose.rotation.T @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(np.clip(normal @ up_in_camera, -1.0, 1.0))) < 2.0
+    assert plane.inlier_count >= 200
+
+
+def test_ground_rejects_a_bad_camera_pose_and_keeps_serving(graph):
+    probe = graph["probe"]
+    before = diag(graph, "ground_node", "rejected.bad_camera_pose")
+    below = camera_pose((540, 0), height=-0.3)  # the camera under the floor
+    not_finite = camera_pose((541, 0))
+    not_finite.pose.position.x = float("nan")
+    not_unit = camera_pose((542, 0))  # a quaternion of norm 2 is no rotation
+    q = not_unit.pose.orientation
+    q.x, q.y, q.z, q.w = 2 * q.x, 2 * q.y, 2 * q.z, 2 * q.w
+    zero = camera_pose((543, 0))
+    zero.pose.orientation.x = zero.pose.orientation.y = zero.pose.orientation.z = zero.pose.orientation.w = 0.0
+    bad = [below, not_finite, not_unit, zero]
+    for pose in bad:
+        key = (pose.header.stamp.sec, pose.header.stamp.nanosec)
+
+        def send(pose=pose, key=key) -> None:
+            graph["pose_pub"].publish(pose)
+            probe.spin_for(0.05)
+            send_depth(graph, wall_depth(make_header(*key)))
+
+        assert send_until(probe, send, lambda key=key: by_stamp(graph["planes"], key), 15.0)
+        plane = by_stamp(graph["planes"], key)[0]
+        assert not plane.valid and plane.source == GroundPlane.SOURCE_RANSAC
+    assert probe.spin_until(lambda: diag(graph, "ground_node", "rejected.bad_camera_pose") >= before + len(bad), 5.0)
+    status = probe.status_where(f"{NS}/ground_node", lambda s: int(diag_value(s, "rejected.bad_camera_pose")) > before)
+    assert status.level == DiagnosticStatus.WARN
+    # and a good pose still works afterwards
+    key = (544, 0)
+    assert send_until(probe, lambda: (graph["pose_pub"].publish(camera_pose(key)), probe.spin_for(0.05),
+                                      send_depth(graph, wall_depth(make_header(*key)))),
+                      lambda: by_stamp(graph["planes"], key), 15.0)
+    assert by_stamp(graph["planes"], key)[0].valid
+    assert graph["procs"][f"{NS}/ground_node"].poll() is None
+

@@ -1,9 +1,13 @@
-"""Ground plane by RANSAC with a tilt prior, refined by least squares (ALGORITHMS.md sec. 6)."""
+"""Ground plane by RANSAC with a tilt prior, refined by least squares (ALGORITHMS.md sec. 6).
+
+Also the floor given by the camera's pose in a floor-aligned frame, for views where RANSAC
+finds none (:func:`floor_plane_from_camera_pose`).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -13,6 +17,7 @@ __all__ = [
     "GroundPlaneError",
     "GroundPlaneResult",
     "fit_ground_plane",
+    "floor_plane_from_camera_pose",
     "ground_points_from_depth",
 ]
 
@@ -270,6 +275,55 @@ def fit_ground_plane(
         inlier_ratio=inlier_count / n_points,
         tilt_deg=float(np.degrees(np.arccos(cos_tilt))),
     )
+
+
+ROTATION_TOLERANCE = 1e-3  # largest |R^T R - I| entry of an accepted rotation matrix
+
+
+def floor_plane_from_camera_pose(rotation: np.ndarray, position: np.ndarray) -> Tuple[np.ndarray, float]:
+    """The floor z = 0 of a floor-aligned fixed frame, in the camera optical frame.
+
+    The pose T_fixed_camera maps a camera point x to R x + p in the fixed frame (z up, floor at
+    z = 0; e.g. ``map`` from the robot's localization). x is on the floor when the z of its
+    image is 0::
+
+        e_z . (R x + p) = 0   <=>   (R^T e_z) . x + p_z = 0   <=>   n . x + d = 0,
+        n = R^T e_z  (the fixed frame's up in camera coordinates, a unit vector),  d = p_z
+
+    which is the GroundPlane convention: n points up (toward the camera side) and d is the
+    camera's height above the floor, positive for a camera above it. For an R that is a rotation
+    only to within the tolerance, n is normalized and d divided by the same norm, so the plane
+    is exactly {x : e_z . (R x + p) = 0}.
+
+    Args:
+        rotation: (3, 3) R of T_fixed_camera; its columns are the optical axes (x right, y down,
+            z forward) in the fixed frame. Orthonormal within 1e-3 with det +1.
+        position: (3,) p, the optical centre in the fixed frame, metres.
+
+    Returns:
+        (normal (3,), offset): unit n and d of n.x + d = 0 in the camera optical frame.
+
+    Raises:
+        GroundPlaneError: on wrong shapes, non-finite values, an R that is not a rotation, or a
+            camera not above the floor (p_z <= 0).
+    """
+    rotation = np.asarray(rotation, dtype=np.float64)
+    position = np.asarray(position, dtype=np.float64)
+    if rotation.shape != (3, 3) or position.shape != (3,):
+        raise GroundPlaneError(f"floor_plane_from_camera_pose: rotation must be (3, 3) and position (3,), "
+                               f"got {rotation.shape} and {position.shape}")
+    if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(position))):
+        raise GroundPlaneError("floor_plane_from_camera_pose: the camera pose is not finite")
+    error = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
+    if error > ROTATION_TOLERANCE or np.linalg.det(rotation) <= 0.0:
+        raise GroundPlaneError(f"floor_plane_from_camera_pose: rotation is not a rotation matrix "
+                               f"(max |R^T R - I| = {error:.2e}, det = {np.linalg.det(rotation):.4f})")
+    if not position[2] > 0.0:
+        raise GroundPlaneError(f"floor_plane_from_camera_pose: the camera is not above the floor "
+                               f"(height p_z = {position[2]:.4f} m)")
+    normal = rotation[2, :].copy()  # R^T e_z: the third row of R
+    scale = float(np.linalg.norm(normal))
+    return normal / scale, float(position[2]) / scale
 
 
 def ground_points_from_depth(

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from leapnbv_geometry.ground import GroundPlaneError, fit_ground_plane, ground_points_from_depth
+from leapnbv_geometry.ground import (
+    GroundPlaneError,
+    fit_ground_plane,
+    floor_plane_from_camera_pose,
+    ground_points_from_depth,
+)
 from leapnbv_geometry.raster import rasterize_mesh
 
 K_REAL = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -115,3 +120,114 @@ def test_floor_wins_over_a_larger_box_top_above_it():
     # With only the best-supported plane allowed, the box top would win: the preference matters.
     assert fit_ground_plane(points, seed=1, local_sampling=False, lowest_plane_share=1.0).offset == \
         pytest.approx(0.5, abs=0.01)
+
+
+# ----------------------------------------------------------------------------- floor from the camera pose
+
+
+def camera_rotation(yaw_deg: float, pitch_down_deg: float) -> np.ndarray:
+    """T_world_cameraOptical rotation (columns: optical x right, y down, z forward in a z-up world)
+    of a camera looking along the world heading ``yaw_deg``, pitched down by ``pitch_down_deg``."""
+    yaw, pitch = np.radians(yaw_deg), np.radians(pitch_down_deg)
+    heading = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    left = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    forward = np.cos(pitch) * heading - np.sin(pitch) * np.array([0.0, 0.0, 1.0])
+    down = -np.sin(pitch) * heading - np.cos(pitch) * np.array([0.0, 0.0, 1.0])
+    return np.column_stack([-left, down, forward])
+
+
+def test_floor_from_a_camera_1_2_m_high_pitched_down_10_degrees():
+    rotation = camera_rotation(0.0, 10.0)
+    assert np.allclose(rotation.T @ rotation, np.eye(3)) and np.linalg.det(rotation) == pytest.approx(1.0)
+    normal, offset = floor_plane_from_camera_pose(rotation, np.array([0.3, -0.7, 1.2]))
+    angle = np.radians(10.0)
+    # Up is -y of a level optical frame; pitched down, the world's up leans back (toward -z), and
+    # the optical axis meets the floor 1.2 / sin(10 deg) ahead.
+    np.testing.assert_allclose(normal, [0.0, -np.cos(angle), -np.sin(angle)], atol=1e-12)
+    assert offset == pytest.approx(1.2, abs=1e-12)
+    assert normal @ np.array([0.0, 0.0, 1.2 / np.sin(angle)]) + offset == pytest.approx(0.0, abs=1e-9)
+    assert normal @ np.array([0.0, -1.0, 0.0]) > 0.0  # n points up, like RANSAC's planes
+
+
+@pytest.mark.parametrize("yaw_deg,pitch_deg,position", [
+    (0.0, 10.0, (0.0, 0.0, 1.2)),
+    (37.0, 25.0, (4.0, -2.5, 0.9)),
+    (-120.0, -5.0, (-1.0, 3.0, 2.0)),   # pitched up
+    (200.0, 80.0, (0.5, 0.5, 0.4)),     # looking almost straight down
+])
+def test_world_floor_points_lie_on_the_plane_in_the_camera_frame(yaw_deg, pitch_deg, position):
+    rotation, position = camera_rotation(yaw_deg, pitch_deg), np.array(position)
+    normal, offset = floor_plane_from_camera_pose(rotation, position)
+    assert np.linalg.norm(normal) == pytest.approx(1.0, abs=1e-12)
+    rng = np.random.default_rng(3)
+    floor_world = np.column_stack([rng.uniform(-10, 10, (500, 2)), np.zeros(500)])
+    floor_camera = (floor_world - position) @ rotation  # x_c = R^T (x_w - p), row-wise
+    np.testing.assert_allclose(floor_camera @ normal + offset, 0.0, atol=1e-9)
+    # Off the floor, n.x + d is the height above it; the camera itself is at the offset.
+    above_world = floor_world + np.array([0.0, 0.0, 0.75])
+    np.testing.assert_allclose((above_world - position) @ rotation @ normal + offset, 0.75, atol=1e-9)
+    assert offset == pytest.approx(position[2], abs=1e-12)
+
+
+def test_floor_agrees_with_ransac_on_the_rendered_floor():
+    # The same floor seen two ways: RANSAC on rendered floor points and the camera pose.
+    rotation, position = camera_rotation(15.0, 12.0), np.array([1.0, 2.0, 1.3])
+    normal, offset = floor_plane_from_camera_pose(rotation, position)
+    rng = np.random.default_rng(5)
+    world = np.column_stack([rng.uniform(-8, 8, (6000, 2)) + position[:2], np.zeros(6000)])
+    camera = (world - position) @ rotation
+    in_front = camera[(camera[:, 2] > 0.5) & (camera[:, 2] < 8.0)]
+    result = fit_ground_plane(in_front, seed=1)
+    assert result.valid
+    np.testing.assert_allclose(result.normal, normal, atol=1e-6)
+    assert result.offset == pytest.approx(offset, abs=1e-6)
+
+
+def test_a_nearly_orthonormal_rotation_gives_the_exact_plane_of_that_matrix():
+    rotation = camera_rotation(30.0, 10.0) * (1.0 + 4e-4)  # within the 1e-3 tolerance
+    position = np.array([0.0, 0.0, 1.1])
+    normal, offset = floor_plane_from_camera_pose(rotation, position)
+    assert np.linalg.norm(normal) == pytest.approx(1.0, abs=1e-12)
+    points_world = np.array([[1.0, 2.0, 0.0], [-3.0, 0.5, 0.0], [2.0, -1.0, 0.0]])
+    points_camera = np.linalg.solve(rotation, (points_world - position).T).T  # R x + p = x_w
+    np.testing.assert_allclose(points_camera @ normal + offset, 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("height", [0.0, -0.5])
+def test_a_camera_not_above_the_floor_is_refused(height):
+    with pytest.raises(GroundPlaneError, match="not above the floor"):
+        floor_plane_from_camera_pose(camera_rotation(0.0, 10.0), np.array([0.0, 0.0, height]))
+
+
+@pytest.mark.parametrize("where", ["rotation_nan", "rotation_inf", "position_nan", "position_inf"])
+def test_a_non_finite_pose_is_refused(where):
+    rotation, position = camera_rotation(0.0, 10.0), np.array([0.0, 0.0, 1.2])
+    bad = np.nan if where.endswith("nan") else np.inf
+    if where.startswith("rotation"):
+        rotation[1, 2] = bad
+    else:
+        position[0] = bad
+    with pytest.raises(GroundPlaneError, match="not finite"):
+        floor_plane_from_camera_pose(rotation, position)
+
+
+@pytest.mark.parametrize("kind", ["scaled", "sheared", "reflection", "zero"])
+def test_a_matrix_that_is_not_a_rotation_is_refused(kind):
+    rotation = camera_rotation(20.0, 10.0)
+    if kind == "scaled":
+        rotation = rotation * 1.01
+    elif kind == "sheared":
+        rotation = rotation @ np.array([[1.0, 0.05, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    elif kind == "reflection":
+        rotation = rotation @ np.diag([1.0, 1.0, -1.0])  # orthonormal, det -1
+    else:
+        rotation = np.zeros((3, 3))
+    with pytest.raises(GroundPlaneError, match="not a rotation"):
+        floor_plane_from_camera_pose(rotation, np.array([0.0, 0.0, 1.2]))
+
+
+def test_wrong_shapes_are_refused():
+    with pytest.raises(GroundPlaneError, match="must be"):
+        floor_plane_from_camera_pose(np.eye(4), np.array([0.0, 0.0, 1.0]))
+    with pytest.raises(GroundPlaneError, match="must be"):
+        floor_plane_from_camera_pose(camera_rotation(0.0, 0.0), np.array([0.0, 1.0]))

@@ -1,18 +1,40 @@
-"""ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC)."""
+"""ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC).
+
+When RANSAC finds no floor (occluders hide it), the floor z = 0 of the camera's pose of the
+same stamp (``camera_pose``: PoseStamped, T_fixed_cameraOptical in a floor-aligned fixed frame,
+from the robot's localization / TF or the simulator) is published instead, marked
+``source = SOURCE_CAMERA_POSE``. A pose of the frame's stamp is waited for briefly (DDS does not
+order topics); without one the invalid plane goes out as before.
+"""
 from __future__ import annotations
 
+import collections
 import time
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from leapnbv_common.conversions import camera_info_to_k, depth_to_metres, image_to_numpy, stamp_to_ns
+from leapnbv_common.conversions import (
+    camera_info_to_k,
+    depth_to_metres,
+    image_to_numpy,
+    pose_to_numpy,
+    stamp_to_ns,
+)
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import declare_parameters, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
-from leapnbv_geometry.ground import fit_ground_plane, ground_points_from_depth
+from leapnbv_common.stamp_cache import CompanionWait
+from leapnbv_geometry.ground import (
+    GroundPlaneError,
+    fit_ground_plane,
+    floor_plane_from_camera_pose,
+    ground_points_from_depth,
+)
 from leapnbv_msgs.msg import GroundPlane
 
 PARAMETERS = {
@@ -31,14 +53,43 @@ PARAMETERS = {
     "seed": (0, "RANSAC random seed (deterministic results for replay)"),
     "mask_max_age_s": (1.0, "the person mask is excluded only when it is at most this much older than the depth"),
     "mask_wait_s": (0.3, "wait this long for the previous frame's person mask before fitting (0 = never)"),
+    "use_camera_pose_fallback": (True, "when RANSAC finds no floor, publish the floor z = 0 of the camera_pose "
+                                       "(PoseStamped in a floor-aligned fixed frame) of the same stamp"),
+    "camera_pose_wait_s": (0.2, "a frame without a RANSAC floor waits this long for its camera_pose before "
+                                "the invalid plane is published (0 = only a pose already received)"),
 }
+
+POSE_CACHE = 30  # camera poses (and frames waiting for theirs) remembered by stamp: ~1 s at 30 Hz
+QUATERNION_TOLERANCE = 1e-3  # | |q| - 1 | of an accepted orientation
+FALLBACK_LOG_EVERY = 100  # log the camera-pose fallback on its first frame and every this many after
+
+
+class GroundDiagnostics(StageDiagnostics):
+    """StageDiagnostics plus which estimate the published planes were (``planes.ransac``,
+    ``planes.camera_pose``, ``planes.none`` for invalid ones): a floor taken from the camera pose is
+    served, not rejected, so it is counted apart from the rejections (the status stays OK)."""
+
+    def __init__(self, node) -> None:
+        super().__init__(node)
+        self.plane_sources: Dict[str, int] = collections.Counter()
+        self.last_plane_source = ""
+
+    def plane_out(self, source: str) -> None:
+        self.plane_sources[source] += 1
+        self.last_plane_source = source
+
+    def status(self) -> DiagnosticStatus:
+        status = super().status()
+        status.values.append(KeyValue(key="last_plane_source", value=self.last_plane_source))
+        status.values.extend(KeyValue(key=f"planes.{k}", value=str(v)) for k, v in sorted(self.plane_sources.items()))
+        return status
 
 
 class GroundNode(Node):
     def __init__(self) -> None:
         super().__init__("ground_node")
         p = self.params = declare_parameters(self, PARAMETERS)
-        self.diagnostics = StageDiagnostics(self)
+        self.diagnostics = GroundDiagnostics(self)
         self.camera_info: Optional[CameraInfo] = None
         self.person_mask: Optional[Image] = None
         self.publisher = self.create_publisher(GroundPlane, "ground_plane", stage_output_qos())
@@ -51,12 +102,30 @@ class GroundNode(Node):
         self.previous_depth_stamp: Optional[int] = None
         self.masks_flowing = False
         self.pending: Optional[tuple] = None  # (depth message, arrival ns) waiting for its mask
+        # Floors from the camera pose, by stamp; frames without a RANSAC floor wait here for theirs.
+        self.pose_floors = CompanionWait(int(p["camera_pose_wait_s"] * 1e9), capacity=POSE_CACHE)
+        self.fallback_count = 0
+        if p["use_camera_pose_fallback"]:
+            self.create_subscription(PoseStamped, "camera_pose", self.on_camera_pose, stage_input_qos(10))
         self.create_timer(0.02, self.expire_wait)
 
     @rejects_bad_input("bad_camera_info")
     def on_camera_info(self, msg: CameraInfo) -> None:
         camera_info_to_k(msg)
         self.camera_info = msg
+
+    @rejects_bad_input("bad_camera_pose")
+    def on_camera_pose(self, msg: PoseStamped) -> None:
+        """Keep the floor of this pose by stamp; a frame waiting for it is published now."""
+        q = msg.pose.orientation
+        norm = float(np.linalg.norm([q.x, q.y, q.z, q.w]))
+        if not abs(norm - 1.0) <= QUATERNION_TOLERANCE:  # NaN fails too
+            raise GroundPlaneError(f"camera pose orientation is not a unit quaternion (|q| = {norm:.4f})")
+        stamp = stamp_to_ns(msg.header.stamp)
+        normal, offset = floor_plane_from_camera_pose(*pose_to_numpy(msg.pose))
+        ready = self.pose_floors.add_companion(stamp, (stamp, normal, offset))
+        if ready is not None:
+            self.publish_plane(ready[0], ready[1])
 
     def on_mask(self, msg: Image) -> None:
         self.person_mask = msg
@@ -78,6 +147,8 @@ class GroundNode(Node):
         self.fit(msg)
 
     def expire_wait(self) -> None:
+        for plane, _ in self.pose_floors.expire(self.get_clock().now().nanoseconds):
+            self.publish_plane(plane, None)  # no pose of its stamp came: the invalid plane, as before
         if self.pending is None:
             return
         if self.get_clock().now().nanoseconds - self.pending[1] >= self.params["mask_wait_s"] * 1e9:
@@ -116,13 +187,49 @@ class GroundNode(Node):
                                   max_points=p["max_points"], depth_noise_coeff=p["depth_noise_coeff"],
                                   camera_height_range=(p["min_camera_height"], p["max_camera_height"]))
         out = GroundPlane(header=msg.header, offset=float(result.offset), inlier_count=int(result.inlier_count),
-                          inlier_ratio=float(result.inlier_ratio), valid=bool(result.valid))
+                          inlier_ratio=float(result.inlier_ratio), valid=bool(result.valid),
+                          source=GroundPlane.SOURCE_RANSAC)
         out.normal.x, out.normal.y, out.normal.z = (float(v) for v in result.normal)
         out.compute_time_ms = (time.perf_counter() - started) * 1e3
-        if not result.valid:
-            self.diagnostics.reject("no_ground_plane", f"{result.inlier_count} inliers of {len(points)} points")
+        if result.valid or not p["use_camera_pose_fallback"]:
+            self.publish_plane((out, len(points)), None)
+            return
+        # No floor in view: the floor of this frame's camera pose, once it is here (or the wait ran out).
+        ready = self.pose_floors.add_frame(stamp_to_ns(msg.header.stamp), (out, len(points)),
+                                           self.get_clock().now().nanoseconds)
+        if ready is not None:
+            self.publish_plane(ready[0], ready[1])
+
+    def publish_plane(self, plane: Tuple[GroundPlane, int], pose_floor: Optional[tuple]) -> None:
+        """Publish a fitted plane; a RANSAC failure becomes the pose's floor when the pose has its stamp.
+
+        Args:
+            plane: (the GroundPlane as RANSAC gave it, the number of points it was fitted on).
+            pose_floor: (stamp ns, normal, offset) of a camera pose, or None.
+        """
+        out, n_points = plane
+        if not out.valid and pose_floor is not None and pose_floor[0] == stamp_to_ns(out.header.stamp):
+            _, normal, offset = pose_floor
+            out.normal.x, out.normal.y, out.normal.z = (float(v) for v in normal)
+            out.offset = float(offset)
+            out.valid = True
+            out.source = GroundPlane.SOURCE_CAMERA_POSE
+            self.fallback_count += 1
+            if (self.fallback_count - 1) % FALLBACK_LOG_EVERY == 0:
+                self.get_logger().warning(
+                    f"no floor in view ({out.inlier_count} RANSAC inliers of {n_points} points): published the "
+                    f"floor of the camera pose (height {offset:.3f} m); {self.fallback_count} such frames so far")
+        elif not out.valid:
+            detail = f"{out.inlier_count} inliers of {n_points} points"
+            if self.params["use_camera_pose_fallback"]:
+                detail += "; no camera pose of this stamp"
+            self.diagnostics.reject("no_ground_plane", detail)
+        if not out.valid:
+            self.diagnostics.plane_out("none")
+        else:
+            self.diagnostics.plane_out("camera_pose" if out.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac")
         self.publisher.publish(out)
-        self.diagnostics.frame_out(msg.header.stamp, out.compute_time_ms)
+        self.diagnostics.frame_out(out.header.stamp, out.compute_time_ms)
 
 
 def main(args=None) -> None:
