@@ -159,6 +159,7 @@ def test_bag_writer_records_raw_cdr_of_a_custom_type(tmp_path: Path) -> None:
         inlier_ratio=0.5,
         valid=True,
         compute_time_ms=1.5,
+        source=1,
     )
     cdr = bytes(typestore.serialize_cdr(ground, "leapnbv_msgs/msg/GroundPlane"))
     text = (bag_io.find_leapnbv_msg_dir() / "GroundPlane.msg").read_text()
@@ -173,7 +174,7 @@ def test_bag_writer_records_raw_cdr_of_a_custom_type(tmp_path: Path) -> None:
         bag.write("/chatter", 124, typestore.types["std_msgs/msg/String"](data="hi"))
     messages: List[tuple] = list(read_bag(path))
     assert [m[0] for m in messages] == ["/leapnbv/ground_plane", "/chatter"]
-    assert messages[0][3].offset == pytest.approx(1.2) and messages[0][3].valid
+    assert messages[0][3].offset == pytest.approx(1.2) and messages[0][3].valid and messages[0][3].source == 1
     assert messages[1][3].data == "hi"
 
 
