@@ -40,6 +40,11 @@ from leapnbv_planner.candidates import (  # noqa: E402
     check_feasibility,
     generate_candidates,
 )
+from leapnbv_planner.obstacle_map import (  # noqa: E402
+    line_of_sight_clear_fraction,
+    voxel_map_from_centres,
+    warm_up_obstacle_map,
+)
 from leapnbv_planner.scoring import score_candidates, warm_up_scoring  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
@@ -157,6 +162,39 @@ def reference_occlusion(
     return result
 
 
+def room_voxel_map(resolution: float = 0.1):
+    """The benchmark room's boxes and walls as an obstacle map (map frame = the observation frame)."""
+    solids = list(BOXES) + [
+        (np.array([-ROOM_HALF_WIDTH, CEILING_Y, ROOM_DEPTH]),
+         np.array([ROOM_HALF_WIDTH, CAMERA_HEIGHT, ROOM_DEPTH + 0.1])),
+        (np.array([-ROOM_HALF_WIDTH - 0.1, CEILING_Y, 0.0]), np.array([-ROOM_HALF_WIDTH, CAMERA_HEIGHT, ROOM_DEPTH])),
+        (np.array([ROOM_HALF_WIDTH, CEILING_Y, 0.0]), np.array([ROOM_HALF_WIDTH + 0.1, CAMERA_HEIGHT, ROOM_DEPTH])),
+    ]
+    centres = []
+    for lo, hi in solids:
+        axes = [np.arange(np.floor(a / resolution), np.ceil(b / resolution)) for a, b in zip(lo, hi)]
+        index = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        centres.append((index + 0.5) * resolution)
+    return voxel_map_from_centres(np.concatenate(centres), resolution)
+
+
+def reference_clear_fraction(grid, cameras: np.ndarray, targets: np.ndarray, margin: float) -> np.ndarray:
+    """The obvious way: sample every segment every r/8 and look the samples up in the grid."""
+    out = np.empty(len(cameras))
+    shape = np.array(grid.occupied.shape)
+    for c, camera in enumerate(cameras):
+        clear = 0
+        for target in targets:
+            length = float(np.linalg.norm(target - camera))
+            t = np.arange(0.0, 1.0 - margin / length, grid.resolution / 8.0 / length)
+            cells = np.floor((camera + t[:, None] * (target - camera)) / grid.resolution).astype(np.int64)
+            cells -= grid.lower_index
+            cells = cells[np.all((cells >= 0) & (cells < shape), axis=1)]
+            clear += not grid.occupied[cells[:, 0], cells[:, 1], cells[:, 2]].any()
+        out[c] = clear / len(targets)
+    return out
+
+
 def time_call(function: Callable[[], object], repeats: int) -> Tuple[float, float]:
     """Median and p95 wall time in milliseconds over `repeats` calls (after one warm call)."""
     function()
@@ -238,6 +276,26 @@ def main() -> None:
         print(f"  C = {len(candidates):3d}: {median:7.2f} / {p95:7.2f}")
     median, p95 = time_call(lambda: ring(16), args.repeats)
     print(f"\ngenerate_candidates (16): {median:.3f} / {p95:.3f}")
+
+    warm_up_obstacle_map()
+    grid = room_voxel_map()
+    candidates = ring(16)
+    target, _ = scene_with_counts(20000, 100000)
+    print(f"\nline_of_sight_clear_fraction, {grid.voxel_count} voxels of 0.1 m, C = 17, 20k target points:")
+    for max_targets in (500, 1500, 5000):
+        median, p95 = time_call(partial(line_of_sight_clear_fraction, grid, np.eye(3), np.zeros(3),
+                                        candidates.positions, target, max_targets), args.repeats)
+        print(f"  {max_targets:5d} walked: {median:7.2f} / {p95:7.2f}")
+    stride = int(np.ceil(len(target) / 1500))
+    fast = line_of_sight_clear_fraction(grid, np.eye(3), np.zeros(3), candidates.positions, target, 1500)
+    slow: List[np.ndarray] = []
+    ref_median, _ = time_call(lambda: slow.append(reference_clear_fraction(
+        grid, candidates.positions, target[::stride], 0.1)), args.reference_repeats)
+    fast_median, _ = time_call(partial(line_of_sight_clear_fraction, grid, np.eye(3), np.zeros(3),
+                                       candidates.positions, target, 1500), args.repeats)
+    print(f"  reference (numpy samples every r/8) {ref_median:8.1f}  fast {fast_median:.2f}"
+          f"  ratio {ref_median / fast_median:6.0f}x  max |diff| {np.max(np.abs(slow[-1] - fast)):.1e}")
+    print(f"  clear share per candidate: {np.array2string(fast, precision=2)}")
 
 
 if __name__ == "__main__":
