@@ -64,6 +64,15 @@ def observation(header: Header) -> tuple:
     return target, plane
 
 
+def send_frame(graph: dict, header: Header) -> tuple:
+    """Publish one frame's ground plane, then (as the slower stage) its target; returns its stamp key."""
+    target, plane = observation(header)
+    graph["ground_pub"].publish(plane)
+    graph["probe"].spin_for(0.1)
+    graph["target_pub"].publish(target)
+    return stamp_key(header)
+
+
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory):
     logs = tmp_path_factory.mktemp("nbv_logs")
@@ -241,12 +250,8 @@ def test_invalid_ground_plane_gives_no_goal(graph, planned):
     assert graph["procs"][name].poll() is None
 
     # The node keeps planning: the next frame with a valid plane gets its goal.
-    header = make_header(201, 0)
-    target, plane = observation(header)
-    graph["ground_pub"].publish(plane)
-    probe.spin_for(0.1)
-    graph["target_pub"].publish(target)
-    assert probe.spin_until(lambda: by_stamp(graph["goals"], stamp_key(header)), 10.0)
+    key = send_frame(graph, make_header(201, 0))
+    assert probe.spin_until(lambda: by_stamp(graph["goals"], key), 10.0)
 
 
 # ----------------------------------------------------------------------------- the obstacle map
@@ -302,13 +307,9 @@ def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
     probe.spin_for(0.5)
 
     header = make_header(300, 0)
-    target, plane = observation(header)
     pose_pub.publish(PoseStamped(header=Header(frame_id=MAP_FRAME, stamp=header.stamp), pose=pose_msg(*CAMERA_IN_MAP)))
     probe.spin_for(0.1)
-    graph["ground_pub"].publish(plane)
-    probe.spin_for(0.1)
-    graph["target_pub"].publish(target)
-    key = stamp_key(header)
+    key = send_frame(graph, header)
     assert probe.spin_until(lambda: by_stamp(graph["candidates"], key), 10.0)
     (mapped,) = by_stamp(graph["candidates"], key)
     assert not mapped.feasible[chosen] and mapped.infeasible_reason[chosen] == 2  # OBSTACLE
@@ -326,12 +327,8 @@ def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
         return int(diag_value(status, "rejected.no_camera_pose")) if status else 0
 
     before = no_pose()
-    header = make_header(301, 0)
-    target, plane = observation(header)
-    graph["ground_pub"].publish(plane)
-    probe.spin_for(0.1)
-    graph["target_pub"].publish(target)
-    assert probe.spin_until(lambda: by_stamp(graph["candidates"], stamp_key(header)), 10.0)
-    (unmapped,) = by_stamp(graph["candidates"], stamp_key(header))
+    key = send_frame(graph, make_header(301, 0))
+    assert probe.spin_until(lambda: by_stamp(graph["candidates"], key), 10.0)
+    (unmapped,) = by_stamp(graph["candidates"], key)
     assert unmapped.feasible[chosen] and unmapped.chosen_index == chosen
     assert probe.spin_until(lambda: no_pose() >= before + 1, 5.0)
