@@ -283,6 +283,8 @@ class Scene:
     start_camera: CameraPose
     start_occluder_share: float
     body_model_id: str
+    # obstacle_voxel_centres per resolution, computed on first use.
+    _obstacle_voxels: Dict[float, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def K(self) -> np.ndarray:
@@ -445,7 +447,6 @@ class Scene:
             ground_truth=truth,
         )
 
-
     def obstacle_voxel_centres(self, resolution: float = 0.1) -> np.ndarray:
         """World-frame centres of the voxels that the scene's static obstacles occupy.
 
@@ -477,8 +478,7 @@ class Scene:
             res = float("nan")
         if not (np.isfinite(res) and res > 0.0):
             raise SceneError(f"obstacle voxel resolution must be a finite number of metres > 0, got {resolution!r}")
-        cache: Dict[float, np.ndarray] = getattr(self, "_obstacle_voxel_cache", None) or {}
-        self._obstacle_voxel_cache = cache
+        cache = self._obstacle_voxels
         if res not in cache:
             blocks = [np.zeros((0, 3), dtype=np.int64)]
             for object_id in sorted(self.object_names):
