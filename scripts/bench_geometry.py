@@ -96,7 +96,7 @@ def person_mesh():
     """The full-size stand-in body when its generator exists, else the synthetic mesh."""
     try:
         from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
-        from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
+        from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model
     except ImportError:
         return synthetic_person(), "synthetic ellipsoid person"
     model = SMPLXModel(build_stand_in_body_model("full"))

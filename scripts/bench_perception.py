@@ -32,7 +32,7 @@ from leapnbv_perception.hmr_crop import crop_for_hmr, fit_to_engine_input, proce
 from leapnbv_perception.hmr_tail import camera_translation, unmirror_left_hand  # noqa: E402
 from leapnbv_perception.rotations import matrix_to_axis_angle, rot6d_to_matrix  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams  # noqa: E402
-from leapnbv_perception.stand_in_body_model import build_stand_in_body_model  # noqa: E402
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model  # noqa: E402
 
 
 def timed(function: Callable[[], object], runs: int, warmup: int = 30) -> Tuple[float, float]:

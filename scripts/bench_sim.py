@@ -26,11 +26,11 @@ _ROOT = Path(__file__).resolve().parents[1]
 for _package in ("leapnbv_common", "leapnbv_perception", "leapnbv_geometry", "leapnbv_sim"):
     sys.path.insert(0, str(_ROOT / "src" / _package))
 
+from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS  # noqa: E402
 from leapnbv_geometry.raster import rasterize_mesh, warm_up  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
-from leapnbv_perception.stand_in_body_model import build_stand_in_body_model  # noqa: E402
-from leapnbv_sim.benchmark_set import BENCHMARK_SEEDS  # noqa: E402
 from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model  # noqa: E402
 
 
 def _stats(samples_ms: list) -> str:

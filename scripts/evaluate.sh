@@ -6,4 +6,4 @@
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
-exec scripts/env.sh python -m leapnbv_sim.evaluation "$@"
+exec scripts/env.sh python -m leapnbv_evaluation.evaluation "$@"

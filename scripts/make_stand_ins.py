@@ -17,8 +17,8 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src", "leapnbv_perception"))
 
-from leapnbv_perception.contract_models import write_contract_detector, write_contract_hmr  # noqa: E402
-from leapnbv_perception.stand_in_body_model import write_stand_in_body_model  # noqa: E402
+from leapnbv_stand_ins.contract_models import write_contract_detector, write_contract_hmr  # noqa: E402
+from leapnbv_stand_ins.stand_in_body_model import write_stand_in_body_model  # noqa: E402
 
 
 def main() -> int:

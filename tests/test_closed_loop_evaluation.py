@@ -18,14 +18,14 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from leapnbv_common.conversions import pose_msg, pose_to_numpy, stamp_to_ns  # noqa: E402
 from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_input_qos  # noqa: E402
-from leapnbv_msgs.msg import SceneGroundTruth  # noqa: E402
-from leapnbv_sim.evaluation import (  # noqa: E402
+from leapnbv_evaluation.evaluation import (  # noqa: E402
     END_TO_END,
     STAGE_TOPICS,
     ClosedLoopEvaluator,
     EvaluationOptions,
     write_outputs,
 )
+from leapnbv_msgs.msg import SceneGroundTruth  # noqa: E402
 from leapnbv_sim.nodes.simulator_node import CameraMotion, interpolate_camera_pose  # noqa: E402
 from leapnbv_sim.scene import look_at_pose  # noqa: E402
 
@@ -140,7 +140,7 @@ def test_simulator_node_publishes_one_stamp_on_all_topics_and_follows_a_goal(rep
 
 @pytest.mark.slow
 def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
-    from leapnbv_sim.benchmark_set import BENCHMARK_SEEDS
+    from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS
 
     started = time.monotonic()
     options = EvaluationOptions(log_dir=str(tmp_path / "logs"))

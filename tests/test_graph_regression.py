@@ -9,9 +9,9 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from leapnbv_bags.bag_io import read_bag, validate_bag_crcs  # noqa: E402
 from leapnbv_bringup.graph import OUTPUT_TOPICS  # noqa: E402
 from leapnbv_common.conversions import stamp_to_ns  # noqa: E402
-from leapnbv_sim.bag_io import read_bag, validate_bag_crcs  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 BAGS = ("bags/sample_a", "bags/sample_b")

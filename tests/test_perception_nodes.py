@@ -17,7 +17,7 @@ from leapnbv_common.qos import stage_output_qos  # noqa: E402
 from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth  # noqa: E402
 from leapnbv_perception.hmr_tail import depth_scale, virtual_intrinsics  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
-from leapnbv_sim.stand_ins import ensure_contract_models, ensure_stand_in_body_model  # noqa: E402
+from leapnbv_stand_ins.files import ensure_contract_models, ensure_stand_in_body_model  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
 

@@ -16,12 +16,11 @@ setup(
     ],
     install_requires=["setuptools"],
     zip_safe=True,
-    description="Synthetic RGB-D scenes with a stand-in body, bag tools, closed-loop simulator and evaluation.",
+    description="The simulator: synthetic RGB-D scenes of a person among occluders, seen by a robot camera.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
             "simulator_node = leapnbv_sim.nodes.simulator_node:main",
-            "evaluate = leapnbv_sim.evaluation:main",
         ],
     },
 )

@@ -9,27 +9,16 @@ import os
 from dataclasses import dataclass, field
 from typing import Dict, List
 
-NAMESPACE = "/leapnbv"
-
-# Camera driver topics (RealSense names), remappable on the command line of the runner/launch.
-CAMERA_TOPICS = {
-    "image": "/camera/color/image_raw",
-    "camera_info": "/camera/color/camera_info",
-    "depth": "/camera/aligned_depth_to_color/image_raw",
-    "depth/camera_info": "/camera/aligned_depth_to_color/camera_info",
-}
-# Optional robot inputs (remappable like the camera topics): the camera's optical frame in a
-# fixed, floor-aligned frame (z up, floor z = 0; from the robot's localization / TF), stamped
-# with each camera frame, and the robot's map of static obstacles as occupied voxel centres in
-# that frame (latched). ground_node falls back on the pose's floor when RANSAC finds none;
-# nbv_node adds the map's obstacles to its footprint and line-of-sight tests.
-ROBOT_TOPICS = {
-    "camera_pose": "/leapnbv/camera_pose",
-    "obstacle_map": "/leapnbv/obstacle_map",
-}
-# Every remappable input of the graph.
-INPUT_TOPICS = {**CAMERA_TOPICS, **ROBOT_TOPICS}
-GROUND_TRUTH_TOPIC = "/leapnbv/sim/ground_truth"
+from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch file and tools
+    CAMERA_TOPICS,
+    FINAL_OUTPUT_TOPIC,
+    GROUND_TRUTH,
+    GROUND_TRUTH_TOPIC,
+    INPUT_TOPICS,
+    NAMESPACE,
+    OUTPUT_TOPICS,
+    ROBOT_TOPICS,
+)
 
 
 @dataclass(frozen=True)
@@ -50,7 +39,7 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
     """The five nodes, inputs remapped to the topics given (keys of INPUT_TOPICS; RealSense names by default)."""
     cam = dict(INPUT_TOPICS)
     cam.update(camera_topics or {})
-    gt = {"ground_truth": GROUND_TRUTH_TOPIC}
+    gt = {GROUND_TRUTH: GROUND_TRUTH_TOPIC}
     return [
         NodeSpec("detector_node", "leapnbv_perception", "leapnbv_perception.nodes.detector_node",
                  {"image": cam["image"], **gt}),
@@ -66,20 +55,6 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
     ]
 
 
-# Every output of the graph (absolute names), with its message type.
-OUTPUT_TOPICS = {
-    NAMESPACE + "/detections": "leapnbv_msgs/msg/PersonDetections",
-    NAMESPACE + "/human_mesh": "leapnbv_msgs/msg/HumanMesh",
-    NAMESPACE + "/target_geometry": "leapnbv_msgs/msg/TargetGeometry",
-    NAMESPACE + "/person_mask": "sensor_msgs/msg/Image",
-    NAMESPACE + "/human_mesh_metric": "leapnbv_msgs/msg/HumanMesh",
-    NAMESPACE + "/ground_plane": "leapnbv_msgs/msg/GroundPlane",
-    NAMESPACE + "/view_candidates": "leapnbv_msgs/msg/ViewCandidates",
-    NAMESPACE + "/next_best_view": "geometry_msgs/msg/PoseStamped",
-    NAMESPACE + "/base_goal": "geometry_msgs/msg/PoseStamped",
-    NAMESPACE + "/markers": "visualization_msgs/msg/MarkerArray",
-}
-FINAL_OUTPUT_TOPIC = NAMESPACE + "/view_candidates"
 
 
 def default_params_file() -> str:

@@ -254,7 +254,7 @@ def format_report(findings: List[Finding], input_stamps: List[int]) -> Tuple[str
 
 def default_body_model() -> str:
     """The stand-in body model the sample bags were made with (written on first use)."""
-    from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+    from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
     return ensure_stand_in_body_model("small")
 

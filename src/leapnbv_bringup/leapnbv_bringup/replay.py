@@ -52,7 +52,7 @@ def header_stamp_ns(cdr: bytes) -> int:
 
 def read_bag_messages(path: str, topics: Optional[Set[str]] = None) -> Iterator[BagMessage]:
     """Every message of a bag in log-time order, as raw CDR bytes."""
-    from leapnbv_sim.bag_io import read_bag
+    from leapnbv_bags.bag_io import read_bag
 
     for topic, msgtype, log_time, cdr in read_bag(path, topics=topics, raw=True):
         yield BagMessage(topic, msgtype, log_time, bytes(cdr))
@@ -209,7 +209,7 @@ class OutputRecorder:
 
     def write_bag(self, path: str, overwrite: bool = True) -> None:
         """Write what was recorded as a rosbag2 MCAP bag (atomically: complete or not at all)."""
-        from leapnbv_sim.bag_io import BagWriter
+        from leapnbv_bags.bag_io import BagWriter
 
         with BagWriter(path, overwrite=overwrite) as bag:
             for topic in sorted({t for t, _, _ in self.messages}):

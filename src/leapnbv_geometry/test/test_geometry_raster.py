@@ -243,7 +243,7 @@ def test_warm_up_reports_compile_time():
 def test_rasterizer_matches_raycast_reference_on_posed_stand_in_body():
     """The issue's check: a posed stand-in body at 640x480 against independent ray casting."""
     from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
-    from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
+    from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model
 
     model = SMPLXModel(build_stand_in_body_model("small"))
     body = np.zeros(63)

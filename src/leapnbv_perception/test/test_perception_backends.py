@@ -19,7 +19,6 @@ from leapnbv_perception.backends.tensorrt_backend import (
     engine_cache_key,
     engine_cache_path,
 )
-from leapnbv_perception.contract_models import write_contract_detector, write_contract_hmr
 from leapnbv_perception.detector import PersonDetector
 from leapnbv_perception.model_contracts import (
     HMR_OUTPUT_SIZES,
@@ -28,6 +27,7 @@ from leapnbv_perception.model_contracts import (
     ModelContractError,
     check_backend_contract,
 )
+from leapnbv_stand_ins.contract_models import write_contract_detector, write_contract_hmr
 
 
 @pytest.fixture(scope="module")

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from leapnbv_perception.backends import create_backend
-from leapnbv_perception.contract_models import write_contract_detector, write_contract_hmr
 from leapnbv_perception.hmr import HMROutputError, HumanMeshEstimator
 from leapnbv_perception.hmr_crop import InvalidBoxError
 from leapnbv_perception.model_contracts import ModelContractError
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_perception.stand_in_body_model import write_stand_in_body_model
+from leapnbv_stand_ins.contract_models import write_contract_detector, write_contract_hmr
+from leapnbv_stand_ins.stand_in_body_model import write_stand_in_body_model
 
 
 @pytest.fixture(scope="module")

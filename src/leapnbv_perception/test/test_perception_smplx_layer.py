@@ -16,7 +16,7 @@ from leapnbv_perception.smplx_layer import (
     SMPLXModelError,
     SMPLXParams,
 )
-from leapnbv_perception.stand_in_body_model import build_stand_in_body_model, write_stand_in_body_model
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model, write_stand_in_body_model
 
 LEFT_ELBOW, LEFT_WRIST, LEFT_INDEX3, RIGHT_WRIST, HEAD = 18, 20, 27, 21, 15
 

@@ -1,1 +1,1 @@
-"""Synthetic RGB-D scenes with a stand-in body, bag tools, closed-loop simulator and evaluation."""
+"""The simulator: synthetic RGB-D scenes of a person among occluders, seen by a robot camera."""

@@ -11,11 +11,13 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
-from leapnbv_sim.scene import CameraPose, SceneConfig, generate_scene
+from leapnbv_bags.bag_io import RELIABLE_QOS, SENSOR_DATA_QOS, BagWriter, make_typestore
+from leapnbv_common.topics import GROUND_TRUTH_TOPIC
+from leapnbv_sim.scene import CameraPose, RenderedFrame, SceneConfig, generate_scene
 
 # name -> scene seed and options; two different scenes (with and without walls).
 SAMPLE_BAGS = {
@@ -39,11 +41,65 @@ def render_drifting_frames(scene, num_frames: int = NUM_FRAMES, drift_m: float =
 def make_sample_bag(path: Path, seed: int, walls: bool, body_model, body_model_id: str, overwrite: bool) -> Dict:
     scene = generate_scene(SceneConfig(seed=seed, walls=walls, body_resolution="small"), body_model)
     frames = render_drifting_frames(scene)
-    from leapnbv_sim.bag_io import write_scene_bag
-
     counts = write_scene_bag(path, frames, body_model_id=body_model_id, overwrite=overwrite)
     shares = [f.ground_truth.occluder_share for f in frames]
     return {"counts": counts, "occluder_share": (float(np.min(shares)), float(np.max(shares)))}
+
+
+def write_scene_bag(
+    path: Union[str, Path],
+    frames: Sequence[RenderedFrame],
+    *,
+    frame_id: str = "camera_color_optical_frame",
+    start_stamp_ns: int = 1_700_000_000_000_000_000,
+    period_ns: int = 100_000_000,
+    body_model_id: str = "stand_in_small",
+    overwrite: bool = False,
+) -> Dict[str, int]:
+    """Record rendered frames under RealSense topic names plus the simulator's ground truth.
+
+    Each frame i gets stamp ``start_stamp_ns + i * period_ns`` on all five topics (header stamp
+    and bag log time alike); the messages are the simulator node's own
+    (:func:`leapnbv_sim.frame_messages.camera_frame_messages`), serialized by rclpy.
+
+    Args:
+        path: Bag directory to create.
+        frames: Rendered frames (all the same size).
+        frame_id: Optical frame of the colour camera.
+        start_stamp_ns: Stamp of the first frame, nanoseconds since the epoch.
+        period_ns: Time between frames, nanoseconds.
+        body_model_id: Stored in each SceneGroundTruth.
+        overwrite: Replace an existing bag atomically once the new one is complete.
+
+    Returns:
+        Message count per topic.
+
+    Raises:
+        BagError: ``path`` exists (without overwrite) or writing fails.
+    """
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Header
+
+    from leapnbv_common.topics import CAMERA_TOPICS
+    from leapnbv_sim.frame_messages import camera_frame_messages
+
+    image_types = {"image": "sensor_msgs/msg/Image", "camera_info": "sensor_msgs/msg/CameraInfo",
+                   "depth": "sensor_msgs/msg/Image", "depth/camera_info": "sensor_msgs/msg/CameraInfo"}
+    with BagWriter(path, overwrite=overwrite, typestore=make_typestore()) as bag:
+        for key in ("image", "camera_info", "depth", "depth/camera_info"):
+            bag.add_topic(CAMERA_TOPICS[key], image_types[key], qos=SENSOR_DATA_QOS)
+        bag.add_topic(GROUND_TRUTH_TOPIC, "leapnbv_msgs/msg/SceneGroundTruth", qos=RELIABLE_QOS)
+        order = [CAMERA_TOPICS[key] for key in ("image", "camera_info", "depth", "depth/camera_info")]
+        order.append(GROUND_TRUTH_TOPIC)
+        for index, frame in enumerate(frames):
+            stamp = int(start_stamp_ns) + index * int(period_ns)
+            header = Header(frame_id=frame_id)
+            header.stamp.sec, header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            messages = camera_frame_messages(frame, header, body_model_id)
+            for topic in order:
+                bag.write(topic, stamp, serialize_message(messages[topic]))
+        counts = dict(bag.message_counts)
+    return counts
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -53,7 +109,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(argv)
 
     from leapnbv_perception.smplx_layer import SMPLXModel
-    from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+    from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
     body_model = SMPLXModel.load(ensure_stand_in_body_model("small"))
     for name, spec in SAMPLE_BAGS.items():

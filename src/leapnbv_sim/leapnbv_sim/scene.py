@@ -25,7 +25,7 @@ import numpy as np
 from leapnbv_geometry.raster import rasterize_mesh
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_sim.depth_noise import DepthNoiseConfig, apply_depth_noise, depth_m_to_mm
-from leapnbv_sim.metrics import visible_vertex_mask
+from leapnbv_sim.visibility import visible_vertex_mask
 
 FLOOR_ID = 0
 PERSON_ID = 1

@@ -6,18 +6,18 @@ import dataclasses
 import numpy as np
 import pytest
 
-from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_planner.candidates import CandidateRingParams, generate_candidates
-from leapnbv_sim.evaluation import (
+from leapnbv_evaluation.evaluation import (
     ScoredCandidates,
     candidate_world_pose,
     choose_method_views,
     frame_stamp_ns,
     view_metrics,
 )
-from leapnbv_sim.metrics import body_coverage, self_visible_vertex_mask, surface_coverage
+from leapnbv_evaluation.metrics import body_coverage, self_visible_vertex_mask, surface_coverage
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_planner.candidates import CandidateRingParams, generate_candidates
 from leapnbv_sim.scene import PERSON_ID, SceneConfig, generate_scene, look_at_pose
-from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 
 @pytest.fixture(scope="module")

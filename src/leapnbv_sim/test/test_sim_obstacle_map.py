@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
+from leapnbv_evaluation.benchmark_set import BENCHMARK_CONFIG, BENCHMARK_SEEDS
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
-from leapnbv_sim.benchmark_set import BENCHMARK_CONFIG, BENCHMARK_SEEDS
 from leapnbv_sim.scene import FLOOR_ID, PERSON_ID, SceneError, generate_scene
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model
 
 RES = 0.1
 

@@ -1,4 +1,4 @@
-"""Tests of leapnbv_sim.scene and leapnbv_sim.benchmark_set on the small stand-in body."""
+"""Tests of leapnbv_sim.scene and leapnbv_evaluation.benchmark_set on the small stand-in body."""
 
 from __future__ import annotations
 
@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from leapnbv_bags import bag_io
+from leapnbv_common import topics
+from leapnbv_evaluation.benchmark_set import BENCHMARK_CONFIG, BENCHMARK_SEEDS, load_benchmark_scenes
+from leapnbv_evaluation.metrics import body_coverage
 from leapnbv_perception.rotations import axis_angle_to_matrix
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_perception.stand_in_body_model import build_stand_in_body_model
-from leapnbv_sim import bag_io
-from leapnbv_sim.benchmark_set import BENCHMARK_CONFIG, BENCHMARK_SEEDS, load_benchmark_scenes
-from leapnbv_sim.metrics import body_coverage
+from leapnbv_sim.sample_bags import write_scene_bag
 from leapnbv_sim.scene import (
     FLOOR_ID,
     PERSON_ID,
@@ -25,6 +26,7 @@ from leapnbv_sim.scene import (
     look_at_pose,
     pose_in_world,
 )
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model
 
 
 @pytest.fixture(scope="module")
@@ -270,16 +272,16 @@ def test_camera_pose_from_base_goal_is_level_above_base() -> None:
 def test_rendered_frames_round_trip_through_a_bag(scene, tmp_path: Path) -> None:
     frames = [scene.render(frame_index=i) for i in range(2)]
     path = tmp_path / "scene"
-    bag_io.write_scene_bag(path, frames, body_model_id=scene.body_model_id)
-    truths = [m for t, _, _, m in bag_io.read_bag(path, topics=[bag_io.GROUND_TRUTH_TOPIC])]
-    depths = [m for t, _, _, m in bag_io.read_bag(path, topics=[bag_io.DEPTH_IMAGE_TOPIC])]
+    write_scene_bag(path, frames, body_model_id=scene.body_model_id)
+    truths = [m for t, _, _, m in bag_io.read_bag(path, topics=[topics.GROUND_TRUTH_TOPIC])]
+    depths = [m for t, _, _, m in bag_io.read_bag(path, topics=[topics.DEPTH_IMAGE_TOPIC])]
     assert len(truths) == 2
     expected = frames[0].ground_truth
     np.testing.assert_allclose(truths[0].root_pose, expected.body_params_camera.root_pose, atol=1e-6)
     np.testing.assert_allclose(truths[0].translation, expected.translation_camera, atol=1e-6)
     assert truths[0].person_box.x_min == expected.person_box_xyxy[0]
     assert bytes(depths[1].data) == frames[1].depth_mm.tobytes()
-    assert bag_io.validate_bag_crcs(path)[bag_io.GROUND_TRUTH_TOPIC] == 2
+    assert bag_io.validate_bag_crcs(path)[topics.GROUND_TRUTH_TOPIC] == 2
 
 
 def test_configs_are_plain_dataclasses() -> None:

@@ -55,9 +55,6 @@ from std_msgs.msg import Header
 
 from leapnbv_common.conversions import (
     ConversionError,
-    box_to_detection,
-    make_camera_info,
-    numpy_to_image,
     pose_msg,
     pose_to_numpy,
     stamp_to_ns,
@@ -66,22 +63,22 @@ from leapnbv_common.conversions import (
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import declare_parameters, run_node
 from leapnbv_common.qos import camera_input_qos, latched_goal_qos, latched_map_qos, stage_output_qos
-from leapnbv_msgs.msg import SceneGroundTruth
-from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from leapnbv_sim.bag_io import (
+from leapnbv_common.topics import (
+    CAMERA_POSE_TOPIC,
     COLOR_IMAGE_TOPIC,
     COLOR_INFO_TOPIC,
     DEPTH_IMAGE_TOPIC,
     DEPTH_INFO_TOPIC,
     GROUND_TRUTH_TOPIC,
+    NEXT_BEST_VIEW_TOPIC,
+    OBSTACLE_MAP_TOPIC,
 )
+from leapnbv_msgs.msg import SceneGroundTruth
+from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from leapnbv_sim.frame_messages import camera_frame_messages
 from leapnbv_sim.scene import CameraPose, RenderedFrame, Scene, pose_in_world
 
-# The camera's world pose per frame, as the robot's localization would provide it to the graph.
-CAMERA_POSE_TOPIC = "/leapnbv/camera_pose"
-# The scene's static obstacles as occupied voxel centres, as the robot's mapping stack would.
-OBSTACLE_MAP_TOPIC = "/leapnbv/obstacle_map"
-DEFAULT_GOAL_TOPIC = "/leapnbv/next_best_view"
+DEFAULT_GOAL_TOPIC = NEXT_BEST_VIEW_TOPIC
 # Local remap of the relative goal topic applied unless the caller remaps it itself.
 DEFAULT_GOAL_REMAP = ["--ros-args", "-r", "goal:=" + DEFAULT_GOAL_TOPIC]
 # Camera drivers offer sensor-data QoS: best effort, keep the last 5 frames.
@@ -153,36 +150,6 @@ class CameraMotion:
         return interpolate_camera_pose(self.start, self.goal, self.fraction_at(stamp_ns))
 
 
-def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: str) -> SceneGroundTruth:
-    """leapnbv_msgs/SceneGroundTruth of a rendered frame (an all-zero box, score 0, when no person is visible).
-
-    Args:
-        header: The frame's header.
-        frame: The rendered frame (its ``ground_truth``).
-        body_model_id: Which body model the parameters belong to.
-
-    Returns:
-        The message.
-    """
-    truth = frame.ground_truth
-    if truth.person_box_xyxy is None:
-        box = np.zeros(5, dtype=np.float32)
-    else:
-        box = np.array(list(truth.person_box_xyxy) + [1.0], dtype=np.float32)
-    params = truth.body_params_camera
-    msg = SceneGroundTruth(header=header, person_box=box_to_detection(box), body_model_id=str(body_model_id))
-    msg.root_pose = np.asarray(params.root_pose, dtype=np.float32).reshape(3)
-    msg.body_pose = np.asarray(params.body_pose, dtype=np.float32).reshape(63)
-    msg.left_hand_pose = np.asarray(params.left_hand_pose, dtype=np.float32).reshape(45)
-    msg.right_hand_pose = np.asarray(params.right_hand_pose, dtype=np.float32).reshape(45)
-    msg.jaw_pose = np.asarray(params.jaw_pose, dtype=np.float32).reshape(3)
-    msg.betas = np.asarray(params.betas, dtype=np.float32).reshape(10)
-    msg.expression = np.asarray(params.expression, dtype=np.float32).reshape(10)
-    msg.translation = np.asarray(truth.translation_camera, dtype=np.float32).reshape(3)
-    msg.occlusion_share = float(truth.occlusion_share)
-    return msg
-
-
 def load_scene(seed: int, body_resolution: str = "small", body_model_path: str = "", walls: bool = True,
                depth_noise: bool = True) -> Scene:
     """Generate the scene the node's parameters describe (default SceneConfig otherwise).
@@ -192,7 +159,7 @@ def load_scene(seed: int, body_resolution: str = "small", body_model_path: str =
     """
     from leapnbv_perception.smplx_layer import SMPLXModel
     from leapnbv_sim.scene import SceneConfig, generate_scene
-    from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+    from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
     path = body_model_path or ensure_stand_in_body_model(body_resolution)
     config = SceneConfig(seed=int(seed), walls=bool(walls), depth_noise=bool(depth_noise),
@@ -216,12 +183,14 @@ class SimulatorNode(Node):
         self.diagnostics = StageDiagnostics(self, hardware_id="simulator")
         self.frame_id = str(p["frame_id"])
         camera_qos = camera_input_qos(CAMERA_QOS_DEPTH)
-        self.image_pub = self.create_publisher(Image, COLOR_IMAGE_TOPIC, camera_qos)
-        self.image_info_pub = self.create_publisher(CameraInfo, COLOR_INFO_TOPIC, camera_qos)
-        self.depth_pub = self.create_publisher(Image, DEPTH_IMAGE_TOPIC, camera_qos)
-        self.depth_info_pub = self.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, camera_qos)
-        # The detector and HMR nodes pair every image with its ground truth: deliver it reliably.
-        self.truth_pub = self.create_publisher(SceneGroundTruth, GROUND_TRUTH_TOPIC, stage_output_qos(10))
+        self.frame_pubs = {
+            COLOR_IMAGE_TOPIC: self.create_publisher(Image, COLOR_IMAGE_TOPIC, camera_qos),
+            COLOR_INFO_TOPIC: self.create_publisher(CameraInfo, COLOR_INFO_TOPIC, camera_qos),
+            DEPTH_IMAGE_TOPIC: self.create_publisher(Image, DEPTH_IMAGE_TOPIC, camera_qos),
+            DEPTH_INFO_TOPIC: self.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, camera_qos),
+            # The detector and HMR nodes pair every image with its ground truth: deliver it reliably.
+            GROUND_TRUTH_TOPIC: self.create_publisher(SceneGroundTruth, GROUND_TRUTH_TOPIC, stage_output_qos(10)),
+        }
         self.pose_pub = self.create_publisher(PoseStamped, CAMERA_POSE_TOPIC, stage_output_qos(10))
         # Created before the first set_scene below, which publishes the first scene's map.
         self.map_pub = self.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
@@ -339,17 +308,15 @@ class SimulatorNode(Node):
         frame = self.scene.render(camera, frame_index=self.frame_count)
         header = Header(frame_id=self.frame_id)
         header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-        height, width = frame.depth_mm.shape
-        info = make_camera_info(frame.K, width, height, header)
+        messages = camera_frame_messages(frame, header, self.body_model_id)
         # Calibration and the camera pose first: a node that pairs images with their intrinsics
         # or their pose has them on arrival.
-        self.image_info_pub.publish(info)
-        self.depth_info_pub.publish(info)
+        for topic in (COLOR_INFO_TOPIC, DEPTH_INFO_TOPIC):
+            self.frame_pubs[topic].publish(messages.pop(topic))
         pose_header = Header(frame_id=str(self.params["world_frame_id"]), stamp=header.stamp)
         self.pose_pub.publish(PoseStamped(header=pose_header, pose=pose_msg(camera.rotation, camera.position)))
-        self.truth_pub.publish(scene_ground_truth_msg(header, frame, self.body_model_id))
-        self.image_pub.publish(numpy_to_image(np.ascontiguousarray(frame.rgb), "rgb8", header))
-        self.depth_pub.publish(numpy_to_image(np.ascontiguousarray(frame.depth_mm), "16UC1", header))
+        for topic, message in messages.items():  # ground truth, colour, depth
+            self.frame_pubs[topic].publish(message)
 
         self._poses[stamp_ns] = CameraPose(camera.rotation.copy(), camera.position.copy())
         while len(self._poses) > max(1, int(self.params["pose_memory"])):

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from leapnbv_sim import report
-from leapnbv_sim.report import (
+from leapnbv_evaluation import report
+from leapnbv_evaluation.report import (
     ground_frame,
     is_success,
     overlay_person,

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from leapnbv_common.atomic_files import write_file_atomically
-from leapnbv_sim.metrics import latency_summary
+from leapnbv_evaluation.metrics import latency_summary
 
 LOGGER = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ def stand_in_dir() -> Path:
 
 def ensure_stand_in_body_model(resolution: str = "small") -> str:
     """Path of the stand-in body model .npz of this resolution, generated if absent (deterministic)."""
-    from leapnbv_perception.stand_in_body_model import write_stand_in_body_model
+    from leapnbv_stand_ins.stand_in_body_model import write_stand_in_body_model
 
     path = stand_in_dir() / f"stand_in_body_{resolution}.npz"
     if not path.exists():
@@ -34,7 +34,7 @@ def ensure_stand_in_body_model(resolution: str = "small") -> str:
 
 def ensure_contract_models() -> tuple:
     """Paths of the contract detector and HMR ONNX models, generated if absent."""
-    from leapnbv_perception.contract_models import write_contract_detector, write_contract_hmr
+    from leapnbv_stand_ins.contract_models import write_contract_detector, write_contract_hmr
 
     folder = stand_in_dir()
     folder.mkdir(parents=True, exist_ok=True)

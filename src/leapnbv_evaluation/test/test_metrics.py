@@ -1,13 +1,11 @@
-"""Tests of leapnbv_sim.metrics and leapnbv_sim.depth_noise."""
+"""Tests of leapnbv_evaluation.metrics and leapnbv_sim.depth_noise."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from leapnbv_perception.rotations import axis_angle_to_matrix
-from leapnbv_sim.depth_noise import DepthNoiseConfig, apply_depth_noise, depth_edge_mask, depth_m_to_mm
-from leapnbv_sim.metrics import (
+from leapnbv_evaluation.metrics import (
     body_coverage,
     latency_summary,
     pa_mpvpe_mm,
@@ -15,6 +13,8 @@ from leapnbv_sim.metrics import (
     reconstructed_area,
     visible_vertex_mask,
 )
+from leapnbv_perception.rotations import axis_angle_to_matrix
+from leapnbv_sim.depth_noise import DepthNoiseConfig, apply_depth_noise, depth_edge_mask, depth_m_to_mm
 
 K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
 

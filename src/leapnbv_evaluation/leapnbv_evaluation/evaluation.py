@@ -1,7 +1,7 @@
 """Closed-loop evaluation: benchmark scenes through the running node graph, one next-best-view move each.
 
-    python -m leapnbv_sim.evaluation --scenes 50 --out out/eval
-    python -m leapnbv_sim.evaluation --scenes 10 --out out/eval_models --perception onnxruntime \
+    python -m leapnbv_evaluation.evaluation --scenes 50 --out out/eval
+    python -m leapnbv_evaluation.evaluation --scenes 10 --out out/eval_models --perception onnxruntime \
         --detector-model yolov8s.onnx --hmr-model smplerx.onnx --body-model SMPLX_NEUTRAL.npz \
         --scene-body-model SMPLX_NEUTRAL.npz
 
@@ -23,8 +23,8 @@ publishes frames only when asked. Per benchmark scene:
    S_o over the feasible candidates: the planner's ``choose_best`` with one-hot weights);
 3. the camera moves to each method's pick (``pose_in_world`` of the start camera and the
    candidate's pose in the observation frame), the scene is rendered there and scored:
-   surface coverage (:func:`~leapnbv_sim.metrics.surface_coverage`, the headline), raw body
-   coverage (:func:`~leapnbv_sim.metrics.body_coverage`, share of all vertices) and the
+   surface coverage (:func:`~leapnbv_evaluation.metrics.surface_coverage`, the headline), raw body
+   coverage (:func:`~leapnbv_evaluation.metrics.body_coverage`, share of all vertices) and the
    ground-truth reconstructed area (person pixels with a depth return);
 4. for ``leap_nbv`` the simulator node itself follows the graph's next-best-view goal over
    DDS (the closed loop), publishes the after-view through the graph, and the graph's area
@@ -52,8 +52,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from leapnbv_sim.metrics import body_coverage, pa_mpvpe_mm, surface_coverage
-from leapnbv_sim.report import is_success, task_table_markdown, write_task_table
+from leapnbv_evaluation.metrics import body_coverage, pa_mpvpe_mm, surface_coverage
+from leapnbv_evaluation.report import is_success, task_table_markdown, write_task_table
 from leapnbv_sim.scene import PERSON_ID, CameraPose, RenderedFrame, Scene, pose_in_world
 
 METHODS: Tuple[str, ...] = ("leap_nbv", "stay", "random", "visibility_only", "area_only", "occlusion_only")
@@ -403,7 +403,7 @@ class ClosedLoopEvaluator:
         """The body model scenes are generated with (loaded once)."""
         if self._scene_body_model is None:
             from leapnbv_perception.smplx_layer import SMPLXModel
-            from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+            from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
             self._scene_body_model = SMPLXModel.load(self.options.scene_body_model
                                                      or ensure_stand_in_body_model("small"))
@@ -411,7 +411,7 @@ class ClosedLoopEvaluator:
 
     def _graph_overrides(self) -> Dict[str, Dict[str, str]]:
         from leapnbv_bringup.graph_runner import merge_overrides, parse_set_arguments, perception_overrides
-        from leapnbv_sim.stand_ins import ensure_stand_in_body_model
+        from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
         o = self.options
         body = o.body_model or (ensure_stand_in_body_model("small") if not o.real_models else None)
@@ -482,7 +482,7 @@ class ClosedLoopEvaluator:
     def _load_scene(self, seed: int) -> Scene:
         import dataclasses
 
-        from leapnbv_sim.benchmark_set import BENCHMARK_CONFIG
+        from leapnbv_evaluation.benchmark_set import BENCHMARK_CONFIG
         from leapnbv_sim.scene import generate_scene
 
         # The seeds qualify under both rooms: the furniture keeps off the start view.
@@ -852,7 +852,7 @@ def benchmark_seeds(count: int, offset: int = 0) -> List[int]:
     Raises:
         EvaluationError: The slice runs past the committed seeds.
     """
-    from leapnbv_sim.benchmark_set import BENCHMARK_SEEDS
+    from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS
 
     if count < 1 or offset < 0 or offset + count > len(BENCHMARK_SEEDS):
         raise EvaluationError(f"--scenes {count} --seed-offset {offset}: the benchmark set has "

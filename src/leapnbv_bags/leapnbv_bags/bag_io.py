@@ -9,7 +9,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
-import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import (
     Connection,
@@ -25,15 +24,6 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 if TYPE_CHECKING:
     from rosbags.typesys.store import Typestore
-
-    from leapnbv_sim.scene import RenderedFrame
-
-#: RealSense-driver topic names the simulator records under (ROS 2 realsense2_camera defaults).
-COLOR_IMAGE_TOPIC = "/camera/color/image_raw"
-COLOR_INFO_TOPIC = "/camera/color/camera_info"
-DEPTH_IMAGE_TOPIC = "/camera/aligned_depth_to_color/image_raw"
-DEPTH_INFO_TOPIC = "/camera/aligned_depth_to_color/camera_info"
-GROUND_TRUTH_TOPIC = "/leapnbv/sim/ground_truth"
 
 #: rosbag2 metadata version written (9 is what ROS 2 Jazzy's rosbag2 writes).
 BAG_VERSION = 9
@@ -186,7 +176,7 @@ class _CrcMcapStorage:
         self._writer = McapFileWriter(
             self._stream, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True
         )
-        self._writer.start(profile="ros2", library="leapnbv_sim.bag_io")
+        self._writer.start(profile="ros2", library="leapnbv_bags.bag_io")
         self._schema_ids: Dict[str, int] = {}
         self._channel_ids: Dict[int, int] = {}
 
@@ -447,190 +437,6 @@ def _rename(source: Path, destination: Path) -> None:
         os.rename(source, destination)
     except OSError as error:
         raise BagError(f"cannot move {source} to {destination}: {error}") from error
-
-
-def _stamp(typestore: Typestore, stamp_ns: int) -> object:
-    time_type = typestore.types["builtin_interfaces/msg/Time"]
-    return time_type(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
-
-
-def make_header(typestore: Typestore, stamp_ns: int, frame_id: str) -> object:
-    """Build a std_msgs/Header.
-
-    Args:
-        typestore: Typestore whose message classes to use.
-        stamp_ns: Stamp in nanoseconds since the epoch.
-        frame_id: Frame name.
-
-    Returns:
-        The header message.
-    """
-    header_type = typestore.types["std_msgs/msg/Header"]
-    return header_type(stamp=_stamp(typestore, stamp_ns), frame_id=frame_id)
-
-
-def make_image(typestore: Typestore, header: object, array: np.ndarray, encoding: str) -> object:
-    """Build a sensor_msgs/Image from an (H,W,3) uint8 ``rgb8`` or (H,W) uint16 ``16UC1`` array.
-
-    Args:
-        typestore: Typestore whose message classes to use.
-        header: The header.
-        array: Pixels, (H,W,3) uint8 or (H,W) uint16 (stored little-endian).
-        encoding: ``rgb8`` or ``16UC1``.
-
-    Returns:
-        The image message.
-
-    Raises:
-        BagError: The array does not match the encoding.
-    """
-    expected = {"rgb8": (np.uint8, 3), "16UC1": (np.uint16, 2)}
-    if encoding not in expected:
-        raise BagError(f"image encoding {encoding} not supported (rgb8, 16UC1)")
-    dtype, ndim = expected[encoding]
-    if array.dtype != dtype or array.ndim != ndim or (ndim == 3 and array.shape[2] != 3):
-        raise BagError(f"image array {array.dtype} {array.shape} does not match encoding {encoding}")
-    contiguous = np.ascontiguousarray(array.astype(np.dtype(dtype).newbyteorder("<"), copy=False))
-    height, width = int(array.shape[0]), int(array.shape[1])
-    step = width * (3 if encoding == "rgb8" else 2)
-    image_type = typestore.types["sensor_msgs/msg/Image"]
-    return image_type(
-        header=header,
-        height=height,
-        width=width,
-        encoding=encoding,
-        is_bigendian=0,
-        step=step,
-        data=np.frombuffer(contiguous.tobytes(), dtype=np.uint8),
-    )
-
-
-def make_camera_info(typestore: Typestore, header: object, K: np.ndarray, width: int, height: int) -> object:
-    """Build a distortion-free sensor_msgs/CameraInfo (plumb_bob, zero coefficients).
-
-    Args:
-        typestore: Typestore whose message classes to use.
-        header: The header.
-        K: (3,3) intrinsics.
-        width: Image width in pixels.
-        height: Image height in pixels.
-
-    Returns:
-        The camera info message.
-    """
-    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
-    projection = np.zeros((3, 4), dtype=np.float64)
-    projection[:, :3] = K
-    info_type = typestore.types["sensor_msgs/msg/CameraInfo"]
-    roi_type = typestore.types["sensor_msgs/msg/RegionOfInterest"]
-    return info_type(
-        header=header,
-        height=int(height),
-        width=int(width),
-        distortion_model="plumb_bob",
-        d=np.zeros(5, dtype=np.float64),
-        k=K.reshape(9).copy(),
-        r=np.eye(3, dtype=np.float64).reshape(9),
-        p=projection.reshape(12),
-        binning_x=0,
-        binning_y=0,
-        roi=roi_type(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-    )
-
-
-def make_scene_ground_truth(typestore: Typestore, header: object, frame: RenderedFrame, body_model_id: str) -> object:
-    """Build a leapnbv_msgs/SceneGroundTruth from a rendered frame's ground truth.
-
-    Args:
-        typestore: Typestore with leapnbv_msgs registered.
-        header: The header of the frame.
-        frame: The rendered frame (``frame.ground_truth``).
-        body_model_id: Which body model the parameters belong to.
-
-    Returns:
-        The ground-truth message (an all-zero box with score 0 when the person is not visible).
-    """
-    truth = frame.ground_truth
-    detection_type = typestore.types["leapnbv_msgs/msg/PersonDetection"]
-    if truth.person_box_xyxy is None:
-        box = detection_type(x_min=0.0, y_min=0.0, x_max=0.0, y_max=0.0, score=0.0)
-    else:
-        x0, y0, x1, y1 = (float(v) for v in truth.person_box_xyxy)
-        box = detection_type(x_min=x0, y_min=y0, x_max=x1, y_max=y1, score=1.0)
-    params = truth.body_params_camera
-
-    def f32(values: np.ndarray, size: int) -> np.ndarray:
-        array = np.asarray(values, dtype=np.float32).reshape(-1)
-        if array.size != size:
-            raise BagError(f"ground truth field has {array.size} values, expected {size}")
-        return array
-
-    gt_type = typestore.types["leapnbv_msgs/msg/SceneGroundTruth"]
-    return gt_type(
-        header=header,
-        person_box=box,
-        root_pose=f32(params.root_pose, 3),
-        body_pose=f32(params.body_pose, 63),
-        left_hand_pose=f32(params.left_hand_pose, 45),
-        right_hand_pose=f32(params.right_hand_pose, 45),
-        jaw_pose=f32(params.jaw_pose, 3),
-        betas=f32(params.betas, 10),
-        expression=f32(params.expression, 10),
-        translation=f32(truth.translation_camera, 3),
-        occlusion_share=float(truth.occlusion_share),
-        body_model_id=body_model_id,
-    )
-
-
-def write_scene_bag(
-    path: Union[str, Path],
-    frames: Sequence[RenderedFrame],
-    *,
-    frame_id: str = "camera_color_optical_frame",
-    start_stamp_ns: int = 1_700_000_000_000_000_000,
-    period_ns: int = 100_000_000,
-    body_model_id: str = "stand_in_small",
-    overwrite: bool = False,
-) -> Dict[str, int]:
-    """Record rendered frames under RealSense topic names plus the simulator's ground truth.
-
-    Each frame i gets stamp ``start_stamp_ns + i * period_ns`` on all five topics (header stamp
-    and bag log time alike). The depth is aligned to colour, so both camera infos are the same.
-
-    Args:
-        path: Bag directory to create.
-        frames: Rendered frames (all the same size).
-        frame_id: Optical frame of the colour camera.
-        start_stamp_ns: Stamp of the first frame, nanoseconds since the epoch.
-        period_ns: Time between frames, nanoseconds.
-        body_model_id: Stored in each SceneGroundTruth.
-        overwrite: Replace an existing bag atomically once the new one is complete.
-
-    Returns:
-        Message count per topic.
-
-    Raises:
-        BagError: ``path`` exists (without overwrite) or writing fails.
-    """
-    typestore = make_typestore()
-    with BagWriter(path, overwrite=overwrite, typestore=typestore) as bag:
-        bag.add_topic(COLOR_IMAGE_TOPIC, "sensor_msgs/msg/Image", qos=SENSOR_DATA_QOS)
-        bag.add_topic(COLOR_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", qos=SENSOR_DATA_QOS)
-        bag.add_topic(DEPTH_IMAGE_TOPIC, "sensor_msgs/msg/Image", qos=SENSOR_DATA_QOS)
-        bag.add_topic(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", qos=SENSOR_DATA_QOS)
-        bag.add_topic(GROUND_TRUTH_TOPIC, "leapnbv_msgs/msg/SceneGroundTruth", qos=RELIABLE_QOS)
-        for index, frame in enumerate(frames):
-            stamp = int(start_stamp_ns) + index * int(period_ns)
-            header = make_header(typestore, stamp, frame_id)
-            height, width = frame.depth_mm.shape
-            info = make_camera_info(typestore, header, frame.K, width, height)
-            bag.write(COLOR_IMAGE_TOPIC, stamp, make_image(typestore, header, frame.rgb, "rgb8"))
-            bag.write(COLOR_INFO_TOPIC, stamp, info)
-            bag.write(DEPTH_IMAGE_TOPIC, stamp, make_image(typestore, header, frame.depth_mm, "16UC1"))
-            bag.write(DEPTH_INFO_TOPIC, stamp, info)
-            bag.write(GROUND_TRUTH_TOPIC, stamp, make_scene_ground_truth(typestore, header, frame, body_model_id))
-        counts = dict(bag.message_counts)
-    return counts
 
 
 def read_bag(

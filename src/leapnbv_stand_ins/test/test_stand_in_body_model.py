@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leapnbv_perception.stand_in_body_model import (
+from leapnbv_stand_ins.stand_in_body_model import (
     FULL_NUM_FACES,
     FULL_NUM_VERTICES,
     SMPLX_PARENTS,

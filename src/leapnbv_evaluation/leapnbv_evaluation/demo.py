@@ -1,6 +1,6 @@
 """The demo: run the five-node graph on a sample bag and leave a report a person can read.
 
-    python -m leapnbv_bringup.demo [--bag bags/sample_a] [--out out/demo]
+    python -m leapnbv_evaluation.demo [--bag bags/sample_a] [--out out/demo]
                                    [--perception onnxruntime --detector-model Y.onnx --hmr-model S.onnx
                                     --body-model SMPLX_NEUTRAL.npz]
 
@@ -23,7 +23,7 @@ from leapnbv_bringup.graph import CAMERA_TOPICS
 
 def _frames_for_report(run: Dict[str, object], bag: str) -> List[Dict[str, object]]:
     """Join the bag's colour frames with the graph's outputs of the same stamp."""
-    from leapnbv_bringup.regression import short_topic
+    from leapnbv_bags.bag_io import read_bag
     from leapnbv_common.conversions import (
         image_to_numpy,
         image_to_rgb,
@@ -32,7 +32,7 @@ def _frames_for_report(run: Dict[str, object], bag: str) -> List[Dict[str, objec
         pose_to_numpy,
         stamp_to_ns,
     )
-    from leapnbv_sim.bag_io import read_bag
+    from leapnbv_common.topics import short_topic
 
     outputs: Dict[str, Dict[int, object]] = {}
     received: Dict[int, int] = {}
@@ -92,8 +92,8 @@ def _frames_for_report(run: Dict[str, object], bag: str) -> List[Dict[str, objec
 
 def stage_latency_summary(run: Dict[str, object]) -> Dict[str, str]:
     """p50 / p95 of each stage's compute time and of the end-to-end latency, as report rows."""
-    from leapnbv_bringup.regression import short_topic
-    from leapnbv_sim.metrics import latency_summary
+    from leapnbv_common.topics import short_topic
+    from leapnbv_evaluation.metrics import latency_summary
 
     per_stage: Dict[str, List[float]] = {}
     for topic, _, msg in run["decoded"]:
@@ -110,8 +110,8 @@ def stage_latency_summary(run: Dict[str, object]) -> Dict[str, str]:
 def main(argv: Optional[List[str]] = None) -> int:
     from leapnbv_bringup.graph_runner import add_graph_arguments
     from leapnbv_bringup.regression import overrides_for_bag_run, run_graph_on_bag
-    from leapnbv_sim.metrics import latency_summary
-    from leapnbv_sim.report import write_demo_report
+    from leapnbv_evaluation.metrics import latency_summary
+    from leapnbv_evaluation.report import write_demo_report
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bag", default=os.path.join("bags", "sample_a"), help="input bag")

@@ -199,7 +199,7 @@ def build_contract_detector() -> object:
     model = helper.make_model(
         graph,
         opset_imports=[helper.make_opsetid("", OPSET)],
-        producer_name="leapnbv_perception.contract_models",
+        producer_name="leapnbv_stand_ins.contract_models",
         doc_string="CONTRACT model with the YOLOv8 export's names and shapes; no accuracy.",
     )
     model.ir_version = IR_VERSION
@@ -293,7 +293,7 @@ def build_contract_hmr(input_hw: Tuple[int, int] = (512, 384)) -> object:
     model = helper.make_model(
         graph,
         opset_imports=[helper.make_opsetid("", OPSET)],
-        producer_name="leapnbv_perception.contract_models",
+        producer_name="leapnbv_stand_ins.contract_models",
         doc_string="CONTRACT model with the SMPLer-X encoder+heads export's names and shapes; no accuracy.",
     )
     model.ir_version = IR_VERSION

@@ -1,4 +1,5 @@
-"""Tests of leapnbv_sim.bag_io: rosbag2/MCAP writing, reading back, CRCs, safe overwrite."""
+"""Tests of the scene bags (leapnbv_sim.sample_bags) and leapnbv_bags.bag_io under them: rosbag2/MCAP writing,
+reading back, CRCs, safe overwrite."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from leapnbv_sim import bag_io
-from leapnbv_sim.bag_io import BagError, BagWriter, read_bag, validate_bag_crcs, write_scene_bag
+from leapnbv_bags import bag_io
+from leapnbv_bags.bag_io import BagError, BagWriter, read_bag, validate_bag_crcs
+from leapnbv_common import topics
+from leapnbv_common.conversions import ConversionError
+from leapnbv_sim.sample_bags import write_scene_bag
 from leapnbv_sim.scene import BodyParams, CameraPose, FrameGroundTruth, RenderedFrame
 
 
@@ -56,20 +60,20 @@ def test_scene_bag_reads_back_identically(tmp_path: Path) -> None:
     counts = write_scene_bag(
         path, frames, start_stamp_ns=1_000_000_000, period_ns=50_000_000, body_model_id="stand_in_small"
     )
-    assert counts[bag_io.COLOR_IMAGE_TOPIC] == 3
+    assert counts[topics.COLOR_IMAGE_TOPIC] == 3
     assert sorted(p.name for p in path.iterdir()) == ["metadata.yaml", "scene_bag.mcap"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
     colour, depth, truths, infos = [], [], [], []
     for topic, msgtype, stamp, message in read_bag(path):
-        if topic == bag_io.COLOR_IMAGE_TOPIC:
+        if topic == topics.COLOR_IMAGE_TOPIC:
             colour.append((stamp, message))
-        elif topic == bag_io.DEPTH_IMAGE_TOPIC:
+        elif topic == topics.DEPTH_IMAGE_TOPIC:
             depth.append(message)
-        elif topic == bag_io.GROUND_TRUTH_TOPIC:
+        elif topic == topics.GROUND_TRUTH_TOPIC:
             assert msgtype == "leapnbv_msgs/msg/SceneGroundTruth"
             truths.append(message)
-        elif topic == bag_io.COLOR_INFO_TOPIC:
+        elif topic == topics.COLOR_INFO_TOPIC:
             infos.append(message)
     assert [s for s, _ in colour] == [1_000_000_000, 1_050_000_000, 1_100_000_000]
     for frame, (_, image), depth_image, truth, info in zip(frames, colour, depth, truths, infos):
@@ -103,10 +107,10 @@ def test_scene_bag_reads_back_identically(tmp_path: Path) -> None:
         t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
         for t in metadata["topics_with_message_count"]
     }
-    assert qos[bag_io.COLOR_IMAGE_TOPIC][0]["reliability"] == "best_effort"
-    assert qos[bag_io.COLOR_IMAGE_TOPIC][0]["depth"] == 5
-    assert qos[bag_io.COLOR_IMAGE_TOPIC][0]["durability"] == "volatile"
-    assert qos[bag_io.GROUND_TRUTH_TOPIC][0]["reliability"] == "reliable"
+    assert qos[topics.COLOR_IMAGE_TOPIC][0]["reliability"] == "best_effort"
+    assert qos[topics.COLOR_IMAGE_TOPIC][0]["depth"] == 5
+    assert qos[topics.COLOR_IMAGE_TOPIC][0]["durability"] == "volatile"
+    assert qos[topics.GROUND_TRUTH_TOPIC][0]["reliability"] == "reliable"
 
 
 def test_validate_bag_crcs_detects_corruption(tmp_path: Path) -> None:
@@ -137,20 +141,21 @@ def test_overwrite_replaces_only_when_complete(tmp_path: Path) -> None:
 
     # A recording that fails half-way leaves the old bag untouched and no staging debris.
     bad = _frame(1)
-    bad.rgb = bad.rgb[:, :, :2]  # wrong channel count -> BagError while writing frame 2
-    with pytest.raises(BagError):
+    bad.rgb = bad.rgb[:, :, :2]  # wrong channel count -> refused by the image conversion at frame 2
+    with pytest.raises(ConversionError):
         write_scene_bag(path, [_frame(1), bad], overwrite=True)
     assert (path / "bag.mcap").read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
 
     write_scene_bag(path, [_frame(1), _frame(2)], overwrite=True)
-    assert validate_bag_crcs(path)[bag_io.COLOR_IMAGE_TOPIC] == 2
+    assert validate_bag_crcs(path)[topics.COLOR_IMAGE_TOPIC] == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
 
 
 def test_bag_writer_records_raw_cdr_of_a_custom_type(tmp_path: Path) -> None:
     typestore = bag_io.make_typestore()
-    header = bag_io.make_header(typestore, 123, "cam")
+    header = typestore.types["std_msgs/msg/Header"](
+        stamp=typestore.types["builtin_interfaces/msg/Time"](sec=0, nanosec=123), frame_id="cam")
     ground = typestore.types["leapnbv_msgs/msg/GroundPlane"](
         header=header,
         normal=typestore.types["geometry_msgs/msg/Vector3"](x=0.0, y=-1.0, z=0.0),

@@ -1,0 +1,1 @@
+"""Closed-loop evaluation on synthetic scenes: evaluator, metrics, benchmark sets, reports, demo."""

@@ -1,0 +1,68 @@
+"""The messages a RealSense driver (plus the simulator's ground truth) publishes for one rendered frame.
+
+The simulator node publishes them and the sample bags record them: both build them here.
+"""
+from __future__ import annotations
+
+from typing import Dict
+
+import numpy as np
+from std_msgs.msg import Header
+
+from leapnbv_common.conversions import box_to_detection, make_camera_info, numpy_to_image
+from leapnbv_common.topics import (
+    COLOR_IMAGE_TOPIC,
+    COLOR_INFO_TOPIC,
+    DEPTH_IMAGE_TOPIC,
+    DEPTH_INFO_TOPIC,
+    GROUND_TRUTH_TOPIC,
+)
+from leapnbv_msgs.msg import SceneGroundTruth
+from leapnbv_sim.scene import RenderedFrame
+
+
+def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: str) -> SceneGroundTruth:
+    """leapnbv_msgs/SceneGroundTruth of a rendered frame (an all-zero box, score 0, when no person is visible).
+
+    Args:
+        header: The frame's header.
+        frame: The rendered frame (its ``ground_truth``).
+        body_model_id: Which body model the parameters belong to.
+
+    Returns:
+        The message.
+    """
+    truth = frame.ground_truth
+    if truth.person_box_xyxy is None:
+        box = np.zeros(5, dtype=np.float32)
+    else:
+        box = np.array(list(truth.person_box_xyxy) + [1.0], dtype=np.float32)
+    params = truth.body_params_camera
+    msg = SceneGroundTruth(header=header, person_box=box_to_detection(box), body_model_id=str(body_model_id))
+    msg.root_pose = np.asarray(params.root_pose, dtype=np.float32).reshape(3)
+    msg.body_pose = np.asarray(params.body_pose, dtype=np.float32).reshape(63)
+    msg.left_hand_pose = np.asarray(params.left_hand_pose, dtype=np.float32).reshape(45)
+    msg.right_hand_pose = np.asarray(params.right_hand_pose, dtype=np.float32).reshape(45)
+    msg.jaw_pose = np.asarray(params.jaw_pose, dtype=np.float32).reshape(3)
+    msg.betas = np.asarray(params.betas, dtype=np.float32).reshape(10)
+    msg.expression = np.asarray(params.expression, dtype=np.float32).reshape(10)
+    msg.translation = np.asarray(truth.translation_camera, dtype=np.float32).reshape(3)
+    msg.occlusion_share = float(truth.occlusion_share)
+    return msg
+
+
+def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: str) -> Dict[str, object]:
+    """Absolute topic -> message for one frame: both camera infos, the ground truth, colour and depth.
+
+    In this order (the order the simulator publishes them: calibration before the images). The
+    depth is aligned to colour, so both camera infos are the same message.
+    """
+    height, width = frame.depth_mm.shape
+    info = make_camera_info(frame.K, width, height, header)
+    return {
+        COLOR_INFO_TOPIC: info,
+        DEPTH_INFO_TOPIC: info,
+        GROUND_TRUTH_TOPIC: scene_ground_truth_msg(header, frame, body_model_id),
+        COLOR_IMAGE_TOPIC: numpy_to_image(np.ascontiguousarray(frame.rgb), "rgb8", header),
+        DEPTH_IMAGE_TOPIC: numpy_to_image(np.ascontiguousarray(frame.depth_mm), "16UC1", header),
+    }

@@ -1,0 +1,1 @@
+"""Stand-ins for licensed files (simulator, tests): procedural SMPL-X-layout body, contract ONNX models."""

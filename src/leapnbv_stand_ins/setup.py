@@ -1,0 +1,21 @@
+from setuptools import find_packages, setup
+
+package_name = "leapnbv_stand_ins"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    description="Stand-ins for licensed files (simulator, tests): procedural SMPL-X-layout body, contract ONNX models.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+        ],
+    },
+)
