@@ -71,7 +71,7 @@ def _pose_values(pose) -> Dict[str, np.ndarray]:
 
 def frame_values(topic: str, msg) -> Dict[str, np.ndarray]:
     """The values of one output message that the golden files keep and compare."""
-    from leapnbv_common.conversions import image_to_numpy, pointcloud2_to_xyz
+    from leapnbv_common.conversions import image_to_numpy, pointcloud2_to_xyz, view_candidates_to_arrays
 
     name = short_topic(topic)
     if name == "detections":
@@ -97,9 +97,10 @@ def frame_values(topic: str, msg) -> Dict[str, np.ndarray]:
         return {"valid": np.array(bool(msg.valid)), "normal": np.array([msg.normal.x, msg.normal.y, msg.normal.z]),
                 "offset": np.array(msg.offset), "inlier_count": np.array(msg.inlier_count)}
     if name == "view_candidates":
-        return {"score": np.asarray(msg.score, np.float64), "s_visibility": np.asarray(msg.s_visibility, np.float64),
-                "s_area": np.asarray(msg.s_area, np.float64), "s_occlusion": np.asarray(msg.s_occlusion, np.float64),
-                "feasible": np.asarray(msg.feasible, bool), "chosen_index": np.array(msg.chosen_index)}
+        views = view_candidates_to_arrays(msg)
+        values = {"score": views.score, "feasible": views.feasible, "chosen_index": np.array(views.chosen_index)}
+        values.update({"s_" + name: views.term(name) for name in views.term_names})
+        return values
     if name in ("next_best_view", "base_goal"):
         return _pose_values(msg.pose)
     if name == "markers":

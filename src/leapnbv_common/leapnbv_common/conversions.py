@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import array
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from leapnbv_msgs.msg import HumanMesh, PersonDetection
+from leapnbv_msgs.msg import GroundPlane, HumanMesh, PersonDetection, SceneGroundTruth, TargetGeometry, ViewCandidates
 
 
 class ConversionError(ValueError):
@@ -388,3 +388,250 @@ def pose_to_numpy(pose: Pose) -> Tuple[np.ndarray, np.ndarray]:
     """(rotation (3, 3), position (3,)) from a geometry_msgs/Pose."""
     q = pose.orientation
     return quaternion_to_rotation([q.x, q.y, q.z, q.w]), point_to_numpy(pose.position)
+
+
+# --------------------------------------------------------------------------- GroundPlane
+
+
+@dataclass
+class GroundPlaneArrays:
+    """The values of a GroundPlane message: the floor n.x + d = 0 in the camera optical frame.
+
+    ``normal`` (3,) float64 points up (toward the camera side); ``offset`` d is then the camera's
+    height above the floor. ``source`` is GroundPlane.SOURCE_RANSAC or SOURCE_CAMERA_POSE.
+    """
+
+    normal: np.ndarray
+    offset: float
+    valid: bool
+    source: int = GroundPlane.SOURCE_RANSAC
+    inlier_count: int = 0
+    inlier_ratio: float = 0.0
+
+
+def ground_plane_to_arrays(msg: GroundPlane) -> GroundPlaneArrays:
+    """GroundPlaneArrays from a GroundPlane message (no checks: see the message contracts)."""
+    return GroundPlaneArrays(
+        normal=np.array([msg.normal.x, msg.normal.y, msg.normal.z], dtype=np.float64),
+        offset=float(msg.offset), valid=bool(msg.valid), source=int(msg.source),
+        inlier_count=int(msg.inlier_count), inlier_ratio=float(msg.inlier_ratio))
+
+
+def arrays_to_ground_plane(plane: GroundPlaneArrays, header: Optional[Header] = None,
+                           compute_time_ms: float = 0.0) -> GroundPlane:
+    """A GroundPlane message (the inverse of ground_plane_to_arrays)."""
+    msg = GroundPlane(offset=float(plane.offset), inlier_count=int(plane.inlier_count),
+                      inlier_ratio=float(plane.inlier_ratio), valid=bool(plane.valid), source=int(plane.source))
+    if header is not None:
+        msg.header = header
+    msg.normal.x, msg.normal.y, msg.normal.z = (float(v) for v in np.asarray(plane.normal).reshape(3))
+    msg.compute_time_ms = float(compute_time_ms)
+    return msg
+
+
+# --------------------------------------------------------------------------- TargetGeometry
+
+
+@dataclass
+class TargetGeometryArrays:
+    """The values of a TargetGeometry message, all in the camera optical frame of its frame.
+
+    target_points (N, 3) and background_points (M, 3) float32; centroid, bbox_min, bbox_max (3,)
+    float64; ``k`` (3, 3) with ``width`` x ``height`` the depth image the points come from.
+    """
+
+    target_points: np.ndarray
+    background_points: np.ndarray
+    centroid: np.ndarray
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+    mask_pixel_count: int
+    visible_fraction: float
+    depth_offset: float
+    valid: bool
+    k: np.ndarray
+    width: int
+    height: int
+
+
+def target_geometry_to_arrays(msg: TargetGeometry) -> TargetGeometryArrays:
+    """TargetGeometryArrays from a TargetGeometry message.
+
+    Raises:
+        ConversionError: a point cloud or the camera info is malformed.
+    """
+    return TargetGeometryArrays(
+        target_points=pointcloud2_to_xyz(msg.target_points),
+        background_points=pointcloud2_to_xyz(msg.background_points),
+        centroid=point_to_numpy(msg.centroid), bbox_min=point_to_numpy(msg.bbox_min),
+        bbox_max=point_to_numpy(msg.bbox_max), mask_pixel_count=int(msg.mask_pixel_count),
+        visible_fraction=float(msg.visible_fraction), depth_offset=float(msg.depth_offset), valid=bool(msg.valid),
+        k=camera_info_to_k(msg.camera_info), width=int(msg.camera_info.width), height=int(msg.camera_info.height))
+
+
+def arrays_to_target_geometry(target: TargetGeometryArrays, header: Optional[Header] = None,
+                              compute_time_ms: float = 0.0) -> TargetGeometry:
+    """A TargetGeometry message (the inverse of target_geometry_to_arrays); the camera info gets ``header``."""
+    msg = TargetGeometry()
+    if header is not None:
+        msg.header = header
+    msg.target_points = xyz_to_pointcloud2(target.target_points, header)
+    msg.background_points = xyz_to_pointcloud2(target.background_points, header)
+    msg.centroid = point_msg(target.centroid)
+    msg.bbox_min = point_msg(target.bbox_min)
+    msg.bbox_max = point_msg(target.bbox_max)
+    msg.mask_pixel_count = int(target.mask_pixel_count)
+    msg.visible_fraction = float(target.visible_fraction)
+    msg.depth_offset = float(target.depth_offset)
+    msg.valid = bool(target.valid)
+    msg.camera_info = make_camera_info(target.k, target.width, target.height, header)
+    msg.compute_time_ms = float(compute_time_ms)
+    return msg
+
+
+# --------------------------------------------------------------------------- ViewCandidates
+
+
+@dataclass
+class ViewCandidatesArrays:
+    """The values of a ViewCandidates message for C candidates and T score terms.
+
+    rotations (C, 3, 3) and positions (C, 3): candidate camera poses in the observation's optical
+    frame; term_scores (C, T) in the order of term_names, term_weights (T,); score (C,);
+    feasible (C,) bool; infeasible_reason (C,) uint8; chosen_index (-1: none feasible).
+    """
+
+    rotations: np.ndarray
+    positions: np.ndarray
+    term_names: List[str]
+    term_weights: np.ndarray
+    term_scores: np.ndarray
+    score: np.ndarray
+    feasible: np.ndarray
+    infeasible_reason: np.ndarray
+    chosen_index: int
+    includes_current_view: bool
+    ring_center: np.ndarray
+    ring_radius: float
+
+    def __len__(self) -> int:
+        return int(self.score.shape[0])
+
+    def term(self, name: str) -> np.ndarray:
+        """(C,) values of one score term.
+
+        Raises:
+            KeyError: no term of that name.
+        """
+        if name not in self.term_names:
+            raise KeyError(f"no score term {name!r}; terms are {self.term_names}")
+        return self.term_scores[:, self.term_names.index(name)]
+
+
+def view_candidates_to_arrays(msg: ViewCandidates) -> ViewCandidatesArrays:
+    """ViewCandidatesArrays from a ViewCandidates message.
+
+    Raises:
+        ConversionError: the per-candidate fields disagree in length with the poses.
+    """
+    count = len(msg.poses)
+    names = [str(name) for name in msg.term_names]
+    term_scores = np.asarray(msg.term_scores, dtype=np.float64)
+    lengths = {"score": len(msg.score), "feasible": len(msg.feasible), "infeasible_reason": len(msg.infeasible_reason)}
+    if any(length != count for length in lengths.values()) or term_scores.size != count * len(names) \
+            or len(msg.term_weights) != len(names):
+        raise ConversionError(f"ViewCandidates with {count} poses and {len(names)} terms has {lengths}, "
+                              f"{term_scores.size} term scores and {len(msg.term_weights)} weights")
+    rotations, positions = poses_to_numpy(msg.poses)
+    return ViewCandidatesArrays(
+        rotations=rotations, positions=positions,
+        term_names=names, term_weights=np.asarray(msg.term_weights, dtype=np.float64),
+        term_scores=term_scores.reshape(count, len(names)), score=np.asarray(msg.score, dtype=np.float64),
+        feasible=np.asarray(msg.feasible, dtype=bool), infeasible_reason=np.asarray(msg.infeasible_reason, np.uint8),
+        chosen_index=int(msg.chosen_index), includes_current_view=bool(msg.includes_current_view),
+        ring_center=point_to_numpy(msg.ring_center), ring_radius=float(msg.ring_radius))
+
+
+def arrays_to_view_candidates(views: ViewCandidatesArrays, header: Optional[Header] = None,
+                              compute_time_ms: float = 0.0) -> ViewCandidates:
+    """A ViewCandidates message (the inverse of view_candidates_to_arrays)."""
+    msg = ViewCandidates(chosen_index=int(views.chosen_index), includes_current_view=bool(views.includes_current_view),
+                         ring_center=point_msg(views.ring_center), ring_radius=float(views.ring_radius))
+    if header is not None:
+        msg.header = header
+    msg.poses = [pose_msg(r, p) for r, p in zip(views.rotations, views.positions)]
+    msg.term_names = [str(name) for name in views.term_names]
+    msg.term_weights = float32_sequence(views.term_weights)
+    msg.term_scores = float32_sequence(np.asarray(views.term_scores).reshape(-1))
+    msg.score = float32_sequence(views.score)
+    msg.feasible = [bool(f) for f in views.feasible]
+    msg.infeasible_reason = np.asarray(views.infeasible_reason, dtype=np.uint8).tobytes()
+    msg.compute_time_ms = float(compute_time_ms)
+    return msg
+
+
+# --------------------------------------------------------------------------- SceneGroundTruth
+
+# Body-parameter fields of SceneGroundTruth and their sizes (axis-angle poses, SMPL-X).
+_GROUND_TRUTH_PARAM_SIZES = {
+    "root_pose": 3,
+    "body_pose": 63,
+    "left_hand_pose": 45,
+    "right_hand_pose": 45,
+    "jaw_pose": 3,
+    "betas": 10,
+    "expression": 10,
+    "translation": 3,
+}
+
+
+@dataclass
+class SceneGroundTruthArrays:
+    """The simulator's truth for one frame: the visible person's box (x0, y0, x1, y1, score; all zero
+    when no person is visible), the body parameters in the camera frame, and the occlusion share."""
+
+    person_box: np.ndarray
+    root_pose: np.ndarray
+    body_pose: np.ndarray
+    left_hand_pose: np.ndarray
+    right_hand_pose: np.ndarray
+    jaw_pose: np.ndarray
+    betas: np.ndarray
+    expression: np.ndarray
+    translation: np.ndarray
+    occlusion_share: float
+    body_model_id: str
+
+
+def scene_ground_truth_to_arrays(msg: SceneGroundTruth) -> SceneGroundTruthArrays:
+    """SceneGroundTruthArrays from a SceneGroundTruth message."""
+    params = {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size)
+              for name, size in _GROUND_TRUTH_PARAM_SIZES.items()}
+    return SceneGroundTruthArrays(person_box=detection_to_box(msg.person_box),
+                                  occlusion_share=float(msg.occlusion_share), body_model_id=str(msg.body_model_id),
+                                  **params)
+
+
+def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional[Header] = None) -> SceneGroundTruth:
+    """A SceneGroundTruth message (the inverse of scene_ground_truth_to_arrays)."""
+    msg = SceneGroundTruth(person_box=box_to_detection(truth.person_box), body_model_id=str(truth.body_model_id),
+                           occlusion_share=float(truth.occlusion_share))
+    if header is not None:
+        msg.header = header
+    for name, size in _GROUND_TRUTH_PARAM_SIZES.items():
+        setattr(msg, name, np.asarray(getattr(truth, name), dtype=np.float32).reshape(size))
+    return msg
+
+
+def header_with_stamp(stamp_ns: int, frame_id: str) -> Header:
+    """A std_msgs/Header for a stamp in nanoseconds."""
+    header = Header(frame_id=str(frame_id))
+    header.stamp.sec, header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return header
+
+
+def poses_to_numpy(poses: Sequence[Pose]) -> Tuple[np.ndarray, np.ndarray]:
+    """((N, 3, 3) rotations, (N, 3) positions) from geometry_msgs/Pose messages."""
+    pairs = [pose_to_numpy(pose) for pose in poses]
+    return (np.array([r for r, _ in pairs], dtype=np.float64).reshape(-1, 3, 3),
+            np.array([p for _, p in pairs], dtype=np.float64).reshape(-1, 3))

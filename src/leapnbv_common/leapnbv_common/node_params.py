@@ -1,18 +1,96 @@
-"""Parameter declaration with defaults and descriptions, in one call per node."""
+"""A node's parameters from its core's params dataclass: declared with ranges, changed at runtime safely.
+
+The dataclass (see :mod:`leapnbv_common.params`) is the one source of each parameter's default,
+description, range and read-only flag. :class:`NodeParams` declares them all, reads the values
+given by the params file and the command line, validates them (a node refuses to start with an
+invalid value, naming it), and applies ``ros2 param set`` at runtime: the new values are validated
+as a whole, then the node's ``on_change`` rebuilds what depends on them; a change that fails
+either step is refused with the reason, and the old values stay in force.
+"""
 from __future__ import annotations
 
-from typing import Any, Dict, Tuple
+from typing import Any, Callable, Generic, List, Optional, Set, Type, TypeVar
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
-ParamTable = Dict[str, Tuple[Any, str]]
+from leapnbv_common.params import ParamsError, ParamSpec, param_specs, params_from_values, replace_params
+
+P = TypeVar("P")
+ChangeHandler = Callable[[Any, Set[str]], None]
 
 
-def declare_parameters(node, table: ParamTable) -> Dict[str, Any]:
-    """Declare every (name -> (default, description)) and return the values in effect.
+def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """The ROS descriptor of one parameter: description, read-only flag, range, choices."""
+    descriptor = ParameterDescriptor(description=spec.description, read_only=bool(spec.read_only))
+    constraints = []
+    if spec.choices is not None:
+        constraints.append("one of: " + ", ".join(str(c) for c in spec.choices))
+    if spec.kind in (int, float) and (spec.min is not None or spec.max is not None):
+        low = spec.min if spec.min is not None else -1e300
+        high = spec.max if spec.max is not None else 1e300
+        if spec.kind is int:
+            low, high = int(max(low, -2**63)), int(min(high, 2**63 - 1))
+            descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=0)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high),
+                                                                   step=0.0)]
+    elif spec.min is not None or spec.max is not None:
+        constraints.append(f"each value in [{spec.min}, {spec.max}]")
+    descriptor.additional_constraints = "; ".join(constraints)
+    return descriptor
 
-    The values come from the params file / command line when given, else the defaults.
+
+class NodeParams(Generic[P]):
+    """The parameters of one node, as an instance of its params dataclass (``.value``).
+
+    Args:
+        node: The rclpy node.
+        params_class: The core's params dataclass.
+        on_change: Called as ``on_change(new_params, changed_names)`` before a runtime change takes
+            effect; it rebuilds the node's state, or raises ValueError to refuse the change.
+
+    Raises:
+        ParamsError: a value from the params file or the command line is invalid (the node
+            cannot start with it).
     """
+
+    def __init__(self, node, params_class: Type[P], on_change: Optional[ChangeHandler] = None) -> None:
+        self.node = node
+        self.specs = {spec.name: spec for spec in param_specs(params_class)}
+        self.on_change = on_change
+        values = {}
+        for spec in self.specs.values():
+            node.declare_parameter(spec.name, spec.default, parameter_descriptor(spec))
+            values[spec.name] = node.get_parameter(spec.name).value
+        try:
+            self.value: P = params_from_values(params_class, values)
+        except ParamsError as error:
+            raise ParamsError(f"{node.get_name()}: {error}") from error
+        node.add_on_set_parameters_callback(self._on_set)
+        self.changes_applied = 0
+        self.changes_refused = 0
+
+    def _on_set(self, parameters: List[Any]) -> SetParametersResult:
+        changes = {p.name: p.value for p in parameters if p.name in self.specs}
+        if not changes:  # e.g. use_sim_time: not ours
+            return SetParametersResult(successful=True)
+        try:
+            updated = replace_params(self.value, changes)
+            if self.on_change is not None:
+                self.on_change(updated, set(changes))
+        except (ParamsError, ValueError) as error:
+            self.changes_refused += 1
+            self.node.get_logger().warning(f"parameter change refused: {error}")
+            return SetParametersResult(successful=False, reason=str(error))
+        self.value = updated
+        self.changes_applied += 1
+        changed = ", ".join(f"{name}={value!r}" for name, value in sorted(changes.items()))
+        self.node.get_logger().info(f"parameters changed: {changed}")
+        return SetParametersResult(successful=True)
+
+
+def declare_parameters(node, table) -> dict:
+    """Old form (name -> (default, description)); kept until every node declares a params dataclass."""
     values = {}
     for name, (default, description) in table.items():
         node.declare_parameter(name, default, ParameterDescriptor(description=description))

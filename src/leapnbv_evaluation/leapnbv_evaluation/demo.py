@@ -27,10 +27,9 @@ def _frames_for_report(run: Dict[str, object], bag: str) -> List[Dict[str, objec
     from leapnbv_common.conversions import (
         image_to_numpy,
         image_to_rgb,
-        point_to_numpy,
         pointcloud2_to_xyz,
-        pose_to_numpy,
         stamp_to_ns,
+        view_candidates_to_arrays,
     )
     from leapnbv_common.topics import short_topic
 
@@ -67,13 +66,12 @@ def _frames_for_report(run: Dict[str, object], bag: str) -> List[Dict[str, objec
             box, label = [d.x_min, d.y_min, d.x_max, d.y_max], f"person {d.score:.2f}"
         candidates = None
         if vc is not None:
-            poses = [pose_to_numpy(p) for p in vc.poses]
+            views = view_candidates_to_arrays(vc)
             candidates = {
-                "positions": np.array([p for _, p in poses]), "rotations": np.array([r for r, _ in poses]),
-                "scores": np.asarray(vc.score), "s_visibility": np.asarray(vc.s_visibility),
-                "s_area": np.asarray(vc.s_area), "s_occlusion": np.asarray(vc.s_occlusion),
-                "feasible": np.asarray(vc.feasible, bool), "chosen_index": int(vc.chosen_index),
-                "ring_center": point_to_numpy(vc.ring_center)}
+                "positions": views.positions, "rotations": views.rotations, "scores": views.score,
+                "s_visibility": views.term("visibility"), "s_area": views.term("area"),
+                "s_occlusion": views.term("occlusion"), "feasible": views.feasible,
+                "chosen_index": views.chosen_index, "ring_center": views.ring_center}
         plane = None
         if ground is not None and ground.valid:
             plane = (np.array([ground.normal.x, ground.normal.y, ground.normal.z]), float(ground.offset))

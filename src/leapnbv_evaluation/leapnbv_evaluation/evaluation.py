@@ -347,24 +347,16 @@ class FrameOutputs:
 
 
 def _scored_candidates(msg: Any) -> ScoredCandidates:
-    from leapnbv_common.conversions import pose_to_numpy
+    from leapnbv_common.conversions import ConversionError, view_candidates_to_arrays
 
-    poses = [pose_to_numpy(pose) for pose in msg.poses]
-    count = len(poses)
-    rotations = np.array([r for r, _ in poses], dtype=np.float64).reshape(count, 3, 3)
-    positions = np.array([p for _, p in poses], dtype=np.float64).reshape(count, 3)
-
-    def column(values: Any) -> np.ndarray:
-        array = np.asarray(values, dtype=np.float64).reshape(-1)
-        if array.size != count:
-            raise EvaluationError(f"view_candidates has {count} poses but {array.size} scores in a field")
-        return array
-
-    return ScoredCandidates(rotations=rotations, positions=positions, score=column(msg.score),
-                            s_visibility=column(msg.s_visibility), s_area=column(msg.s_area),
-                            s_occlusion=column(msg.s_occlusion),
-                            feasible=np.asarray(list(msg.feasible), dtype=bool).reshape(count),
-                            chosen_index=int(msg.chosen_index), includes_current_view=bool(msg.includes_current_view))
+    try:
+        views = view_candidates_to_arrays(msg)
+    except ConversionError as error:
+        raise EvaluationError(f"view_candidates: {error}") from error
+    return ScoredCandidates(rotations=views.rotations, positions=views.positions, score=views.score,
+                            s_visibility=views.term("visibility"), s_area=views.term("area"),
+                            s_occlusion=views.term("occlusion"), feasible=views.feasible,
+                            chosen_index=views.chosen_index, includes_current_view=views.includes_current_view)
 
 
 class ClosedLoopEvaluator:

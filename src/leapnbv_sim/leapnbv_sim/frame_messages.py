@@ -9,7 +9,12 @@ from typing import Dict
 import numpy as np
 from std_msgs.msg import Header
 
-from leapnbv_common.conversions import box_to_detection, make_camera_info, numpy_to_image
+from leapnbv_common.conversions import (
+    SceneGroundTruthArrays,
+    arrays_to_scene_ground_truth,
+    make_camera_info,
+    numpy_to_image,
+)
 from leapnbv_common.topics import (
     COLOR_IMAGE_TOPIC,
     COLOR_INFO_TOPIC,
@@ -33,22 +38,13 @@ def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: 
         The message.
     """
     truth = frame.ground_truth
-    if truth.person_box_xyxy is None:
-        box = np.zeros(5, dtype=np.float32)
-    else:
-        box = np.array(list(truth.person_box_xyxy) + [1.0], dtype=np.float32)
+    box = np.zeros(5) if truth.person_box_xyxy is None else np.array(list(truth.person_box_xyxy) + [1.0])
     params = truth.body_params_camera
-    msg = SceneGroundTruth(header=header, person_box=box_to_detection(box), body_model_id=str(body_model_id))
-    msg.root_pose = np.asarray(params.root_pose, dtype=np.float32).reshape(3)
-    msg.body_pose = np.asarray(params.body_pose, dtype=np.float32).reshape(63)
-    msg.left_hand_pose = np.asarray(params.left_hand_pose, dtype=np.float32).reshape(45)
-    msg.right_hand_pose = np.asarray(params.right_hand_pose, dtype=np.float32).reshape(45)
-    msg.jaw_pose = np.asarray(params.jaw_pose, dtype=np.float32).reshape(3)
-    msg.betas = np.asarray(params.betas, dtype=np.float32).reshape(10)
-    msg.expression = np.asarray(params.expression, dtype=np.float32).reshape(10)
-    msg.translation = np.asarray(truth.translation_camera, dtype=np.float32).reshape(3)
-    msg.occlusion_share = float(truth.occlusion_share)
-    return msg
+    return arrays_to_scene_ground_truth(SceneGroundTruthArrays(
+        person_box=box, root_pose=params.root_pose, body_pose=params.body_pose,
+        left_hand_pose=params.left_hand_pose, right_hand_pose=params.right_hand_pose, jaw_pose=params.jaw_pose,
+        betas=params.betas, expression=params.expression, translation=truth.translation_camera,
+        occlusion_share=truth.occlusion_share, body_model_id=body_model_id), header)
 
 
 def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: str) -> Dict[str, object]:

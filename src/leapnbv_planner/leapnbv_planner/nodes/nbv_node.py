@@ -19,6 +19,8 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
 from leapnbv_common.conversions import (
+    ViewCandidatesArrays,
+    arrays_to_view_candidates,
     camera_info_to_k,
     point_msg,
     point_to_numpy,
@@ -172,19 +174,16 @@ class NbvNode(Node):
                                   delta_px=self.params["delta_px"], line_of_sight_clear=line_of_sight_clear)
         chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
 
-        out = ViewCandidates(header=target.header, chosen_index=int(chosen),
-                             includes_current_view=bool(self.ring.include_current),
-                             weight_visibility=float(self.weights.visibility), weight_area=float(self.weights.area),
-                             weight_occlusion=float(self.weights.occlusion),
-                             ring_center=point_msg(candidates.ring_center), ring_radius=float(self.ring.radius))
-        out.poses = [pose_msg(r, p) for r, p in zip(candidates.rotations, candidates.positions)]
-        out.score = scores.score.astype(np.float32)
-        out.s_visibility = scores.s_visibility.astype(np.float32)
-        out.s_area = scores.s_area.astype(np.float32)
-        out.s_occlusion = scores.s_occlusion.astype(np.float32)
-        out.feasible = [bool(f) for f in feasibility.feasible]
-        out.infeasible_reason = np.asarray(feasibility.reasons, dtype=np.uint8)
-        out.compute_time_ms = (time.perf_counter() - started) * 1e3
+        views = ViewCandidatesArrays(
+            rotations=candidates.rotations, positions=candidates.positions,
+            term_names=["visibility", "area", "occlusion"],
+            term_weights=np.array([self.weights.visibility, self.weights.area, self.weights.occlusion]),
+            term_scores=np.column_stack([scores.s_visibility, scores.s_area, scores.s_occlusion]),
+            score=scores.score, feasible=feasibility.feasible,
+            infeasible_reason=np.asarray(feasibility.reasons, dtype=np.uint8), chosen_index=int(chosen),
+            includes_current_view=bool(self.ring.include_current), ring_center=candidates.ring_center,
+            ring_radius=float(self.ring.radius))
+        out = arrays_to_view_candidates(views, target.header, (time.perf_counter() - started) * 1e3)
         self.candidates_pub.publish(out)
         if chosen >= 0:
             self.goal_pub.publish(PoseStamped(header=target.header, pose=out.poses[chosen]))
