@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+import yaml
 
 pytest.importorskip("rclpy")
 
@@ -66,10 +67,12 @@ def test_graph_output_matches_golden_for_every_frame(repo_root, tmp_path):
 
 def test_changed_scoring_weight_in_yaml_fails_and_names_frames_and_fields(repo_root, tmp_path):
     yaml_path = repo_root / "src/leapnbv_bringup/config/leapnbv.yaml"
-    text = yaml_path.read_text()
-    assert "weight_area: 0.14" in text
+    params = yaml.safe_load(yaml_path.read_text())
+    nbv = params.setdefault("/**/nbv_node", {}).setdefault("ros__parameters", {})
+    assert "weight_area" not in nbv  # the deployed weight is the planner's default (0.14)
+    nbv["weight_area"] = 0.5
     changed = tmp_path / "leapnbv_changed.yaml"
-    changed.write_text(text.replace("weight_area: 0.14", "weight_area: 0.5"))
+    changed.write_text(yaml.safe_dump(params))
     result = run_regression(repo_root, BAGS[0], tmp_path / "run", "--params", str(changed))
     assert result.returncode == 1, result.stdout + result.stderr
     out = result.stdout

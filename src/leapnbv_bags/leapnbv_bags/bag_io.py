@@ -31,31 +31,19 @@ BAG_VERSION = 9
 # rclcpp's "infinite" duration as rosbag2 (Jazzy) records it in metadata.yaml.
 _INFINITE = QosTime(9223372036, 854775807)
 
+
+
+def _recorded_qos(reliability: QosReliability, depth: int) -> Qos:
+    """A keep-last, volatile QoS profile with rclcpp's default (infinite) durations, as rosbag2 records it."""
+    return Qos(QosHistory.KEEP_LAST, depth, reliability, QosDurability.VOLATILE, _INFINITE, _INFINITE,
+               QosLiveliness.AUTOMATIC, _INFINITE, False)
+
+
 #: rclcpp::SensorDataQoS(): best effort, keep last 5, volatile.
-SENSOR_DATA_QOS = Qos(
-    QosHistory.KEEP_LAST,
-    5,
-    QosReliability.BEST_EFFORT,
-    QosDurability.VOLATILE,
-    _INFINITE,
-    _INFINITE,
-    QosLiveliness.AUTOMATIC,
-    _INFINITE,
-    False,
-)
+SENSOR_DATA_QOS = _recorded_qos(QosReliability.BEST_EFFORT, 5)
 
 #: rclcpp default publisher QoS: reliable, keep last 10, volatile.
-RELIABLE_QOS = Qos(
-    QosHistory.KEEP_LAST,
-    10,
-    QosReliability.RELIABLE,
-    QosDurability.VOLATILE,
-    _INFINITE,
-    _INFINITE,
-    QosLiveliness.AUTOMATIC,
-    _INFINITE,
-    False,
-)
+RELIABLE_QOS = _recorded_qos(QosReliability.RELIABLE, 10)
 
 #: Reliable + transient local (latched), as the next-best-view pose is published.
 TRANSIENT_LOCAL_QOS = RELIABLE_QOS._replace(durability=QosDurability.TRANSIENT_LOCAL, depth=1)

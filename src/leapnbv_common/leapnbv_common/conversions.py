@@ -275,8 +275,8 @@ class HumanMeshArrays:
     model_id: str = ""
 
 
-_MESH_PARAM_SIZES = {
-    "processed_box": 4,
+# SMPL-X body parameters (axis-angle poses, shape, expression) carried by HumanMesh and SceneGroundTruth.
+_BODY_PARAM_SIZES = {
     "root_pose": 3,
     "body_pose": 63,
     "left_hand_pose": 45,
@@ -284,8 +284,19 @@ _MESH_PARAM_SIZES = {
     "jaw_pose": 3,
     "betas": 10,
     "expression": 10,
-    "cam_translation": 3,
 }
+_MESH_PARAM_SIZES = {"processed_box": 4, **_BODY_PARAM_SIZES, "cam_translation": 3}
+
+
+def _read_float32_fields(msg, sizes) -> dict:
+    """name -> (size,) float32 array of the fixed-size float fields of a message."""
+    return {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size) for name, size in sizes.items()}
+
+
+def _write_float32_fields(msg, values, sizes) -> None:
+    """Set the fixed-size float fields of a message from an object with attributes of the same names."""
+    for name, size in sizes.items():
+        setattr(msg, name, np.asarray(getattr(values, name), dtype=np.float32).reshape(size))
 
 
 def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
@@ -311,8 +322,7 @@ def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
         raise ConversionError("HumanMesh vertices contain NaN or inf")
     if not (msg.fx > 0 and msg.fy > 0):
         raise ConversionError(f"HumanMesh virtual focal lengths must be positive, got {msg.fx}, {msg.fy}")
-    params = {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size)
-              for name, size in _MESH_PARAM_SIZES.items()}
+    params = _read_float32_fields(msg, _MESH_PARAM_SIZES)
     return HumanMeshArrays(
         vertices=vertices,
         faces=faces,
@@ -335,8 +345,7 @@ def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
     msg.faces = uint32_sequence(mesh.faces)
     msg.fx, msg.fy, msg.cx, msg.cy = (float(v) for v in mesh.virtual_intrinsics)
     msg.image_width, msg.image_height = (int(v) for v in mesh.image_size)
-    for name, size in _MESH_PARAM_SIZES.items():
-        setattr(msg, name, np.asarray(getattr(mesh, name), dtype=np.float32).reshape(size))
+    _write_float32_fields(msg, mesh, _MESH_PARAM_SIZES)
     msg.model_id = mesh.model_id
     msg.compute_time_ms = float(compute_time_ms)
     return msg
@@ -572,17 +581,8 @@ def arrays_to_view_candidates(views: ViewCandidatesArrays, header: Optional[Head
 
 # --------------------------------------------------------------------------- SceneGroundTruth
 
-# Body-parameter fields of SceneGroundTruth and their sizes (axis-angle poses, SMPL-X).
-_GROUND_TRUTH_PARAM_SIZES = {
-    "root_pose": 3,
-    "body_pose": 63,
-    "left_hand_pose": 45,
-    "right_hand_pose": 45,
-    "jaw_pose": 3,
-    "betas": 10,
-    "expression": 10,
-    "translation": 3,
-}
+# The float fields of SceneGroundTruth: the body parameters and the translation in the camera frame.
+_GROUND_TRUTH_PARAM_SIZES = {**_BODY_PARAM_SIZES, "translation": 3}
 
 
 @dataclass
@@ -605,11 +605,9 @@ class SceneGroundTruthArrays:
 
 def scene_ground_truth_to_arrays(msg: SceneGroundTruth) -> SceneGroundTruthArrays:
     """SceneGroundTruthArrays from a SceneGroundTruth message."""
-    params = {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size)
-              for name, size in _GROUND_TRUTH_PARAM_SIZES.items()}
     return SceneGroundTruthArrays(person_box=detection_to_box(msg.person_box),
                                   occlusion_share=float(msg.occlusion_share), body_model_id=str(msg.body_model_id),
-                                  **params)
+                                  **_read_float32_fields(msg, _GROUND_TRUTH_PARAM_SIZES))
 
 
 def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional[Header] = None) -> SceneGroundTruth:
@@ -618,8 +616,7 @@ def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional
                            occlusion_share=float(truth.occlusion_share))
     if header is not None:
         msg.header = header
-    for name, size in _GROUND_TRUTH_PARAM_SIZES.items():
-        setattr(msg, name, np.asarray(getattr(truth, name), dtype=np.float32).reshape(size))
+    _write_float32_fields(msg, truth, _GROUND_TRUTH_PARAM_SIZES)
     return msg
 
 

@@ -1,4 +1,4 @@
-"""The QoS profiles of the graph, in one place (see DESIGN.md, Conventions)."""
+"""The QoS profiles of the graph, in one place (docs/ARCHITECTURE.md, "Topics and QoS")."""
 from __future__ import annotations
 
 from rclpy.qos import (
@@ -9,55 +9,34 @@ from rclpy.qos import (
 )
 
 
+def _keep_last(depth: int, reliability: ReliabilityPolicy, durability: DurabilityPolicy) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=reliability, durability=durability)
+
+
 def camera_input_qos(depth: int = 1) -> QoSProfile:
     """Sensor-data QoS for camera topics: best effort, volatile, keep the latest `depth` frames.
 
     Depth 1 on inference inputs means the latest frame wins and no backlog builds up.
     """
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.VOLATILE,
-    )
+    return _keep_last(depth, ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE)
 
 
 def stage_input_qos(depth: int = 1) -> QoSProfile:
     """Reliable input from another stage of the graph (matches stage_output_qos)."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.VOLATILE,
-    )
+    return _keep_last(depth, ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE)
 
 
 def stage_output_qos(depth: int = 5) -> QoSProfile:
     """Outputs of a stage: reliable, volatile."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.VOLATILE,
-    )
+    return _keep_last(depth, ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE)
 
 
 def latched_goal_qos() -> QoSProfile:
     """The next-best-view goal: reliable and transient-local, so a late subscriber gets the last goal."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=1,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    return _keep_last(1, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def latched_map_qos() -> QoSProfile:
     """Maps (e.g. the obstacle map): reliable and transient-local with depth 1, so a node that
     starts late still gets the current map, and only the latest map is kept."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=1,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    return _keep_last(1, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)

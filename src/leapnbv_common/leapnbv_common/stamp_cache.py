@@ -80,18 +80,20 @@ class ExactStampPairer(Generic[T]):
         return self._first.evicted + self._second.evicted
 
     def add_first(self, stamp_ns: int, item: Any) -> Optional[Tuple[Any, Any]]:
-        other = self._second.pop(stamp_ns)
-        if other is None:
-            self._first.put(stamp_ns, item)
-            return None
-        return item, other
+        other = self._add(self._first, self._second, stamp_ns, item)
+        return None if other is None else (item, other)
 
     def add_second(self, stamp_ns: int, item: Any) -> Optional[Tuple[Any, Any]]:
-        other = self._first.pop(stamp_ns)
+        other = self._add(self._second, self._first, stamp_ns, item)
+        return None if other is None else (other, item)
+
+    @staticmethod
+    def _add(own: StampCache, others: StampCache, stamp_ns: int, item: Any) -> Optional[Any]:
+        """The waiting partner of this stamp (taken out of ``others``), else keep ``item`` in ``own``."""
+        other = others.pop(stamp_ns)
         if other is None:
-            self._second.put(stamp_ns, item)
-            return None
-        return other, item
+            own.put(stamp_ns, item)
+        return other
 
 
 class CompanionWait:

@@ -158,3 +158,82 @@ def test_pose_round_trip_through_quaternion():
     # 180 degrees about x: the w = 0 branch
     rot, _ = pose_to_numpy(pose_msg(np.diag([1.0, -1.0, -1.0]), np.zeros(3)))
     np.testing.assert_allclose(rot, np.diag([1.0, -1.0, -1.0]), atol=1e-12)
+
+
+def _rotation(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_ground_plane_round_trip():
+    plane = cv.GroundPlaneArrays(normal=np.array([0.0, -0.98, 0.2]), offset=1.25, valid=True, source=1,
+                                 inlier_count=321, inlier_ratio=0.25)
+    msg = cv.arrays_to_ground_plane(plane, cv.header_with_stamp(1_500_000_123, "cam"), compute_time_ms=2.5)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1, 500_000_123, "cam")
+    back = cv.ground_plane_to_arrays(msg)
+    np.testing.assert_array_equal(back.normal, plane.normal)
+    assert (back.offset, back.valid, back.source, back.inlier_count) == (1.25, True, 1, 321)
+    assert back.inlier_ratio == pytest.approx(0.25)
+
+
+def test_target_geometry_round_trip_carries_the_camera_of_the_frame():
+    k = np.array([[500.0, 0.0, 320.0], [0.0, 510.0, 240.0], [0.0, 0.0, 1.0]])
+    target = cv.TargetGeometryArrays(
+        target_points=rng.normal(size=(7, 3)).astype(np.float32),
+        background_points=rng.normal(size=(11, 3)).astype(np.float32),
+        centroid=np.array([0.1, 0.2, 3.0]), bbox_min=np.array([-0.3, -0.9, 2.8]), bbox_max=np.array([0.3, 0.8, 3.2]),
+        mask_pixel_count=123, visible_fraction=0.5, depth_offset=-0.02, valid=True, k=k, width=640, height=480)
+    header = cv.header_with_stamp(7, "cam")
+    msg = cv.arrays_to_target_geometry(target, header, 3.0)
+    assert msg.camera_info.header.stamp == header.stamp and msg.target_points.header.frame_id == "cam"
+    back = cv.target_geometry_to_arrays(msg)
+    np.testing.assert_array_equal(back.target_points, target.target_points)
+    np.testing.assert_array_equal(back.background_points, target.background_points)
+    np.testing.assert_array_equal(back.k, k)
+    assert (back.width, back.height, back.mask_pixel_count, back.valid) == (640, 480, 123, True)
+    np.testing.assert_allclose(back.bbox_max, target.bbox_max)
+
+
+def test_view_candidates_round_trip_keeps_terms_by_name():
+    count, names = 5, ["visibility", "area", "occlusion"]
+    term_scores = rng.uniform(size=(count, 3))
+    weights = np.array([0.03, 0.14, 0.83])
+    views = cv.ViewCandidatesArrays(
+        rotations=np.array([_rotation(a) for a in np.linspace(0, 2, count)]),
+        positions=rng.normal(size=(count, 3)), term_names=names, term_weights=weights, term_scores=term_scores,
+        score=term_scores @ weights, feasible=np.array([True, False, True, True, False]),
+        infeasible_reason=np.array([0, 1, 0, 0, 2], np.uint8), chosen_index=2, includes_current_view=True,
+        ring_center=np.array([0.0, 1.3, 3.0]), ring_radius=2.5)
+    back = cv.view_candidates_to_arrays(cv.arrays_to_view_candidates(views, cv.header_with_stamp(1, "cam")))
+    assert back.term_names == names and len(back) == count
+    np.testing.assert_allclose(back.term("area"), term_scores[:, 1].astype(np.float32))
+    np.testing.assert_allclose(back.term("occlusion"), term_scores[:, 2].astype(np.float32))
+    np.testing.assert_allclose(back.rotations, views.rotations, atol=1e-12)
+    np.testing.assert_array_equal(back.feasible, views.feasible)
+    np.testing.assert_array_equal(back.infeasible_reason, views.infeasible_reason)
+    assert (back.chosen_index, back.includes_current_view, back.ring_radius) == (2, True, 2.5)
+    with pytest.raises(KeyError, match="no score term 'height'"):
+        back.term("height")
+
+
+def test_view_candidates_with_inconsistent_lengths_are_refused():
+    msg = cv.arrays_to_view_candidates(cv.ViewCandidatesArrays(
+        rotations=np.array([np.eye(3)] * 2), positions=np.zeros((2, 3)), term_names=["a"],
+        term_weights=np.array([1.0]), term_scores=np.zeros((2, 1)), score=np.zeros(2), feasible=np.ones(2, bool),
+        infeasible_reason=np.zeros(2, np.uint8), chosen_index=0, includes_current_view=True,
+        ring_center=np.zeros(3), ring_radius=1.0))
+    msg.term_scores = msg.term_scores[:1]
+    with pytest.raises(cv.ConversionError, match="2 poses and 1 terms"):
+        cv.view_candidates_to_arrays(msg)
+
+
+def test_scene_ground_truth_round_trip():
+    truth = cv.SceneGroundTruthArrays(
+        person_box=np.array([1.0, 2.0, 30.0, 40.0, 1.0]), root_pose=rng.normal(size=3), body_pose=rng.normal(size=63),
+        left_hand_pose=rng.normal(size=45), right_hand_pose=rng.normal(size=45), jaw_pose=rng.normal(size=3),
+        betas=rng.normal(size=10), expression=rng.normal(size=10), translation=np.array([0.1, 0.2, 3.0]),
+        occlusion_share=0.4, body_model_id="stand_in_small")
+    back = cv.scene_ground_truth_to_arrays(cv.arrays_to_scene_ground_truth(truth))
+    for name in ("person_box", "root_pose", "body_pose", "left_hand_pose", "betas", "expression", "translation"):
+        np.testing.assert_allclose(getattr(back, name), np.asarray(getattr(truth, name), np.float32), err_msg=name)
+    assert back.body_model_id == "stand_in_small" and back.occlusion_share == pytest.approx(0.4)

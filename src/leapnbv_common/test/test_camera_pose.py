@@ -1,0 +1,61 @@
+"""The shared camera-pose source: checked poses remembered by stamp, bad ones counted and dropped."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+
+from leapnbv_common.camera_pose import (  # noqa: E402
+    CAMERA_POSE_SOURCES,
+    camera_pose_from_msg,
+    create_camera_pose_source,
+)
+from leapnbv_common.conversions import ConversionError, header_with_stamp, pose_msg  # noqa: E402
+from leapnbv_common.diagnostics import StageDiagnostics  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+def _pose(stamp_ns: int, position=(1.0, 2.0, 1.2), quaternion=None) -> PoseStamped:
+    msg = PoseStamped(header=header_with_stamp(stamp_ns, "map"), pose=pose_msg(np.eye(3), np.array(position)))
+    if quaternion is not None:
+        q = msg.pose.orientation
+        q.x, q.y, q.z, q.w = quaternion
+    return msg
+
+
+def test_a_unit_pose_is_read_and_others_are_refused():
+    pose = camera_pose_from_msg(_pose(5))
+    assert (pose.stamp_ns, pose.frame_id) == (5, "map")
+    np.testing.assert_allclose(pose.position, [1.0, 2.0, 1.2])
+    with pytest.raises(ConversionError, match=r"\|q\| = 2.0000"):
+        camera_pose_from_msg(_pose(5, quaternion=(0.0, 0.0, 0.0, 2.0)))
+    with pytest.raises(ConversionError, match="not a unit quaternion"):
+        camera_pose_from_msg(_pose(5, quaternion=(float("nan"), 0.0, 0.0, 1.0)))
+    with pytest.raises(ConversionError, match="position is not finite"):
+        camera_pose_from_msg(_pose(5, position=(0.0, float("inf"), 0.0)))
+
+
+def test_topic_source_remembers_by_stamp_and_counts_bad_poses():
+    rclpy.init()
+    try:
+        node = rclpy.create_node("camera_pose_test")
+        node.diagnostics = StageDiagnostics(node)
+        arrived = []
+        source = create_camera_pose_source("topic", node, capacity=2, on_pose=arrived.append)
+        for stamp in (1, 2, 3):
+            source._on_message(_pose(stamp))
+        source._on_message(_pose(4, quaternion=(0.0, 0.0, 0.0, 2.0)))
+        assert source.pose_at(1) is None  # only the newest two are remembered
+        assert source.pose_at(3).stamp_ns == 3 and source.pose_at(4) is None
+        assert [p.stamp_ns for p in arrived] == [1, 2, 3]
+        assert node.diagnostics.rejected["bad_camera_pose"] == 1
+        with pytest.raises(ValueError, match="unknown camera pose source 'tf'; known: \\['topic'\\]"):
+            create_camera_pose_source("tf", node, capacity=2)
+        assert set(CAMERA_POSE_SOURCES) == {"topic"}
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
