@@ -32,4 +32,4 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; 
 fi
 echo "[py38] ROS-free cores on $("$VENV/bin/python" -c 'import sys, numpy, numba; print("Python", sys.version.split()[0], "numpy", numpy.__version__, "numba", numba.__version__)')"
 "$VENV/bin/python" -m pytest -p no:cacheprovider -q -m "not ros" \
-  src/leapnbv_perception/test src/leapnbv_geometry/test src/leapnbv_planner/test
+  src/leapnbv_common/test src/leapnbv_perception/test src/leapnbv_geometry/test src/leapnbv_planner/test

@@ -1,8 +1,16 @@
-"""Where the generated stand-ins (body model, contract ONNX models) live, and making them on demand."""
+"""Where the generated stand-ins (body model, contract ONNX models) live, their file names, and making them on demand.
+
+Every tool and test takes the stand-in files from here, so their names exist once.
+"""
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Optional, Tuple
+
+STAND_IN_BODY_FILE = "stand_in_body_{resolution}.npz"
+CONTRACT_DETECTOR_FILE = "contract_yolov8.onnx"
+CONTRACT_HMR_FILES = {(512, 384): "contract_smplerx.onnx", (256, 192): "contract_smplerx_256x192.onnx"}
 
 
 def models_dir() -> Path:
@@ -21,26 +29,27 @@ def stand_in_dir() -> Path:
     return models_dir() / "stand_in"
 
 
-def ensure_stand_in_body_model(resolution: str = "small") -> str:
+def ensure_stand_in_body_model(resolution: str = "small", folder: Optional[Path] = None, force: bool = False) -> str:
     """Path of the stand-in body model .npz of this resolution, generated if absent (deterministic)."""
     from leapnbv_stand_ins.stand_in_body_model import write_stand_in_body_model
 
-    path = stand_in_dir() / f"stand_in_body_{resolution}.npz"
-    if not path.exists():
+    path = Path(folder or stand_in_dir()) / STAND_IN_BODY_FILE.format(resolution=resolution)
+    if force or not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         write_stand_in_body_model(str(path), resolution)
     return str(path)
 
 
-def ensure_contract_models() -> tuple:
-    """Paths of the contract detector and HMR ONNX models, generated if absent."""
+def ensure_contract_models(folder: Optional[Path] = None, force: bool = False,
+                           hmr_input: Tuple[int, int] = (512, 384)) -> Tuple[str, str]:
+    """Paths of the contract detector and HMR ONNX models (HMR input ``hmr_input``), generated if absent."""
     from leapnbv_stand_ins.contract_models import write_contract_detector, write_contract_hmr
 
-    folder = stand_in_dir()
+    folder = Path(folder or stand_in_dir())
     folder.mkdir(parents=True, exist_ok=True)
-    detector, hmr = folder / "contract_yolov8.onnx", folder / "contract_smplerx.onnx"
-    if not detector.exists():
+    detector, hmr = folder / CONTRACT_DETECTOR_FILE, folder / CONTRACT_HMR_FILES[tuple(hmr_input)]
+    if force or not detector.exists():
         write_contract_detector(str(detector))
-    if not hmr.exists():
-        write_contract_hmr(str(hmr))
+    if force or not hmr.exists():
+        write_contract_hmr(str(hmr), tuple(hmr_input))
     return str(detector), str(hmr)
