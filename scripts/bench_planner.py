@@ -1,4 +1,5 @@
-"""Benchmark of the planner core: candidate scoring (S_v, S_a, S_o) and feasibility, one core.
+"""Benchmark of the planner core: candidate scoring (the registered score terms), feasibility and one
+whole plan_views call per frame, one core.
 
 Scene: a level RGB-D camera 1.2 m above the floor looks at a person (a 1.7 m cylinder
 surface, 3 m ahead) in a room (back and side walls, a box occluder in front of the person,
@@ -10,6 +11,8 @@ Reference ("slow"): per candidate, numpy projection, a min-depth image built wit
 np.minimum.at, then a Python loop over the in-view target points taking the min of the
 (2h+1)^2 window of that image: the same definition as the compiled kernel, written the
 obvious way. Its S_o must equal the fast one exactly.
+
+The ring and every other parameter are the nbv node's defaults (the robot's values, radius 2.5 m).
 
 Usage: .venv/bin/python scripts/bench_planner.py [--repeats 200] [--reference-repeats 3]
 """
@@ -33,18 +36,20 @@ from typing import Callable, List, Tuple  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "leapnbv_planner"))
+for _package in ("leapnbv_planner", "leapnbv_common"):  # the ROS-free cores, straight from the source tree
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / _package))
 
-from leapnbv_planner.candidates import (  # noqa: E402
-    CandidateRingParams,
-    check_feasibility,
-    generate_candidates,
-)
+from types import SimpleNamespace  # noqa: E402
+
+from leapnbv_planner.candidates import check_feasibility, generate_candidates  # noqa: E402
 from leapnbv_planner.obstacle_map import (  # noqa: E402
     line_of_sight_clear_fraction,
     voxel_map_from_centres,
     warm_up_obstacle_map,
 )
+from leapnbv_planner.params import nbv_params_class  # noqa: E402
+from leapnbv_planner.plan import plan_views  # noqa: E402
+from leapnbv_planner.score_terms import ScoringContext, get_term  # noqa: E402
 from leapnbv_planner.scoring import score_candidates, warm_up_scoring  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
@@ -218,13 +223,15 @@ def main() -> None:
 
     centroid = np.median(ray_cast_scene(WIDTH, HEIGHT)[0], axis=0)
 
+    params = nbv_params_class()()  # the robot's values
+
     def ring(num_candidates: int):
         return generate_candidates(
-            centroid, PLANE_NORMAL, PLANE_OFFSET, CandidateRingParams(num_candidates=num_candidates)
+            centroid, PLANE_NORMAL, PLANE_OFFSET, nbv_params_class()(num_candidates=num_candidates)
         )
 
-    print(f"image {WIDTH}x{HEIGHT}, delta 4 px, one core, {args.repeats} repeats"
-          " (median / p95 ms)")
+    print(f"image {WIDTH}x{HEIGHT}, delta {params.delta_px:g} px, ring radius {params.radius:g} m,"
+          f" terms {', '.join(params.score_terms)}, one core, {args.repeats} repeats (median / p95 ms)")
     print("\nscore_candidates, 20k target / 100k background points:")
     target, background = scene_with_counts(20000, 100000)
     for num_candidates in (16, 32, 64):
@@ -262,17 +269,23 @@ def main() -> None:
     fast_median, _ = time_call(lambda: score_candidates(
         target, background, candidates.rotations, candidates.positions, INTRINSICS,
         WIDTH, HEIGHT), args.repeats)
-    max_diff = float(np.max(np.abs(slow_result[-1] - fast.s_occlusion)))
+    max_diff = float(np.max(np.abs(slow_result[-1] - fast.term("occlusion"))))
     print(f"  reference {ref_median:8.1f} / {ref_p95:8.1f}  fast {fast_median:.2f}"
           f"  ratio {ref_median / fast_median:6.0f}x  max |S_o diff| {max_diff:.1e}")
-    print(f"  S_o per candidate: {np.array2string(fast.s_occlusion, precision=2)}")
+    print(f"  S_o per candidate: {np.array2string(fast.term('occlusion'), precision=2)}")
+
+    print("\nper term, 20k/100k, C = 17 (each on a fresh context: the first kernel user pays the kernel):")
+    for name in params.score_terms:
+        median, p95 = time_call(lambda name=name: get_term(name).compute(ScoringContext(
+            target, background, candidates.rotations, candidates.positions, INTRINSICS, WIDTH, HEIGHT)),
+            args.repeats)
+        print(f"  {name:12s}: {median:7.2f} / {p95:7.2f}")
 
     print("\ncheck_feasibility, 100k background points:")
     for num_candidates in (16, 64):
         candidates = ring(num_candidates)
         median, p95 = time_call(partial(
-            check_feasibility, candidates, background, PLANE_NORMAL, PLANE_OFFSET,
-            CandidateRingParams()), args.repeats)
+            check_feasibility, candidates, background, PLANE_NORMAL, PLANE_OFFSET, params), args.repeats)
         print(f"  C = {len(candidates):3d}: {median:7.2f} / {p95:7.2f}")
     median, p95 = time_call(lambda: ring(16), args.repeats)
     print(f"\ngenerate_candidates (16): {median:.3f} / {p95:.3f}")
@@ -296,6 +309,17 @@ def main() -> None:
     print(f"  reference (numpy samples every r/8) {ref_median:8.1f}  fast {fast_median:.2f}"
           f"  ratio {ref_median / fast_median:6.0f}x  max |diff| {np.max(np.abs(slow[-1] - fast)):.1e}")
     print(f"  clear share per candidate: {np.array2string(fast, precision=2)}")
+
+    print("\nplan_views (ring, feasibility, scoring, choice, base goal), 20k/100k, C = 17:")
+    target, background = scene_with_counts(20000, 100000)
+    frame = SimpleNamespace(valid=True, target_points=target.astype(np.float32),
+                            background_points=background.astype(np.float32), centroid=centroid,
+                            k=INTRINSICS, width=WIDTH, height=HEIGHT)
+    ground = SimpleNamespace(valid=True, normal=PLANE_NORMAL, offset=PLANE_OFFSET)
+    for label, obstacle_map, camera_pose in (("frame only", None, None),
+                                             ("with the obstacle map", grid, (np.eye(3), np.zeros(3)))):
+        median, p95 = time_call(partial(plan_views, frame, ground, params, obstacle_map, camera_pose), args.repeats)
+        print(f"  {label:22s}: {median:7.2f} / {p95:7.2f}")
 
 
 if __name__ == "__main__":

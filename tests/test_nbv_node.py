@@ -1,5 +1,8 @@
-"""nbv_node as a process over DDS: candidates, the next-best view and base goal geometry, latching."""
+"""nbv_node as a process over DDS: candidates, the next-best view and base goal geometry, latching,
+the same plan as plan_views on the same inputs, and parameters changed at runtime."""
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 import pytest
@@ -10,19 +13,29 @@ import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from node_harness import NS, by_stamp, diag_value, read_log, stamp_key  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from leapnbv_bringup.graph import default_params_file  # noqa: E402
 from leapnbv_common.conversions import (  # noqa: E402
+    arrays_to_view_candidates,
+    ground_plane_to_arrays,
     make_camera_info,
     point_msg,
     point_to_numpy,
+    pose_msg,
     pose_to_numpy,
+    target_geometry_to_arrays,
+    view_candidates_to_arrays,
     xyz_to_pointcloud2,
 )
+from leapnbv_common.params import params_from_values  # noqa: E402
 from leapnbv_common.qos import latched_goal_qos, stage_output_qos  # noqa: E402
 from leapnbv_msgs.msg import GroundPlane, TargetGeometry, ViewCandidates  # noqa: E402
+from leapnbv_planner.params import DEFAULT_SCORE_TERMS, nbv_params_class  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
 
@@ -86,6 +99,7 @@ def graph(tmp_path_factory):
             "goals": probe.collect(PoseStamped, f"{NS}/next_best_view", latched_goal_qos()),
             "base_goals": probe.collect(PoseStamped, f"{NS}/base_goal", latched_goal_qos()),
             "markers": probe.collect(MarkerArray, f"{NS}/markers"),
+            "params": AsyncParameterClient(probe.node, f"{NS}/nbv_node"),
         }
         harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: g["target_pub"].get_subscription_count() >= 1
@@ -120,15 +134,42 @@ def planned(graph):
                             and by_stamp(graph["base_goals"], key)
                             and marker_arrays_by_stamp(graph["markers"], key), 15.0), \
         f"nbv_node: {probe.statuses.get(NS + '/nbv_node', ['-'])[-1]}\n{read_log(graph['procs'][NS + '/nbv_node'])}"
-    return {"key": key, "target": target, "centroid": point_to_numpy(target.centroid)}
+    return {"key": key, "target": target, "plane": plane, "centroid": point_to_numpy(target.centroid)}
 
 
-def deployed_ring_radius() -> float:
-    """The ring radius the node runs with: the deployed YAML's value."""
+def deployed_values() -> dict:
+    """The nbv_node parameters the deployed YAML sets."""
     import yaml
 
     with open(default_params_file()) as handle:
-        return float(yaml.safe_load(handle)["/**/nbv_node"]["ros__parameters"]["radius"])
+        return yaml.safe_load(handle).get("/**/nbv_node", {}).get("ros__parameters", {})
+
+
+def deployed_params():
+    """The parameters the node runs with: its defaults, then the deployed YAML's values."""
+    return params_from_values(nbv_params_class(), deployed_values())
+
+
+def deployed_ring_radius() -> float:
+    return float(deployed_params().radius)
+
+
+def set_parameters(graph: dict, **values) -> list:
+    """Set parameters of the running node through its parameter service; the SetParametersResult of each."""
+    client = graph["params"]
+    assert client.wait_for_services(10.0), "nbv_node parameter services"
+    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
+    assert graph["probe"].spin_until(future.done, 10.0), "set_parameters timed out"
+    return list(future.result().results)
+
+
+def plan_frame(graph: dict, sec: int) -> ViewCandidates:
+    """Send one frame and return the ViewCandidates planned from it."""
+    key = send_frame(graph, make_header(sec, 0))
+    assert graph["probe"].spin_until(lambda: by_stamp(graph["candidates"], key), 10.0), \
+        read_log(graph["procs"][NS + "/nbv_node"])[-3000:]
+    (views,) = by_stamp(graph["candidates"], key)
+    return views
 
 
 # ----------------------------------------------------------------------------- tests
@@ -140,8 +181,11 @@ def test_view_candidates_ring_and_choice(graph, planned):
     assert views.header.frame_id == FRAME_ID
     count = len(views.poses)
     assert count == 17 and views.includes_current_view
-    for field in ("score", "s_visibility", "s_area", "s_occlusion", "feasible", "infeasible_reason"):
+    for field in ("score", "feasible", "infeasible_reason"):
         assert len(getattr(views, field)) == count, field
+    assert list(views.term_names) == DEFAULT_SCORE_TERMS
+    np.testing.assert_allclose(views.term_weights, [0.03, 0.14, 0.83], atol=1e-7)
+    assert len(views.term_scores) == count * len(views.term_names)
     rotation0, position0 = pose_to_numpy(views.poses[0])
     np.testing.assert_allclose(rotation0, np.eye(3), atol=1e-9)
     np.testing.assert_allclose(position0, np.zeros(3), atol=1e-9)
@@ -160,9 +204,8 @@ def test_view_candidates_ring_and_choice(graph, planned):
     assert np.all(np.isfinite(scores)) and feasible.any()
     assert np.all(np.asarray(views.infeasible_reason)[feasible] == 0)
     assert np.all(np.asarray(views.infeasible_reason)[~feasible] > 0)
-    np.testing.assert_allclose(
-        scores, views.weight_visibility * np.asarray(views.s_visibility) + views.weight_area * np.asarray(
-            views.s_area) + views.weight_occlusion * np.asarray(views.s_occlusion), atol=1e-5)
+    arrays = view_candidates_to_arrays(views)
+    np.testing.assert_allclose(scores, arrays.term_scores @ arrays.term_weights, atol=1e-5)
     assert views.chosen_index >= 1  # the box hides the legs from here: moving beats staying
     assert feasible[views.chosen_index]
     assert scores[views.chosen_index] >= scores[feasible].max() - 1e-6
@@ -254,6 +297,91 @@ def test_invalid_ground_plane_gives_no_goal(graph, planned):
     assert probe.spin_until(lambda: by_stamp(graph["goals"], key), 10.0)
 
 
+# ----------------------------------------------------------------------------- plan_views, parameters
+
+
+def test_published_plan_is_plan_views_on_the_same_inputs(graph, planned):
+    """The node adds nothing to plan_views: every field of its outputs comes from the core call."""
+    from leapnbv_planner.nodes.nbv_node import candidate_markers
+    from leapnbv_planner.plan import plan_views
+
+    key = planned["key"]
+    (views,) = by_stamp(graph["candidates"], key)
+    plan = plan_views(target_geometry_to_arrays(planned["target"]), ground_plane_to_arrays(planned["plane"]),
+                      deployed_params())
+    expected = arrays_to_view_candidates(plan.to_arrays(), views.header, views.compute_time_ms)
+    assert expected == views  # every field, float32 for float32
+    (goal,) = by_stamp(graph["goals"], key)
+    (base,) = by_stamp(graph["base_goals"], key)
+    assert goal.pose == expected.poses[plan.chosen_index]
+    assert base.pose == pose_msg(*plan.base_goal)
+    (markers,) = marker_arrays_by_stamp(graph["markers"], key)
+    rebuilt = candidate_markers(views.header, expected, plan)
+    # Through the wire format, as the node's were (its float32 colours are rounded there).
+    assert markers == deserialize_message(serialize_message(rebuilt), MarkerArray)
+
+
+def test_deployed_yaml_values_are_the_defaults():
+    """The defaults are the robot's values: whatever the params file still sets agrees with them."""
+    defaults = nbv_params_class()()
+    deployed = deployed_params()
+    for name, value in deployed_values().items():
+        assert getattr(defaults, name) == value == getattr(deployed, name), name
+
+
+def test_runtime_parameter_change_applies_to_the_next_plan(graph, planned):
+    (result,) = set_parameters(graph, radius=2.0)
+    assert result.successful, result.reason
+    try:
+        views = plan_frame(graph, 400)
+        assert views.ring_radius == pytest.approx(2.0)
+        rotation, position = pose_to_numpy(views.poses[1])
+        foot = position - plane_distance(position) * UP
+        assert np.linalg.norm(foot - point_to_numpy(views.ring_center)) == pytest.approx(2.0, abs=1e-3)
+    finally:
+        (result,) = set_parameters(graph, radius=deployed_ring_radius())
+        assert result.successful, result.reason
+
+    # Only the occlusion term, weight 1: the score is S_o.
+    results = set_parameters(graph, score_terms=["occlusion"], weight_occlusion=1.0)
+    assert all(r.successful for r in results), [r.reason for r in results]
+    try:
+        views = plan_frame(graph, 401)
+        assert list(views.term_names) == ["occlusion"]
+        np.testing.assert_allclose(views.score, views.term_scores, atol=1e-7)
+    finally:
+        results = set_parameters(graph, score_terms=DEFAULT_SCORE_TERMS,
+                                 weight_occlusion=deployed_params().weight_occlusion)
+        assert all(r.successful for r in results), [r.reason for r in results]
+    views = plan_frame(graph, 402)
+    assert list(views.term_names) == DEFAULT_SCORE_TERMS and views.ring_radius == pytest.approx(deployed_ring_radius())
+
+    (result,) = set_parameters(graph, ground_wait_s=0.5)  # rebuilds the ground wait
+    assert result.successful, result.reason
+    (result,) = set_parameters(graph, ground_wait_s=deployed_params().ground_wait_s)
+    assert result.successful, result.reason
+
+
+REFUSED_FRAME_SECONDS = itertools.count(410)
+
+
+@pytest.mark.parametrize("name, value, reason", [
+    ("radius", -1.0, "radius"),
+    ("num_candidates", 0, "num_candidates"),
+    ("score_terms", ["visibility", "sharpness"], "unknown score term 'sharpness'"),
+    ("score_terms", ["area", "area"], "more than once"),
+    ("weight_area", -0.5, "weight_area"),
+    ("use_obstacle_map", False, "read-only"),
+    ("camera_pose_cache", 5, "read-only"),
+])
+def test_invalid_parameter_change_is_refused_with_the_reason(graph, planned, name, value, reason):
+    (result,) = set_parameters(graph, **{name: value})
+    assert not result.successful and reason in result.reason, result.reason
+    views = plan_frame(graph, next(REFUSED_FRAME_SECONDS))  # still planning with the old values
+    assert list(views.term_names) == DEFAULT_SCORE_TERMS and views.ring_radius == pytest.approx(deployed_ring_radius())
+    assert len(views.poses) == 17
+
+
 # ----------------------------------------------------------------------------- the obstacle map
 # Last in the file: the node keeps the (latched) map for every later frame.
 
@@ -313,13 +441,14 @@ def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
     assert probe.spin_until(lambda: by_stamp(graph["candidates"], key), 10.0)
     (mapped,) = by_stamp(graph["candidates"], key)
     assert not mapped.feasible[chosen] and mapped.infeasible_reason[chosen] == 2  # OBSTACLE
-    assert mapped.s_occlusion[screened] < 0.2 < plain.s_occlusion[screened] - 0.5
+    mapped_o, plain_o = view_candidates_to_arrays(mapped).term("occlusion"), view_candidates_to_arrays(plain).term(
+        "occlusion")
+    assert mapped_o[screened] < 0.2 < plain_o[screened] - 0.5
     assert mapped.chosen_index not in (chosen, screened) and mapped.chosen_index >= 1
     # Views away from both (ring neighbours may look past the pillar or the screen) keep their S_o.
     unaffected = [i for i in range(len(plain.poses)) if abs(i - screened) > 1 and abs(i - chosen) > 1]
     assert len(unaffected) >= 8
-    np.testing.assert_allclose(np.asarray(mapped.s_occlusion)[unaffected], np.asarray(plain.s_occlusion)[unaffected],
-                               atol=0.05)
+    np.testing.assert_allclose(mapped_o[unaffected], plain_o[unaffected], atol=0.05)
 
     # A frame whose camera pose never came is planned without the map, and counted.
     def no_pose() -> int:
@@ -332,3 +461,28 @@ def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
     (unmapped,) = by_stamp(graph["candidates"], key)
     assert unmapped.feasible[chosen] and unmapped.chosen_index == chosen
     assert probe.spin_until(lambda: no_pose() >= before + 1, 5.0)
+
+
+def test_obstacle_map_resolution_change_rebuilds_the_map(graph, planned):
+    """After the map test: a coarser grid still blocks the pillar's foot point; a grid too large is refused."""
+    from leapnbv_common.qos import stage_output_qos as output_qos
+
+    probe = graph["probe"]
+    (plain,) = by_stamp(graph["candidates"], planned["key"])
+    pose_pub = probe.node.create_publisher(PoseStamped, f"{NS}/camera_pose", output_qos(10))
+    assert probe.spin_until(lambda: pose_pub.get_subscription_count() >= 1, 5.0)
+    (result,) = set_parameters(graph, obstacle_map_resolution=0.2)
+    assert result.successful, result.reason
+    assert "obstacle map rebuilt" in read_log(graph["procs"][f"{NS}/nbv_node"])
+    try:
+        header = make_header(500, 0)
+        pose_pub.publish(PoseStamped(header=Header(frame_id=MAP_FRAME, stamp=header.stamp),
+                                     pose=pose_msg(*CAMERA_IN_MAP)))
+        probe.spin_for(0.1)
+        key = send_frame(graph, header)
+        assert probe.spin_until(lambda: by_stamp(graph["candidates"], key), 10.0)
+        (mapped,) = by_stamp(graph["candidates"], key)
+        assert not mapped.feasible[plain.chosen_index]
+    finally:
+        (result,) = set_parameters(graph, obstacle_map_resolution=deployed_params().obstacle_map_resolution)
+        assert result.successful, result.reason

@@ -1,4 +1,8 @@
-"""Candidate camera poses on a ring around the target, and their feasibility on the ground."""
+"""Candidate camera poses on a ring around the target, and their feasibility on the ground.
+
+The ring's parameters are :class:`leapnbv_planner.params.CandidateRingParams` (the nbv node's
+parameters are an extension of it, so a node's params instance can be passed as they are).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +13,7 @@ from typing import NamedTuple, Tuple
 import numpy as np
 
 from leapnbv_planner.footprint_kernel import footprints_blocked
+from leapnbv_planner.params import CandidateRingParams
 
 # Everything here lives in the camera optical frame of the observation (x right, y down,
 # z forward). The current camera sits at the origin with identity orientation. The ground is
@@ -32,29 +37,6 @@ class FeasibilityReason(enum.IntEnum):
     OK = 0
     OUT_OF_TRAVEL_RANGE = 1
     OBSTACLE = 2
-
-
-@dataclass
-class CandidateRingParams:
-    """Parameters of the candidate ring and of the feasibility test.
-
-    Attributes:
-        num_candidates: number of ring candidates N (the current view is extra).
-        radius: ring radius r in metres, measured on the ground plane around the ring centre.
-        include_current: put the current view first (index 0) so that "stay" can be chosen.
-        max_travel: largest allowed distance (m) of a candidate foot point from the current
-            camera's foot point.
-        robot_radius: footprint radius (m); no obstacle point may lie within it.
-        floor_clearance: background points at most this high (m) above the plane are floor,
-            not obstacles.
-    """
-
-    num_candidates: int = 16
-    radius: float = 1.5
-    include_current: bool = True
-    max_travel: float = 3.0
-    robot_radius: float = 0.3
-    floor_clearance: float = 0.05
 
 
 @dataclass

@@ -149,7 +149,7 @@ def test_candidates_beyond_travel_range_are_infeasible():
 
 def test_feasibility_on_a_tilted_plane_uses_plane_distances():
     normal, offset = tilted_plane()
-    params = CandidateRingParams(num_candidates=6, robot_radius=0.3, max_travel=10.0)
+    params = CandidateRingParams(num_candidates=6, radius=1.5, robot_radius=0.3, max_travel=10.0)
     candidates = generate_candidates(np.array([0.2, 0.3, 3.0]), normal, offset, params)
     e1 = np.cross(normal, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)

@@ -111,8 +111,8 @@ def test_clear_fraction_scales_s_o_only():
     k = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
     plain = score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240)
     scaled = score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240, line_of_sight_clear=[0.25, 1.0])
-    np.testing.assert_allclose(scaled.s_occlusion, plain.s_occlusion * [0.25, 1.0])
-    np.testing.assert_allclose(scaled.s_area, plain.s_area)
-    np.testing.assert_allclose(plain.score - scaled.score, 0.83 * 0.75 * plain.s_occlusion * [1.0, 0.0])
+    np.testing.assert_allclose(scaled.term("occlusion"), plain.term("occlusion") * [0.25, 1.0])
+    np.testing.assert_allclose(scaled.term("area"), plain.term("area"))
+    np.testing.assert_allclose(plain.score - scaled.score, 0.83 * 0.75 * plain.term("occlusion") * [1.0, 0.0])
     with pytest.raises(ValueError, match="line_of_sight_clear"):
         score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240, line_of_sight_clear=[1.5, 1.0])

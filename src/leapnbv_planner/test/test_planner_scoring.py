@@ -12,12 +12,8 @@ from leapnbv_planner.candidates import (
     check_feasibility,
     generate_candidates,
 )
-from leapnbv_planner.scoring import (
-    ScoreWeights,
-    bounding_box_area_fraction,
-    choose_best,
-    score_candidates,
-)
+from leapnbv_planner.score_terms.area import bounding_box_area_fraction
+from leapnbv_planner.scoring import choose_best, score_candidates
 
 LEVEL_NORMAL = np.array([0.0, -1.0, 0.0])
 FLOOR_Y = 1.2  # camera 1.2 m above a level floor: plane n.x + d = 0 with d = 1.2
@@ -42,8 +38,8 @@ def test_no_background_means_nothing_is_hidden():
                                      CandidateRingParams(radius=2.5))
     scores = score_candidates(target, np.zeros((0, 3)), candidates.rotations,
                               candidates.positions, K_SMALL, WIDTH, HEIGHT)
-    assert (scores.s_visibility > 0.5).all()
-    np.testing.assert_array_equal(scores.s_occlusion, 1.0)
+    assert (scores.term("visibility") > 0.5).all()
+    np.testing.assert_array_equal(scores.term("occlusion"), 1.0)
 
 
 def test_wall_hides_the_target_from_half_the_ring_and_the_open_side_wins():
@@ -67,14 +63,14 @@ def test_wall_hides_the_target_from_half_the_ring_and_the_open_side_wins():
     behind_wall = foot_x > 1.5 * np.cos(np.deg2rad(60))
     open_side = foot_x < -0.3
     assert behind_wall.sum() >= 5 and open_side.sum() >= 5
-    assert (scores.s_occlusion[behind_wall] < 0.05).all()
-    assert (scores.s_occlusion[open_side] > 0.95).all()
+    assert (scores.term("occlusion")[behind_wall] < 0.05).all()
+    assert (scores.term("occlusion")[open_side] > 0.95).all()
 
     feasible, _ = check_feasibility(candidates, wall, LEVEL_NORMAL, FLOOR_Y, params)
     assert feasible.all()  # the wall is 0.6 m inside the ring: no footprint touches it
     chosen = choose_best(scores.score, feasible, candidates.positions, np.zeros(3))
     assert open_side[chosen]
-    assert scores.s_occlusion[chosen] > 0.95
+    assert scores.term("occlusion")[chosen] > 0.95
 
 
 def test_obstacle_at_the_best_candidate_moves_the_choice():
@@ -116,9 +112,9 @@ def test_closer_ring_raises_area_score():
     near = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, CandidateRingParams(radius=1.0))
     far = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, CandidateRingParams(radius=2.0))
     s_near = score_candidates(target, np.zeros((0, 3)), near.rotations, near.positions,
-                              K_SMALL, WIDTH, HEIGHT).s_area[1:]
+                              K_SMALL, WIDTH, HEIGHT).term("area")[1:]
     s_far = score_candidates(target, np.zeros((0, 3)), far.rotations, far.positions,
-                             K_SMALL, WIDTH, HEIGHT).s_area[1:]
+                             K_SMALL, WIDTH, HEIGHT).term("area")[1:]
     assert (s_near < 1.0).all() and (s_far > 0.0).all()
     assert (s_near > 1.5 * s_far).all()
 
@@ -139,14 +135,14 @@ def test_visibility_weight_alone_follows_visibility():
         positions.append(position)
     rotations, positions = np.array(rotations), np.array(positions)
     scores = score_candidates(target, rng.uniform(-3, 3, size=(3000, 3)), rotations, positions,
-                              K_SMALL, WIDTH, HEIGHT, weights=ScoreWeights(1.0, 0.0, 0.0))
-    np.testing.assert_array_equal(scores.score, scores.s_visibility)
-    assert np.ptp(scores.s_visibility) > 0.3
+                              K_SMALL, WIDTH, HEIGHT, terms=[("visibility", 1.0), ("area", 0.0), ("occlusion", 0.0)])
+    np.testing.assert_array_equal(scores.score, scores.term("visibility"))
+    assert np.ptp(scores.term("visibility")) > 0.3
     feasible = rng.uniform(size=24) < 0.6
-    feasible[int(np.argmax(scores.s_visibility))] = False  # the overall best is ruled out
+    feasible[int(np.argmax(scores.term("visibility")))] = False  # the overall best is ruled out
     chosen = choose_best(scores.score, feasible, positions, np.zeros(3))
     assert feasible[chosen]
-    assert scores.s_visibility[chosen] == scores.s_visibility[feasible].max()
+    assert scores.term("visibility")[chosen] == scores.term("visibility")[feasible].max()
 
 
 def test_choose_best_ties_go_to_the_nearest_and_nothing_feasible_gives_minus_one():
@@ -162,14 +158,14 @@ def test_choose_best_ties_go_to_the_nearest_and_nothing_feasible_gives_minus_one
 def test_visibility_closed_form():
     target = np.array([[0.0, 0.0, 2.0], [0.1, 0.1, 3.0], [-0.2, 0.1, 2.5], [0.0, 0.0, 4.0]])
     full = score_candidates(target, np.zeros((0, 3)), *IDENTITY_POSE, K_SMALL, WIDTH, HEIGHT)
-    assert full.s_visibility[0] == 1.0
+    assert full.term("visibility")[0] == 1.0
     # Two points behind the camera, one to the right outside the image (u = 160 + 300*2 > W).
     mixed = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0], [0.1, 0.0, -1.0], [2.0, 0.0, 1.0]])
     partial = score_candidates(mixed, np.zeros((0, 3)), *IDENTITY_POSE, K_SMALL, WIDTH, HEIGHT)
-    assert partial.s_visibility[0] == 0.25
-    assert partial.s_occlusion[0] == 1.0  # over in-view points only
+    assert partial.term("visibility")[0] == 0.25
+    assert partial.term("occlusion")[0] == 1.0  # over in-view points only
     none = score_candidates(mixed[1:3], np.zeros((0, 3)), *IDENTITY_POSE, K_SMALL, WIDTH, HEIGHT)
-    assert none.s_visibility[0] == 0.0 and none.s_occlusion[0] == 0.0
+    assert none.term("visibility")[0] == 0.0 and none.term("occlusion")[0] == 0.0
 
 
 def box_corners(lower, upper):
@@ -215,7 +211,7 @@ def test_occlusion_definition_on_hand_placed_points():
 
     def s_o(background):
         both = score_candidates(target, np.array(background), *IDENTITY_POSE, K_SMALL,
-                                WIDTH, HEIGHT, delta_px=4.0).s_occlusion[0]
+                                WIDTH, HEIGHT, delta_px=4.0).term("occlusion")[0]
         return 2.0 * both - 1.0  # S_o of the first point alone
 
     px = 1.0 / 300.0  # metres per pixel at depth 1
@@ -279,7 +275,7 @@ def test_occlusion_matches_brute_force_on_a_random_scene(delta_px):
         positions.append(position)
     rotations, positions = np.array(rotations), np.array(positions)
     fast = score_candidates(target, background, rotations, positions, K, width, height,
-                            delta_px=delta_px).s_occlusion
+                            delta_px=delta_px).term("occlusion")
     slow = brute_force_occlusion(target, background, rotations, positions, K, width, height,
                                  int(np.floor(delta_px)))
     # The scene really is partly occluded, differently per view.
@@ -293,7 +289,7 @@ def test_non_finite_points_are_dropped_and_bad_shapes_raise():
     target = np.array([[0.0, 0.0, 2.0], [np.nan, 0.0, 2.0]])
     scores = score_candidates(target, np.array([[np.inf, 0, 1.0]]), *IDENTITY_POSE, K_SMALL,
                               WIDTH, HEIGHT)
-    assert scores.s_visibility[0] == 1.0 and scores.s_occlusion[0] == 1.0
+    assert scores.term("visibility")[0] == 1.0 and scores.term("occlusion")[0] == 1.0
     with pytest.raises(ScoringInputError, match="target_points"):
         score_candidates(np.zeros((3, 2)), np.zeros((0, 3)), *IDENTITY_POSE, K_SMALL, WIDTH,
                          HEIGHT)

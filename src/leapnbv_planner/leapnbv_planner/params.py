@@ -1,0 +1,111 @@
+"""The nbv node's parameters: one dataclass, the one source of every default, range and description.
+
+The defaults are the values the robot runs with. The ring and feasibility code
+(:mod:`leapnbv_planner.candidates`) takes its values from :class:`CandidateRingParams`, the first
+fields of the node's parameters, so there is no second set of defaults.
+
+The weight of each score term is a parameter ``weight_<name>`` (``weight_visibility``, ...) that is
+made from the term registry (:mod:`leapnbv_planner.score_terms`): :func:`nbv_params_class` returns
+:class:`PlannerParams` extended by one float field per registered term, default = the term's
+default weight. A new term module therefore brings its weight parameter with it.
+
+Read-only (set at start-up only): ``use_obstacle_map`` (decides the node's subscriptions),
+``camera_pose_source`` and ``camera_pose_cache`` (make the camera-pose subscription and its
+cache). Every other parameter can be changed at runtime and applies to the next plan.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Dict, List, Tuple, Type
+
+from leapnbv_common.params import ParamsError, param
+from leapnbv_planner.score_terms import registered_terms, weight_parameter
+
+# The deployed score terms, in summation order.
+DEFAULT_SCORE_TERMS = ["visibility", "area", "occlusion"]
+
+
+@dataclass
+class CandidateRingParams:
+    """Parameters of the candidate ring and of the feasibility test (the first nbv node parameters)."""
+
+    num_candidates: int = param(16, "viewpoints on the ring (the current view is added as candidate 0)",
+                                min=1, max=256)
+    # 2.5 m, not the published 1.5 m: at 1.5 m a 42 deg vertical field of view (RealSense colour at
+    # 640x480) sees only ~1.2 m of height, so a standing person never fits.
+    radius: float = param(2.5, "metres: ring radius around the target, on the ground", min=0.1, max=20.0)
+    include_current: bool = param(True, "score the current view as candidate 0, so staying is possible")
+    max_travel: float = param(4.5, "metres: farthest foot point from the robot's current one", min=0.0, max=100.0)
+    robot_radius: float = param(0.3, "metres: footprint radius checked for obstacles", min=0.0, max=5.0)
+    floor_clearance: float = param(0.05, "metres: background points higher than this above the floor are obstacles",
+                                   min=0.0, max=2.0)
+
+
+@dataclass
+class PlannerParams(CandidateRingParams):
+    """Every nbv node parameter but the term weights (see nbv_params_class for the full class)."""
+
+    score_terms: List[str] = param(DEFAULT_SCORE_TERMS, "score terms summed into the score, in this order"
+                                   " (registered in leapnbv_planner.score_terms; weight of each: weight_<name>)")
+    delta_px: float = param(4.0, "pixels: neighbourhood of the background depth test in S_o", min=0.0, max=100.0)
+    ground_wait_s: float = param(1.0, "how long a frame waits for the ground plane of the same stamp, then uses"
+                                 " the latest", min=0.0, max=10.0)
+    ground_max_age_s: float = param(2.0, "a fallback ground plane older than this is not used", min=0.0, max=60.0)
+    use_obstacle_map: bool = param(True, "use the robot's obstacle map (obstacle_map + camera_pose topics) when"
+                                   " they arrive", read_only=True)
+    obstacle_map_resolution: float = param(0.1, "metres: voxel edge of the obstacle map (its points are voxel"
+                                           " centres)", min=0.01, max=2.0)
+    map_max_target_points: int = param(1500, "target points whose line of sight is walked through the map, per"
+                                       " candidate", min=1, max=1_000_000)
+    map_target_margin: float = param(0.1, "metres: the end of each line of sight, at the target, not checked in"
+                                     " the map", min=0.0, max=2.0)
+    camera_pose_source: str = param("topic", "where the camera pose of each frame comes from (a key of"
+                                    " leapnbv_common.camera_pose.CAMERA_POSE_SOURCES)", read_only=True)
+    camera_pose_cache: int = param(30, "camera poses remembered by stamp, to find the pose of each planned frame",
+                                   min=1, max=10_000, read_only=True)
+
+    def check(self) -> None:
+        """Rules between fields: the score terms are registered, distinct, and each has its weight."""
+        if not self.score_terms:
+            raise ParamsError("score_terms must name at least one score term")
+        known = {term.name for term in registered_terms()}
+        for name in self.score_terms:
+            if name not in known:
+                raise ParamsError(f"score_terms: unknown score term {name!r}; registered: {sorted(known)}")
+            if not hasattr(self, weight_parameter(name)):
+                raise ParamsError(f"score_terms: {name!r} has no {weight_parameter(name)} parameter in"
+                                  f" {type(self).__name__} (registered after the class was made)")
+        duplicates = sorted({name for name in self.score_terms if self.score_terms.count(name) > 1})
+        if duplicates:
+            raise ParamsError(f"score_terms: {duplicates} listed more than once")
+
+    def term_weights(self) -> List[Tuple[str, float]]:
+        """(name, weight) of each term in score_terms, in order."""
+        return [(name, float(getattr(self, weight_parameter(name)))) for name in self.score_terms]
+
+
+_CLASSES: Dict[Tuple[Tuple[str, float, str], ...], Type[PlannerParams]] = {}
+
+
+def nbv_params_class() -> Type[PlannerParams]:
+    """The nbv node's params dataclass: PlannerParams plus ``weight_<name>`` for each registered term.
+
+    Made once per set of registered terms (so repeated calls give the same class); a term
+    registered later gets its field in the class made after it.
+    """
+    key = tuple((term.name, term.default_weight, term.description) for term in registered_terms())
+    if key not in _CLASSES:
+        weights = [(weight_parameter(name), float,
+                    param(float(default), f"weight of {description}", min=0.0))
+                   for name, default, description in key]
+        _CLASSES[key] = dataclasses.make_dataclass(
+            "NbvParams", weights, bases=(PlannerParams,),
+            namespace={"__module__": __name__, "__doc__": "Every nbv node parameter (see nbv_params_class)."})
+    return _CLASSES[key]
+
+
+def default_nbv_params() -> PlannerParams:
+    """The robot's values: an instance of nbv_params_class() with every default."""
+    return nbv_params_class()()
