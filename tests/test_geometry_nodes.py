@@ -449,26 +449,24 @@ def test_raster_applies_a_wider_slop_at_runtime_and_refuses_an_empty_depth_range
     assert graph["procs"][f"{NS}/raster_node"].poll() is None
 
 
-def test_ground_applies_ransac_settings_at_runtime_and_refuses_invalid_ones(graph, scene):
+def test_ground_refuses_invalid_settings_and_applies_ransac_settings_at_runtime(graph, scene):
     probe = graph["probe"]
-    frame = scene["frames"][0]
-    (result,) = set_parameters(probe, "ground_node", min_inliers=10_000_000)
-    assert result.successful, result.reason
-    try:
-        key = (710, 0)  # the floor is in view, but no plane can have that many inliers
-        depth = numpy_to_image(frame.depth_mm, "16UC1", make_header(*key))
-        assert send_until(probe, lambda: send_depth(graph, depth), lambda: by_stamp(graph["planes"], key), 15.0)
-        assert not by_stamp(graph["planes"], key)[0].valid
-    finally:
-        assert set_parameters(probe, "ground_node", min_inliers=200)[0].successful
-    key = (711, 0)
-    depth = numpy_to_image(frame.depth_mm, "16UC1", make_header(*key))
-    assert send_until(probe, lambda: send_depth(graph, depth), lambda: by_stamp(graph["planes"], key), 15.0)
-    assert by_stamp(graph["planes"], key)[0].valid
     (heights,) = set_parameters(probe, "ground_node", min_camera_height=2.0)
     assert not heights.successful and "must not exceed max_camera_height" in heights.reason
     (source,) = set_parameters(probe, "ground_node", camera_pose_source="tf")
     assert not source.successful and "camera_pose_source" in source.reason
+    depths = {key: numpy_to_image(scene["frames"][0].depth_mm, "16UC1", make_header(*key))
+              for key in ((710, 0), (711, 0))}
+    # The floor is in view, but no plane can have that many inliers: invalid until the setting is back.
+    assert set_parameters(probe, "ground_node", min_inliers=10_000_000)[0].successful
+    try:
+        assert send_until(probe, lambda: send_depth(graph, depths[(710, 0)]),
+                          lambda: by_stamp(graph["planes"], (710, 0)), 15.0)
+    finally:
+        assert set_parameters(probe, "ground_node", min_inliers=200)[0].successful
+    assert send_until(probe, lambda: send_depth(graph, depths[(711, 0)]),
+                      lambda: by_stamp(graph["planes"], (711, 0)), 15.0)
+    assert not by_stamp(graph["planes"], (710, 0))[0].valid and by_stamp(graph["planes"], (711, 0))[0].valid
     assert graph["procs"][f"{NS}/ground_node"].poll() is None
 
 
