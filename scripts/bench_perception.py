@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src", "leapnbv_perception"))
 
-from leapnbv_perception.detector import decode_person_boxes, letterbox  # noqa: E402
+from leapnbv_perception.detector_families.yolov8 import decode_person_boxes, letterbox  # noqa: E402
 from leapnbv_perception.hmr_crop import crop_for_hmr, fit_to_engine_input, process_box  # noqa: E402
 from leapnbv_perception.hmr_tail import camera_translation, unmirror_left_hand  # noqa: E402
 from leapnbv_perception.rotations import matrix_to_axis_angle, rot6d_to_matrix  # noqa: E402

@@ -1,5 +1,5 @@
 """raster_node and ground_node as processes over DDS, fed a rendered scene: stamps, pairing, bad depth,
-and ground_node's fallback on the camera pose's floor."""
+ground_node's fallback on the camera pose's floor, parameters changed at runtime, and the depth conversion."""
 from __future__ import annotations
 
 import time
@@ -14,12 +14,15 @@ import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from node_harness import NS, by_stamp, diag_value, send_until, stamp_key  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from leapnbv_common.conversions import (  # noqa: E402
     HumanMeshArrays,
     arrays_to_human_mesh,
+    depth_to_metres,
     make_camera_info,
     numpy_to_image,
     point_to_numpy,
@@ -29,6 +32,7 @@ from leapnbv_common.conversions import (  # noqa: E402
 )
 from leapnbv_common.qos import stage_output_qos  # noqa: E402
 from leapnbv_geometry.ground import floor_plane_from_camera_pose  # noqa: E402
+from leapnbv_geometry.params import MIN_RANGE_M  # noqa: E402
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
 from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
@@ -408,3 +412,75 @@ def test_ground_rejects_a_bad_camera_pose_and_keeps_serving(graph):
     assert by_stamp(graph["planes"], key)[0].valid
     assert graph["procs"][f"{NS}/ground_node"].poll() is None
 
+
+
+# ----------------------------------------------------------------------------- parameters at runtime
+
+
+def set_parameters(probe, node: str, **values) -> list:
+    """``ros2 param set`` over DDS: the SetParametersResult of each value, in order."""
+    client = AsyncParameterClient(probe.node, f"{NS}/{node}")
+    assert client.wait_for_services(10.0)
+    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
+    assert probe.spin_until(future.done, 10.0)
+    return future.result().results
+
+
+def test_raster_applies_a_wider_slop_at_runtime_and_refuses_an_empty_depth_range(graph, scene):
+    probe = graph["probe"]
+    frame = scene["frames"][1]
+    (result,) = set_parameters(probe, "raster_node", slop_s=0.1)
+    assert result.successful, result.reason
+    try:
+        # 50 ms apart: dropped under the default 5 ms slop (see above), paired under 100 ms.
+        key = (700, 50_000_000)
+        assert send_until(probe, lambda: (send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(700))),
+                                          probe.spin_for(0.1),
+                                          graph["mesh_pub"].publish(mesh_message(frame, scene["faces"],
+                                                                                 make_header(*key)))),
+                          lambda: by_stamp(graph["targets"], key), 15.0)
+        assert by_stamp(graph["targets"], key)[0].valid
+    finally:
+        assert set_parameters(probe, "raster_node", slop_s=0.005)[0].successful
+    (empty,) = set_parameters(probe, "raster_node", min_depth=20.0)
+    assert not empty.successful and "min_depth (20.0) must be below max_depth (10.0)" in empty.reason
+    (fixed,) = set_parameters(probe, "raster_node", depth_cache_size=3)
+    assert not fixed.successful and "depth_cache_size" in fixed.reason
+    assert graph["procs"][f"{NS}/raster_node"].poll() is None
+
+
+def test_ground_refuses_invalid_settings_and_applies_ransac_settings_at_runtime(graph, scene):
+    probe = graph["probe"]
+    (heights,) = set_parameters(probe, "ground_node", min_camera_height=2.0)
+    assert not heights.successful and "must not exceed max_camera_height" in heights.reason
+    (source,) = set_parameters(probe, "ground_node", camera_pose_source="tf")
+    assert not source.successful and "camera_pose_source" in source.reason
+    depths = {key: numpy_to_image(scene["frames"][0].depth_mm, "16UC1", make_header(*key))
+              for key in ((710, 0), (711, 0))}
+    # The floor is in view, but no plane can have that many inliers: invalid until the setting is back.
+    assert set_parameters(probe, "ground_node", min_inliers=10_000_000)[0].successful
+    try:
+        assert send_until(probe, lambda: send_depth(graph, depths[(710, 0)]),
+                          lambda: by_stamp(graph["planes"], (710, 0)), 15.0)
+    finally:
+        assert set_parameters(probe, "ground_node", min_inliers=200)[0].successful
+    assert send_until(probe, lambda: send_depth(graph, depths[(711, 0)]),
+                      lambda: by_stamp(graph["planes"], (711, 0)), 15.0)
+    assert not by_stamp(graph["planes"], (710, 0))[0].valid and by_stamp(graph["planes"], (711, 0))[0].valid
+    assert graph["procs"][f"{NS}/ground_node"].poll() is None
+
+
+# ----------------------------------------------------------------------------- depth conversion
+
+
+def test_depth_to_metres_as_the_nodes_read_it():
+    """16UC1 millimetres and 32FC1 metres become float32 metres; 0, NaN and inf become 0 ("no return").
+    A negative 32FC1 reading is never valid: every stage's depth range starts above 0."""
+    millimetres = np.array([[0, 1500], [65535, 20]], dtype=np.uint16)
+    metres = depth_to_metres(numpy_to_image(millimetres, "16UC1"))
+    np.testing.assert_allclose(metres, [[0.0, 1.5], [65.535, 0.02]], rtol=1e-6)
+    assert metres.dtype == np.float32
+    floats = depth_to_metres(numpy_to_image(np.array([[np.nan, 1.0], [np.inf, -2.0]], np.float32), "32FC1"))
+    assert floats.dtype == np.float32 and np.all(np.isfinite(floats))
+    np.testing.assert_array_equal(floats[0], [0.0, 1.0])
+    assert floats[1, 0] == 0.0 and not floats[1, 1] >= MIN_RANGE_M

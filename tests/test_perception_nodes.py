@@ -1,4 +1,5 @@
-"""detector_node and hmr_node as processes over DDS: every frame served, bad input survived, GT pairing."""
+"""detector_node and hmr_node as processes over DDS: every frame served, bad input survived, GT pairing,
+parameters changed at runtime."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,6 +10,8 @@ rclpy = pytest.importorskip("rclpy")
 import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from node_harness import NS, by_stamp, diag_value, read_log, send_until, stamp_key  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
@@ -273,3 +276,47 @@ def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph):
             np.testing.assert_allclose(detection_to_box(det.detections[0]), [*box, 1.0], atol=1e-5)
         else:
             assert len(det.detections) == 0
+
+
+# ----------------------------------------------------------------------------- parameters at runtime
+
+
+def set_parameters(probe, node: str, **values) -> list:
+    """``ros2 param set`` over DDS: the SetParametersResult of each value, in order."""
+    client = AsyncParameterClient(probe.node, node)
+    assert client.wait_for_services(10.0)
+    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
+    assert probe.spin_until(future.done, 10.0)
+    return future.result().results
+
+
+def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(graph):
+    probe, pub = graph["probe"], graph["image_pub"]
+    detector, hmr = f"{NS}/detector_node", f"{NS}/hmr_node"
+    # The contract detector scores the background ~0.2: below the default threshold, above 0.1.
+    results = set_parameters(probe, detector, score_threshold=0.1, max_detections=3)
+    assert all(r.successful for r in results), [r.reason for r in results]
+    (crop,) = set_parameters(probe, hmr, box_scale=1.5)
+    assert crop.successful, crop.reason
+    try:
+        rgb, _ = person_blob_image(200, 80)
+        good = numpy_to_image(rgb, "rgb8", make_header(6000))
+        assert send_until(probe, lambda: pub.publish(good), lambda: by_stamp(graph["detections"], (6000, 0))
+                          and by_stamp(graph["meshes"], (6000, 0)), 24.0)
+        det = by_stamp(graph["detections"], (6000, 0))[0]
+        assert len(det.detections) == 3 and det.detections[0].score > 0.9 > det.detections[2].score > 0.1
+        mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (6000, 0))[0])
+        box = mesh.detection
+        np.testing.assert_allclose(mesh.processed_box[3], 1.5 * max(box[3] - box[1], (box[2] - box[0]) * 4 / 3),
+                                   rtol=1e-5)
+    finally:
+        results = set_parameters(probe, detector, score_threshold=0.25, max_detections=20)
+        assert all(r.successful for r in results) and set_parameters(probe, hmr, box_scale=1.25)[0].successful
+    (out_of_range,) = set_parameters(probe, detector, iou_threshold=1.5)
+    assert not out_of_range.successful and "iou_threshold" in out_of_range.reason
+    (engine,) = set_parameters(probe, detector, backend="tensorrt")
+    assert not engine.successful and "backend" in engine.reason
+    (model,) = set_parameters(probe, hmr, body_model_path="/tmp/other.npz")
+    assert not model.successful and "body_model_path" in model.reason
+    for proc in graph["procs"].values():
+        assert proc.poll() is None

@@ -9,7 +9,6 @@ from .target_geometry import (
     TargetGeometryResult,
     backproject,
     compute_target_geometry,
-    depth_to_metres,
     pixels_to_points,
     place_mesh_metric,
 )
@@ -23,7 +22,6 @@ __all__ = [
     "TargetGeometryResult",
     "backproject",
     "compute_target_geometry",
-    "depth_to_metres",
     "fit_ground_plane",
     "ground_points_from_depth",
     "pixels_to_points",

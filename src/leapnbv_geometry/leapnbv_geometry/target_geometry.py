@@ -14,7 +14,6 @@ __all__ = [
     "TargetGeometryResult",
     "backproject",
     "compute_target_geometry",
-    "depth_to_metres",
     "pixels_to_points",
     "place_mesh_metric",
 ]
@@ -83,30 +82,6 @@ def _intrinsics(K: np.ndarray, name: str = "K") -> Tuple[float, float, float, fl
     return float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
 
 
-def depth_to_metres(depth: np.ndarray, uint16_scale: float = 0.001) -> np.ndarray:
-    """Convert a depth image to float32 metres with 0 meaning "no return".
-
-    Args:
-        depth: (H, W) uint16 depth in millimetres (RealSense / ROS ``16UC1``), or float depth
-            already in metres (``32FC1``).
-        uint16_scale: metres per integer unit for integer input.
-
-    Returns:
-        (H, W) float32 metres; NaN, inf and negative values become 0.
-
-    Raises:
-        TargetGeometryError: if depth is not 2-D.
-    """
-    depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise TargetGeometryError(f"depth must be (H, W), got {depth.shape}")
-    if np.issubdtype(depth.dtype, np.integer):
-        return depth.astype(np.float32) * np.float32(uint16_scale)
-    metres = depth.astype(np.float32, copy=True)
-    metres[~(metres > 0.0) | ~np.isfinite(metres)] = 0.0
-    return metres
-
-
 def pixels_to_points(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Back-project pixels with known depth: the one inverse of the projection used here.
 
@@ -146,7 +121,7 @@ def backproject(
     """Back-project every valid depth pixel (finite, > 0), optionally masked and strided.
 
     Args:
-        depth: (H, W) float depth in metres (0 = no return); see :func:`depth_to_metres`.
+        depth: (H, W) float depth in metres (0 = no return; leapnbv_common.conversions.depth_to_metres).
         K: (3, 3) camera matrix.
         mask: optional (H, W) bool; only True pixels are used.
         stride: keep every ``stride``-th row and column (rows 0, s, 2s, ...).
@@ -324,7 +299,7 @@ def compute_target_geometry(
     Args:
         vertices_metric: (V, 3) mesh in the real camera frame (see :func:`place_mesh_metric`).
         faces: (F, 3) int triangles.
-        depth: (H, W) float depth in metres, 0 / NaN = no return (:func:`depth_to_metres`).
+        depth: (H, W) float depth in metres, 0 / NaN = no return (leapnbv_common.conversions.depth_to_metres).
         K: (3, 3) real camera matrix.
         box_xyxy: person box (x0, y0, x1, y1) in pixels.
         box_dilation_px: growth of the box on every side, pixels.
@@ -349,7 +324,7 @@ def compute_target_geometry(
         raise TargetGeometryError(f"depth must be (H, W), got {depth.shape}")
     if not np.issubdtype(depth.dtype, np.floating):
         raise TargetGeometryError(
-            f"depth must be float metres, got dtype {depth.dtype}; convert with depth_to_metres"
+            f"depth must be float metres, got dtype {depth.dtype}; convert with conversions.depth_to_metres"
         )
     vertices_metric = np.asarray(vertices_metric)
     if vertices_metric.ndim != 2 or vertices_metric.shape[1] != 3:

@@ -11,7 +11,6 @@ from leapnbv_geometry.target_geometry import (
     TargetGeometryError,
     backproject,
     compute_target_geometry,
-    depth_to_metres,
     pixels_to_points,
     place_mesh_metric,
 )
@@ -216,14 +215,6 @@ def test_backproject_inverts_projection_and_skips_invalid():
     mask[2, 4] = True
     np.testing.assert_allclose(backproject(depth, K, mask=mask)[:, 2], [3.0])
     assert backproject(depth, K, stride=2).shape == (1, 3)  # only (2, 4) is on the grid
-
-
-def test_depth_to_metres():
-    millimetres = np.array([[0, 1500], [65535, 20]], dtype=np.uint16)
-    np.testing.assert_allclose(depth_to_metres(millimetres), [[0.0, 1.5], [65.535, 0.02]], rtol=1e-6)
-    metres = depth_to_metres(np.array([[np.nan, 1.0], [np.inf, -2.0]], dtype=np.float32))
-    np.testing.assert_array_equal(metres, [[0.0, 1.0], [0.0, 0.0]])
-    assert metres.dtype == np.float32
 
 
 def test_depth_alignment_stays_on_the_person_when_an_occluder_covers_most_of_it():

@@ -1,180 +1,32 @@
-"""YOLOv8 person detection: letterbox pre-processing, class-0 decoding, NMS, un-letterboxing."""
+"""Person detection on any engine backend, for any detector family (see detector_families)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Tuple
-
-import cv2
 import numpy as np
 
 from leapnbv_perception.backends.base import EngineBackend
-from leapnbv_perception.model_contracts import (
-    YOLO_INPUT_NAME,
-    YOLO_INPUT_SIZE,
-    YOLO_OUTPUT_NAME,
-    YOLOV8_CONTRACT,
-    check_backend_contract,
+from leapnbv_perception.detector_families import (
+    DEFAULT_DETECTOR_FAMILY,
+    DEFAULT_MAX_DETECTIONS,
+    get_detector_family,
 )
-
-PAD_VALUE = 114
-PERSON_CLASS = 0
-DEFAULT_MAX_DETECTIONS = 100
-
-
-@dataclass(frozen=True)
-class LetterboxTransform:
-    """Maps source pixels to letterbox pixels: letterbox = source * scale + pad.
-
-    Attributes:
-        scale: r = min(size / h, size / w).
-        pad_x: left padding in letterbox pixels (may be fractional; the image is placed at
-            its rounded value, which is what the arithmetic here uses too).
-        pad_y: top padding in letterbox pixels.
-    """
-
-    scale: float
-    pad_x: float
-    pad_y: float
-
-    def to_source(self, points_xy: np.ndarray) -> np.ndarray:
-        """Letterbox (..., 2) x, y -> source image x, y: (xy - pad) / r."""
-        offset = np.array([self.pad_x, self.pad_y], dtype=np.float64)
-        return (np.asarray(points_xy, dtype=np.float64) - offset) / self.scale
-
-    def to_letterbox(self, points_xy: np.ndarray) -> np.ndarray:
-        """Source (..., 2) x, y -> letterbox x, y."""
-        offset = np.array([self.pad_x, self.pad_y], dtype=np.float64)
-        return np.asarray(points_xy, dtype=np.float64) * self.scale + offset
-
-
-def letterbox(rgb: np.ndarray, size: int = YOLO_INPUT_SIZE) -> Tuple[np.ndarray, LetterboxTransform]:
-    """Resize keeping the aspect ratio and pad (value 114, centred) to size x size.
-
-    Args:
-        rgb: (H, W, 3) uint8 RGB image.
-        size: letterbox side in pixels (640 for the YOLOv8 export).
-
-    Returns:
-        (tensor (1, 3, size, size) float32 RGB / 255 NCHW, LetterboxTransform).
-
-    Raises:
-        ValueError: for an image that is not (H, W, 3) uint8 with H, W > 0.
-    """
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8 or rgb.shape[0] == 0 or rgb.shape[1] == 0:
-        raise ValueError("letterbox expects an (H, W, 3) uint8 image, got %s %s" % (rgb.shape, rgb.dtype))
-    height, width = rgb.shape[:2]
-    scale = min(size / height, size / width)
-    new_w = int(round(width * scale))
-    new_h = int(round(height * scale))
-    # Centred padding as ultralytics does: split the remainder, left/top get the rounded half.
-    pad_w = (size - new_w) / 2.0
-    pad_h = (size - new_h) / 2.0
-    left = int(round(pad_w - 0.1))
-    top = int(round(pad_h - 0.1))
-    canvas = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
-    if (new_w, new_h) != (width, height):
-        resized = cv2.resize(rgb, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
-    else:
-        resized = rgb
-    canvas[top : top + new_h, left : left + new_w] = resized
-    # HWC uint8 -> NCHW float32 / 255
-    tensor = canvas.transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1.0 / 255.0)
-    return np.ascontiguousarray(tensor), LetterboxTransform(float(scale), float(left), float(top))
-
-
-def _nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float, max_detections: int) -> np.ndarray:
-    """Greedy non-maximum suppression, vectorized per kept box.
-
-    Args:
-        boxes_xyxy: (N, 4) float boxes.
-        scores: (N,) scores.
-        iou_threshold: a box overlapping a kept one by more than this is dropped.
-        max_detections: stop after this many kept boxes.
-
-    Returns:
-        (K,) indices of kept boxes, by descending score.
-    """
-    order = np.argsort(-scores, kind="stable")
-    x1, y1, x2, y2 = boxes_xyxy[:, 0], boxes_xyxy[:, 1], boxes_xyxy[:, 2], boxes_xyxy[:, 3]
-    areas = np.maximum(x2 - x1, 0.0) * np.maximum(y2 - y1, 0.0)
-    keep = []
-    while order.size > 0 and len(keep) < max_detections:
-        best = order[0]
-        keep.append(best)
-        rest = order[1:]
-        inter_w = np.maximum(np.minimum(x2[best], x2[rest]) - np.maximum(x1[best], x1[rest]), 0.0)
-        inter_h = np.maximum(np.minimum(y2[best], y2[rest]) - np.maximum(y1[best], y1[rest]), 0.0)
-        intersection = inter_w * inter_h
-        union = areas[best] + areas[rest] - intersection
-        iou = np.where(union > 0.0, intersection / np.maximum(union, 1e-12), 0.0)
-        order = rest[iou <= iou_threshold]
-    return np.asarray(keep, dtype=np.int64)
-
-
-def decode_person_boxes(
-    output0: np.ndarray,
-    transform: LetterboxTransform,
-    image_w: int,
-    image_h: int,
-    score_threshold: float = 0.25,
-    iou_threshold: float = 0.5,
-    max_detections: int = DEFAULT_MAX_DETECTIONS,
-) -> np.ndarray:
-    """Decode YOLOv8 output into person boxes in source-image pixels.
-
-    Args:
-        output0: (1, 84, N) raw output: cx, cy, w, h (letterbox px) + 80 class scores.
-        transform: the letterbox used for this frame.
-        image_w: source image width (boxes are clipped to [0, image_w]).
-        image_h: source image height.
-        score_threshold: minimum person score.
-        iou_threshold: NMS IoU above which the lower-scored box is dropped.
-        max_detections: most boxes returned.
-
-    Returns:
-        (K, 5) float32 [x_min, y_min, x_max, y_max, score], by descending score.
-
-    Raises:
-        ValueError: when output0 is not (1, 84, N) / (84, N).
-    """
-    predictions = np.asarray(output0)
-    if predictions.ndim == 3 and predictions.shape[0] == 1:
-        predictions = predictions[0]
-    if predictions.ndim != 2 or predictions.shape[0] < 5:
-        raise ValueError("output0 must be (1, 84, N), got %s" % (np.shape(output0),))
-    person_scores = predictions[4 + PERSON_CLASS]
-    candidates = np.nonzero(person_scores >= score_threshold)[0]
-    if candidates.size == 0:
-        return np.zeros((0, 5), dtype=np.float32)
-    boxes_cxcywh = predictions[:4, candidates].T.astype(np.float64)
-    scores = person_scores[candidates].astype(np.float64)
-    half = boxes_cxcywh[:, 2:4] * 0.5
-    boxes = np.concatenate([boxes_cxcywh[:, :2] - half, boxes_cxcywh[:, :2] + half], axis=1)
-    # NMS in letterbox pixels, as ultralytics does (the letterbox is a uniform scale + shift).
-    keep = _nms(boxes, scores, iou_threshold, max_detections)
-    boxes = boxes[keep]
-    scale = transform.scale
-    boxes[:, [0, 2]] = (boxes[:, [0, 2]] - transform.pad_x) / scale
-    boxes[:, [1, 3]] = (boxes[:, [1, 3]] - transform.pad_y) / scale
-    boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0.0, float(image_w))
-    boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0.0, float(image_h))
-    result = np.concatenate([boxes, scores[keep, None]], axis=1).astype(np.float32)
-    return result
+from leapnbv_perception.model_contracts import check_backend_contract
 
 
 class PersonDetector:
-    """YOLOv8 person detector on any EngineBackend.
+    """A detector family's pre-processing, engine run and decoding, with the thresholds in force.
 
     Args:
-        backend: engine loaded from a YOLOv8 ONNX export (or the contract model).
+        backend: engine loaded from an export of the family (or its contract model).
         score_threshold: minimum person score.
         iou_threshold: NMS IoU threshold.
         max_detections: most boxes per frame.
+        family: the detector family's name (``detector_family`` parameter).
 
     Raises:
-        ModelContractError: when the backend's model is not a YOLOv8 export
-            (`images` 1x3x640x640 -> `output0` 1x84x8400).
+        ValueError: an unknown family (naming the known ones).
+        ModelContractError: when the backend's model does not meet the family's contract
+            (yolov8: `images` 1x3x640x640 -> `output0` 1x84x8400).
     """
 
     def __init__(
@@ -183,8 +35,10 @@ class PersonDetector:
         score_threshold: float = 0.25,
         iou_threshold: float = 0.5,
         max_detections: int = DEFAULT_MAX_DETECTIONS,
+        family: str = DEFAULT_DETECTOR_FAMILY,
     ) -> None:
-        check_backend_contract(backend, YOLOV8_CONTRACT)
+        self.family = get_detector_family(family)
+        check_backend_contract(backend, self.family.contract)
         self.backend = backend
         self.score_threshold = float(score_threshold)
         self.iou_threshold = float(iou_threshold)
@@ -202,14 +56,7 @@ class PersonDetector:
         Raises:
             ValueError: for a malformed image.
         """
-        tensor, transform = letterbox(rgb, YOLO_INPUT_SIZE)
-        outputs = self.backend.run({YOLO_INPUT_NAME: tensor})
-        return decode_person_boxes(
-            outputs[YOLO_OUTPUT_NAME],
-            transform,
-            rgb.shape[1],
-            rgb.shape[0],
-            self.score_threshold,
-            self.iou_threshold,
-            self.max_detections,
-        )
+        inputs, context = self.family.preprocess(rgb)
+        outputs = self.backend.run(inputs)
+        return self.family.decode(outputs, context, rgb.shape[1], rgb.shape[0], self.score_threshold,
+                                  self.iou_threshold, self.max_detections)

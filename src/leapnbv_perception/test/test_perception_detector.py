@@ -1,11 +1,18 @@
-"""Tests for YOLOv8 letterboxing and person-box decoding."""
+"""Tests for the detector families: YOLOv8 letterboxing and person-box decoding, the family registry."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from leapnbv_perception.detector import LetterboxTransform, decode_person_boxes, letterbox
+from leapnbv_common.params import ParamsError, params_from_values
+from leapnbv_perception import detector_families
+from leapnbv_perception.backends.base import EngineBackend, TensorSpec
+from leapnbv_perception.detector import PersonDetector
+from leapnbv_perception.detector_families import DetectorFamily, nms
+from leapnbv_perception.detector_families.yolov8 import LetterboxTransform, decode_person_boxes, letterbox
+from leapnbv_perception.model_contracts import YOLOV8_CONTRACT, ModelContract, ModelContractError, TensorContract
+from leapnbv_perception.params import DetectorParams
 
 
 @pytest.mark.parametrize(
@@ -91,3 +98,88 @@ def test_decode_iou_threshold_and_max_detections() -> None:
 def test_decode_empty() -> None:
     boxes = decode_person_boxes(np.zeros((1, 84, 8400), np.float32), LetterboxTransform(1.0, 0.0, 0.0), 640, 480)
     assert boxes.shape == (0, 5)
+
+
+# ----------------------------------------------------------------------------- detector families
+
+
+@pytest.fixture
+def registry(monkeypatch):
+    """The family registry, emptied of runtime registrations for one test."""
+    monkeypatch.setattr(detector_families, "_registered", {})
+    return detector_families
+
+
+class HalfScaleBoxesFamily(DetectorFamily):
+    """A made-up output layout: ``boxes`` (1, 3, 5) = x0, y0, x1, y1, score in a half-size input image."""
+
+    name = "test_half_scale_boxes"
+    contract = ModelContract("half-scale test detector", inputs=(TensorContract("pixels", ((1, 3, 32, 40),)),),
+                             outputs=(TensorContract("boxes", ((1, 3, 5),)),))
+
+    def preprocess(self, rgb):
+        half = rgb[::2, ::2].transpose(2, 0, 1)[None].astype(np.float32) / 255.0
+        return {"pixels": half}, 2.0
+
+    def decode(self, outputs, context, image_w, image_h, score_threshold, iou_threshold, max_detections):
+        rows = np.asarray(outputs["boxes"], np.float64)[0]
+        rows = rows[rows[:, 4] >= score_threshold]
+        boxes = rows[:, :4] * context
+        keep = nms(boxes, rows[:, 4], iou_threshold, max_detections)
+        return np.concatenate([boxes[keep], rows[keep, 4:]], axis=1).astype(np.float32)
+
+
+class FixedOutputBackend(EngineBackend):
+    """An engine that answers every input with the same ``boxes``."""
+
+    def __init__(self, boxes: np.ndarray) -> None:
+        self.model_path = "half_scale.onnx"
+        self._inputs = {"pixels": TensorSpec((1, 3, 32, 40))}
+        self._outputs = {"boxes": TensorSpec((1, 3, 5))}
+        self._precision = "fp32"
+        self.boxes = boxes
+        self.inputs = []
+
+    def run(self, inputs):
+        self.inputs.append(inputs["pixels"])
+        return {"boxes": self.boxes[None]}
+
+
+def test_a_family_registered_from_outside_runs_through_person_detector(registry) -> None:
+    registry.register_detector_family(HalfScaleBoxesFamily())
+    assert registry.detector_family_names() == ["test_half_scale_boxes", "yolov8"]
+    backend = FixedOutputBackend(np.array([[1, 2, 11, 22, 0.4], [20, 5, 30, 25, 0.9], [0, 0, 1, 1, 0.1]], np.float32))
+    detector = PersonDetector(backend, score_threshold=0.3, family="test_half_scale_boxes")
+    boxes = detector.detect(np.full((64, 80, 3), 255, np.uint8))
+    np.testing.assert_allclose(boxes, [[40, 10, 60, 50, 0.9], [2, 4, 22, 44, 0.4]], rtol=1e-6)
+    assert boxes.dtype == np.float32 and backend.inputs[0].shape == (1, 3, 32, 40)
+    detector.score_threshold = 0.5  # thresholds apply from the next frame
+    assert len(detector.detect(np.zeros((64, 80, 3), np.uint8))) == 1
+    # and the node's parameters accept it
+    assert params_from_values(DetectorParams, {"detector_family": "test_half_scale_boxes"}).detector_family \
+        == "test_half_scale_boxes"
+
+
+def test_a_family_checks_its_contract_on_the_engine(registry) -> None:
+    registry.register_detector_family(HalfScaleBoxesFamily())
+    with pytest.raises(ModelContractError, match="missing input 'images'"):
+        PersonDetector(FixedOutputBackend(np.zeros((3, 5), np.float32)), family="yolov8")
+
+
+def test_an_unknown_family_names_the_known_ones(registry) -> None:
+    with pytest.raises(ValueError, match=r"unknown detector family 'yolov9'; known: yolov8"):
+        registry.get_detector_family("yolov9")
+    with pytest.raises(ValueError, match=r"unknown detector family 'yolov9'; known: yolov8"):
+        PersonDetector(FixedOutputBackend(np.zeros((3, 5), np.float32)), family="yolov9")
+    with pytest.raises(ParamsError, match=r"detector_family = 'yolov9' is not one of \['yolov8'\]"):
+        params_from_values(DetectorParams, {"detector_family": "yolov9"})
+    with pytest.raises(TypeError):
+        registry.register_detector_family("yolov9")
+
+
+def test_yolov8_is_the_default_family() -> None:
+    family = detector_families.get_detector_family(detector_families.DEFAULT_DETECTOR_FAMILY)
+    assert family.name == "yolov8" and family.contract is YOLOV8_CONTRACT
+    inputs, transform = family.preprocess(np.zeros((480, 640, 3), np.uint8))
+    assert list(inputs) == ["images"] and inputs["images"].shape == (1, 3, 640, 640)
+    assert (transform.scale, transform.pad_x, transform.pad_y) == (1.0, 0.0, 80.0)

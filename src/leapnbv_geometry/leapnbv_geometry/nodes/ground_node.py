@@ -1,67 +1,57 @@
 """ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC).
 
 When RANSAC finds no floor (occluders hide it), the floor z = 0 of the camera's pose of the
-same stamp (``camera_pose``: PoseStamped, T_fixed_cameraOptical in a floor-aligned fixed frame,
-from the robot's localization / TF or the simulator) is published instead, marked
+same stamp (T_fixed_cameraOptical in a floor-aligned fixed frame, from the robot's localization /
+TF or the simulator, through the shared camera-pose source: :mod:`leapnbv_common.camera_pose`,
+today the PoseStamped topic ``camera_pose``) is published instead, marked
 ``source = SOURCE_CAMERA_POSE``. A pose of the frame's stamp is waited for briefly (DDS does not
 order topics); without one the invalid plane goes out as before.
+
+Parameters: :class:`leapnbv_geometry.params.GroundParams`; all but the camera-pose source and
+its switch change at runtime (``ros2 param set``).
 """
 from __future__ import annotations
 
 import collections
+import dataclasses
 import time
-from typing import Dict, Optional, Tuple
+from typing import Dict, NamedTuple, Optional, Set, Tuple
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
 
+from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_source
 from leapnbv_common.conversions import (
+    GroundPlaneArrays,
+    arrays_to_ground_plane,
     camera_info_to_k,
     depth_to_metres,
     image_to_numpy,
-    pose_to_numpy,
     stamp_to_ns,
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
-from leapnbv_common.node_params import declare_parameters, run_node
+from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import CompanionWait
-from leapnbv_geometry.ground import (
-    GroundPlaneError,
-    fit_ground_plane,
-    floor_plane_from_camera_pose,
-    ground_points_from_depth,
-)
+from leapnbv_common.topics import GROUND_PLANE, PERSON_MASK
+from leapnbv_geometry.ground import fit_ground_plane, floor_plane_from_camera_pose, ground_points_from_depth
+from leapnbv_geometry.params import GroundParams
 from leapnbv_msgs.msg import GroundPlane
 
-PARAMETERS = {
-    "max_tilt_deg": (30.0, "largest angle between the plane normal and the camera's up (-y): walls are refused"),
-    "min_camera_height": (0.0, "metres: the camera is at least this high above the floor (mounting prior)"),
-    "max_camera_height": (10.0, "metres: the camera is at most this high above the floor (box tops are refused)"),
-    "inlier_threshold": (0.03, "metres from the plane for a point to count as an inlier (at z = 0)"),
-    "depth_noise_coeff": (0.0, "metres per m^2 added to the inlier threshold at depth z (depth noise ~ z^2)"),
-    "iterations": (256, "RANSAC hypotheses per frame (half drawn from neighbouring points)"),
-    "min_inliers": (200, "fewer inliers than this: valid=false"),
-    "min_inlier_ratio": (0.02, "smaller inlier share than this: valid=false"),
-    "max_points": (2048, "points subsampled to score the hypotheses (all points refine the winner)"),
-    "stride": (4, "pixel stride when back-projecting the depth frame"),
-    "min_depth": (0.1, "metres: nearer depth readings are invalid"),
-    "max_depth": (10.0, "metres: farther depth readings are invalid"),
-    "seed": (0, "RANSAC random seed (deterministic results for replay)"),
-    "mask_max_age_s": (1.0, "the person mask is excluded only when it is at most this much older than the depth"),
-    "mask_wait_s": (0.3, "wait this long for the previous frame's person mask before fitting (0 = never)"),
-    "use_camera_pose_fallback": (True, "when RANSAC finds no floor, publish the floor z = 0 of the camera_pose "
-                                       "(PoseStamped in a floor-aligned fixed frame) of the same stamp"),
-    "camera_pose_wait_s": (0.2, "a frame without a RANSAC floor waits this long for its camera_pose before "
-                                "the invalid plane is published (0 = only a pose already received)"),
-}
-
 POSE_CACHE = 30  # camera poses (and frames waiting for theirs) remembered by stamp: ~1 s at 30 Hz
-QUATERNION_TOLERANCE = 1e-3  # | |q| - 1 | of an accepted orientation
 FALLBACK_LOG_EVERY = 100  # log the camera-pose fallback on its first frame and every this many after
+
+
+class FittedFrame(NamedTuple):
+    """One depth frame's RANSAC result, as it waits to be published."""
+
+    plane: GroundPlaneArrays
+    header: Header
+    compute_time_ms: float
+    point_count: int  # the points RANSAC was fitted on
 
 
 class GroundDiagnostics(StageDiagnostics):
@@ -88,42 +78,45 @@ class GroundDiagnostics(StageDiagnostics):
 class GroundNode(Node):
     def __init__(self) -> None:
         super().__init__("ground_node")
-        p = self.params = declare_parameters(self, PARAMETERS)
+        self.params = NodeParams(self, GroundParams, self.on_params_change)
+        p = self.params.value
         self.diagnostics = GroundDiagnostics(self)
         self.camera_info: Optional[CameraInfo] = None
         self.person_mask: Optional[Image] = None
-        self.publisher = self.create_publisher(GroundPlane, "ground_plane", stage_output_qos())
+        self.publisher = self.create_publisher(GroundPlane, GROUND_PLANE, stage_output_qos())
         self.create_subscription(CameraInfo, "depth/camera_info", self.on_camera_info, camera_input_qos(1))
-        self.create_subscription(Image, "person_mask", self.on_mask, stage_input_qos(1))
+        self.create_subscription(Image, PERSON_MASK, self.on_mask, stage_input_qos(1))
         self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(5))
-        self.rng_seed = int(p["seed"])
         # The mask excluded from frame t is the previous frame's. Waiting briefly for it (when
         # masks are flowing) makes the fit independent of message timing, so replays repeat.
         self.previous_depth_stamp: Optional[int] = None
         self.masks_flowing = False
         self.pending: Optional[tuple] = None  # (depth message, arrival ns) waiting for its mask
         # Floors from the camera pose, by stamp; frames without a RANSAC floor wait here for theirs.
-        self.pose_floors = CompanionWait(int(p["camera_pose_wait_s"] * 1e9), capacity=POSE_CACHE)
+        self.pose_floors = CompanionWait(int(p.camera_pose_wait_s * 1e9), capacity=POSE_CACHE)
         self.fallback_count = 0
-        if p["use_camera_pose_fallback"]:
-            self.create_subscription(PoseStamped, "camera_pose", self.on_camera_pose, stage_input_qos(10))
+        self.camera_pose = None
+        if p.use_camera_pose_fallback:
+            self.camera_pose = create_camera_pose_source(p.camera_pose_source, self, POSE_CACHE, self.on_camera_pose)
         self.create_timer(0.02, self.expire_wait)
+
+    def on_params_change(self, params: GroundParams, changed: Set[str]) -> None:
+        """A new pose wait applies to the frames already waiting too; the fit reads its settings per frame."""
+        self.pose_floors.wait_ns = int(params.camera_pose_wait_s * 1e9)
 
     @rejects_bad_input("bad_camera_info")
     def on_camera_info(self, msg: CameraInfo) -> None:
         camera_info_to_k(msg)
         self.camera_info = msg
 
-    @rejects_bad_input("bad_camera_pose")
-    def on_camera_pose(self, msg: PoseStamped) -> None:
-        """Keep the floor of this pose by stamp; a frame waiting for it is published now."""
-        q = msg.pose.orientation
-        norm = float(np.linalg.norm([q.x, q.y, q.z, q.w]))
-        if not abs(norm - 1.0) <= QUATERNION_TOLERANCE:  # NaN fails too
-            raise GroundPlaneError(f"camera pose orientation is not a unit quaternion (|q| = {norm:.4f})")
-        stamp = stamp_to_ns(msg.header.stamp)
-        normal, offset = floor_plane_from_camera_pose(*pose_to_numpy(msg.pose))
-        ready = self.pose_floors.add_companion(stamp, (stamp, normal, offset))
+    def on_camera_pose(self, pose: StampedCameraPose) -> None:
+        """Keep the floor of this pose by stamp; a frame waiting for it is published now.
+
+        Raises:
+            GroundPlaneError: the camera is not above the floor (the source counts it as bad_camera_pose).
+        """
+        normal, offset = floor_plane_from_camera_pose(pose.rotation, pose.position)
+        ready = self.pose_floors.add_companion(pose.stamp_ns, (pose.stamp_ns, normal, offset))
         if ready is not None:
             self.publish_plane(ready[0], ready[1])
 
@@ -140,7 +133,7 @@ class GroundNode(Node):
             depth, self.pending = self.pending[0], None
             self.fit(depth)
         mask_stamp = stamp_to_ns(self.person_mask.header.stamp) if self.person_mask is not None else None
-        if (self.params["mask_wait_s"] > 0 and self.masks_flowing and self.previous_depth_stamp is not None
+        if (self.params.value.mask_wait_s > 0 and self.masks_flowing and self.previous_depth_stamp is not None
                 and mask_stamp != self.previous_depth_stamp):
             self.pending = (msg, self.get_clock().now().nanoseconds)
             return
@@ -151,7 +144,7 @@ class GroundNode(Node):
             self.publish_plane(plane, None)  # no pose of its stamp came: the invalid plane, as before
         if self.pending is None:
             return
-        if self.get_clock().now().nanoseconds - self.pending[1] >= self.params["mask_wait_s"] * 1e9:
+        if self.get_clock().now().nanoseconds - self.pending[1] >= self.params.value.mask_wait_s * 1e9:
             depth, self.pending = self.pending[0], None
             self.masks_flowing = False  # no mask for that frame: do not wait again until one comes
             self.fit(depth)
@@ -163,7 +156,7 @@ class GroundNode(Node):
             return None
         age = (depth_msg.header.stamp.sec - mask.header.stamp.sec) + \
               (depth_msg.header.stamp.nanosec - mask.header.stamp.nanosec) * 1e-9
-        if abs(age) > self.params["mask_max_age_s"]:
+        if abs(age) > self.params.value.mask_max_age_s:
             return None
         return image_to_numpy(mask) > 0
 
@@ -173,63 +166,60 @@ class GroundNode(Node):
         self.previous_depth_stamp = stamp_to_ns(msg.header.stamp)
         if self.camera_info is None:
             raise ValueError("no depth camera_info received yet")
-        p = self.params
+        p = self.params.value
         depth = depth_to_metres(msg)
         if depth.shape != (self.camera_info.height, self.camera_info.width):
             raise ValueError(f"depth {depth.shape[1]}x{depth.shape[0]} does not match camera_info "
                              f"{self.camera_info.width}x{self.camera_info.height}")
         points = ground_points_from_depth(depth, camera_info_to_k(self.camera_info),
-                                          exclude_mask=self.exclusion_mask(msg, depth.shape), stride=p["stride"],
-                                          min_depth=p["min_depth"], max_depth=p["max_depth"])
-        result = fit_ground_plane(points, max_tilt_deg=p["max_tilt_deg"], inlier_threshold=p["inlier_threshold"],
-                                  iterations=p["iterations"], min_inliers=p["min_inliers"],
-                                  min_inlier_ratio=p["min_inlier_ratio"], seed=self.rng_seed,
-                                  max_points=p["max_points"], depth_noise_coeff=p["depth_noise_coeff"],
-                                  camera_height_range=(p["min_camera_height"], p["max_camera_height"]))
-        out = GroundPlane(header=msg.header, offset=float(result.offset), inlier_count=int(result.inlier_count),
-                          inlier_ratio=float(result.inlier_ratio), valid=bool(result.valid),
-                          source=GroundPlane.SOURCE_RANSAC)
-        out.normal.x, out.normal.y, out.normal.z = (float(v) for v in result.normal)
-        out.compute_time_ms = (time.perf_counter() - started) * 1e3
-        if result.valid or not p["use_camera_pose_fallback"]:
-            self.publish_plane((out, len(points)), None)
+                                          exclude_mask=self.exclusion_mask(msg, depth.shape), stride=p.stride,
+                                          min_depth=p.min_depth, max_depth=p.max_depth)
+        result = fit_ground_plane(points, max_tilt_deg=p.max_tilt_deg, inlier_threshold=p.inlier_threshold,
+                                  iterations=p.iterations, min_inliers=p.min_inliers,
+                                  min_inlier_ratio=p.min_inlier_ratio, seed=p.seed, max_points=p.max_points,
+                                  depth_noise_coeff=p.depth_noise_coeff,
+                                  camera_height_range=(p.min_camera_height, p.max_camera_height))
+        plane = GroundPlaneArrays(normal=result.normal, offset=result.offset, valid=result.valid,
+                                  source=GroundPlane.SOURCE_RANSAC, inlier_count=result.inlier_count,
+                                  inlier_ratio=result.inlier_ratio)
+        frame = FittedFrame(plane, msg.header, (time.perf_counter() - started) * 1e3, len(points))
+        if result.valid or not p.use_camera_pose_fallback:
+            self.publish_plane(frame, None)
             return
         # No floor in view: the floor of this frame's camera pose, once it is here (or the wait ran out).
-        ready = self.pose_floors.add_frame(stamp_to_ns(msg.header.stamp), (out, len(points)),
-                                           self.get_clock().now().nanoseconds)
+        ready = self.pose_floors.add_frame(stamp_to_ns(msg.header.stamp), frame, self.get_clock().now().nanoseconds)
         if ready is not None:
             self.publish_plane(ready[0], ready[1])
 
-    def publish_plane(self, plane: Tuple[GroundPlane, int], pose_floor: Optional[tuple]) -> None:
+    def publish_plane(self, frame: FittedFrame, pose_floor: Optional[Tuple[int, np.ndarray, float]]) -> None:
         """Publish a fitted plane; a RANSAC failure becomes the pose's floor when the pose has its stamp.
 
         Args:
-            plane: (the GroundPlane as RANSAC gave it, the number of points it was fitted on).
+            frame: the plane as RANSAC gave it, with its frame's header.
             pose_floor: (stamp ns, normal, offset) of a camera pose, or None.
         """
-        out, n_points = plane
-        if not out.valid and pose_floor is not None and pose_floor[0] == stamp_to_ns(out.header.stamp):
+        plane = frame.plane
+        if not plane.valid and pose_floor is not None and pose_floor[0] == stamp_to_ns(frame.header.stamp):
             _, normal, offset = pose_floor
-            out.normal.x, out.normal.y, out.normal.z = (float(v) for v in normal)
-            out.offset = float(offset)
-            out.valid = True
-            out.source = GroundPlane.SOURCE_CAMERA_POSE
+            plane = dataclasses.replace(plane, normal=normal, offset=offset, valid=True,
+                                        source=GroundPlane.SOURCE_CAMERA_POSE)
             self.fallback_count += 1
             if (self.fallback_count - 1) % FALLBACK_LOG_EVERY == 0:
                 self.get_logger().warning(
-                    f"no floor in view ({out.inlier_count} RANSAC inliers of {n_points} points): published the "
-                    f"floor of the camera pose (height {offset:.3f} m); {self.fallback_count} such frames so far")
-        elif not out.valid:
-            detail = f"{out.inlier_count} inliers of {n_points} points"
-            if self.params["use_camera_pose_fallback"]:
+                    f"no floor in view ({plane.inlier_count} RANSAC inliers of {frame.point_count} points): "
+                    f"published the floor of the camera pose (height {offset:.3f} m); {self.fallback_count} such "
+                    "frames so far")
+        elif not plane.valid:
+            detail = f"{plane.inlier_count} inliers of {frame.point_count} points"
+            if self.params.value.use_camera_pose_fallback:
                 detail += "; no camera pose of this stamp"
             self.diagnostics.reject("no_ground_plane", detail)
-        if not out.valid:
+        if not plane.valid:
             self.diagnostics.plane_out("none")
         else:
-            self.diagnostics.plane_out("camera_pose" if out.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac")
-        self.publisher.publish(out)
-        self.diagnostics.frame_out(out.header.stamp, out.compute_time_ms)
+            self.diagnostics.plane_out("camera_pose" if plane.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac")
+        self.publisher.publish(arrays_to_ground_plane(plane, frame.header, frame.compute_time_ms))
+        self.diagnostics.frame_out(frame.header.stamp, frame.compute_time_ms)
 
 
 def main(args=None) -> None:

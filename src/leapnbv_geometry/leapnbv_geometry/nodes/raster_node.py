@@ -1,63 +1,62 @@
-"""raster_node: HumanMesh + depth (+ the frame's GroundPlane) -> TargetGeometry, mask, metric mesh."""
+"""raster_node: HumanMesh + depth (+ the frame's GroundPlane) -> TargetGeometry, mask, metric mesh.
+
+Parameters: :class:`leapnbv_geometry.params.RasterParams`; all but the depth cache size change at
+runtime (``ros2 param set``).
+"""
 from __future__ import annotations
 
 import time
-from typing import Optional
+from typing import Optional, Set
 
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from leapnbv_common.conversions import (
+    TargetGeometryArrays,
     arrays_to_human_mesh,
+    arrays_to_target_geometry,
     camera_info_to_k,
     depth_to_metres,
+    ground_plane_to_arrays,
     human_mesh_to_arrays,
     numpy_to_image,
-    point_msg,
     stamp_to_ns,
-    xyz_to_pointcloud2,
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
-from leapnbv_common.node_params import declare_parameters, run_node
+from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import CompanionWait, StampCache
+from leapnbv_common.topics import GROUND_PLANE, HUMAN_MESH, HUMAN_MESH_METRIC, PERSON_MASK, TARGET_GEOMETRY
+from leapnbv_geometry.params import RasterParams
 from leapnbv_geometry.raster import warm_up
 from leapnbv_geometry.target_geometry import compute_target_geometry, place_mesh_metric
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry
-
-PARAMETERS = {
-    "slop_s": (0.005, "largest stamp difference between a mesh and the depth frame it is paired with"),
-    "depth_wait_s": (1.0, "how long a mesh waits for its depth frame before it is dropped and counted"),
-    "depth_cache_size": (15, "depth frames kept while their meshes are computed"),
-    "ground_wait_s": (1.0, "how long a frame waits for the ground plane of the same stamp, then uses the latest"),
-    "box_dilation_px": (10.0, "the detection box is grown by this much before intersecting the silhouette"),
-    "depth_tolerance": (0.15, "metres: mask pixels farther than this from the aligned mesh depth are dropped"),
-    "min_depth": (0.1, "metres: nearer depth readings are invalid"),
-    "max_depth": (10.0, "metres: farther depth readings are invalid"),
-    "background_stride": (4, "pixel stride of the background point set"),
-    "ground_inlier_threshold": (0.03, "metres: background points this close to the ground plane are dropped"),
-}
 
 
 class RasterNode(Node):
     def __init__(self) -> None:
         super().__init__("raster_node")
-        p = self.params = declare_parameters(self, PARAMETERS)
+        self.params = NodeParams(self, RasterParams, self.on_params_change)
+        p = self.params.value
         self.diagnostics = StageDiagnostics(self)
-        self.depth_frames: StampCache = StampCache(p["depth_cache_size"])
+        self.depth_frames: StampCache = StampCache(p.depth_cache_size)
         self.pending_meshes: StampCache = StampCache(5)  # meshes that came before their depth
-        self.ground = CompanionWait(int(p["ground_wait_s"] * 1e9))
+        self.ground = CompanionWait(int(p.ground_wait_s * 1e9))
         self.camera_info: Optional[CameraInfo] = None
-        self.target_pub = self.create_publisher(TargetGeometry, "target_geometry", stage_output_qos())
-        self.mask_pub = self.create_publisher(Image, "person_mask", stage_output_qos())
-        self.mesh_pub = self.create_publisher(HumanMesh, "human_mesh_metric", stage_output_qos())
+        self.target_pub = self.create_publisher(TargetGeometry, TARGET_GEOMETRY, stage_output_qos())
+        self.mask_pub = self.create_publisher(Image, PERSON_MASK, stage_output_qos())
+        self.mesh_pub = self.create_publisher(HumanMesh, HUMAN_MESH_METRIC, stage_output_qos())
         warm_up()  # compile the rasterizer before subscribing: the graph is ready only after it
-        self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(p["depth_cache_size"]))
+        self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(p.depth_cache_size))
         self.create_subscription(CameraInfo, "depth/camera_info", self.on_camera_info, camera_input_qos(1))
-        self.create_subscription(HumanMesh, "human_mesh", self.on_mesh, stage_input_qos(5))
-        self.create_subscription(GroundPlane, "ground_plane", self.on_ground, stage_input_qos(5))
+        self.create_subscription(HumanMesh, HUMAN_MESH, self.on_mesh, stage_input_qos(5))
+        self.create_subscription(GroundPlane, GROUND_PLANE, self.on_ground, stage_input_qos(5))
         self.create_timer(0.02, self.expire_waits)
+
+    def on_params_change(self, params: RasterParams, changed: Set[str]) -> None:
+        """A new ground wait applies to the frames already waiting too; the rest is read per frame."""
+        self.ground.wait_ns = int(params.ground_wait_s * 1e9)
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -71,7 +70,7 @@ class RasterNode(Node):
         stamp = stamp_to_ns(msg.header.stamp)
         self.depth_frames.put(stamp, msg)
         # A mesh that came first pairs with this depth under the same slop as the other order.
-        waiting = self.pending_meshes.find_nearest(stamp, int(self.params["slop_s"] * 1e9))
+        waiting = self.pending_meshes.find_nearest(stamp, int(self.params.value.slop_s * 1e9))
         if waiting is not None:
             self.pending_meshes.pop(waiting[0])
             self.pair_with_ground(waiting[1][0], msg)
@@ -85,7 +84,7 @@ class RasterNode(Node):
     def on_mesh(self, msg: HumanMesh) -> None:
         self.diagnostics.frame_in()
         stamp = stamp_to_ns(msg.header.stamp)
-        match = self.depth_frames.find_nearest(stamp, int(self.params["slop_s"] * 1e9))
+        match = self.depth_frames.find_nearest(stamp, int(self.params.value.slop_s * 1e9))
         if match is None:
             # The depth frame may still be on its way: wait for it a little (expire_waits).
             self.pending_meshes.put(stamp, (msg, self.now_ns()))
@@ -104,7 +103,7 @@ class RasterNode(Node):
         # Meshes whose depth never came (dropped on the way) are counted, never mismatched.
         now = self.now_ns()
         for stamp, (_, since) in self.pending_meshes.items():
-            if now - since > self.params["depth_wait_s"] * 1e9:
+            if now - since > self.params.value.depth_wait_s * 1e9:
                 self.pending_meshes.pop(stamp)
                 self.diagnostics.reject("no_matching_depth", f"no depth frame within the slop of stamp {stamp} ns")
 
@@ -113,7 +112,7 @@ class RasterNode(Node):
         started = time.perf_counter()
         if self.camera_info is None:
             raise ValueError("no depth camera_info received yet")
-        p = self.params
+        p = self.params.value
         k = camera_info_to_k(self.camera_info)
         depth = depth_to_metres(depth_msg)
         if depth.shape != (self.camera_info.height, self.camera_info.width):
@@ -122,35 +121,30 @@ class RasterNode(Node):
         mesh = human_mesh_to_arrays(mesh_msg)
         vertices = place_mesh_metric(mesh.vertices, mesh.virtual_intrinsics, k, mesh.cam_translation)
         plane = None
-        if ground is not None and ground.valid:
-            plane = (np.array([ground.normal.x, ground.normal.y, ground.normal.z]), float(ground.offset))
+        if ground is not None:
+            floor = ground_plane_to_arrays(ground)
+            plane = (floor.normal, floor.offset) if floor.valid else None
         result = compute_target_geometry(
-            vertices, mesh.faces, depth, k, mesh.detection[:4], box_dilation_px=p["box_dilation_px"],
-            depth_tolerance=p["depth_tolerance"], min_depth=p["min_depth"], max_depth=p["max_depth"],
-            background_stride=p["background_stride"], ground_plane=plane,
-            ground_inlier_threshold=p["ground_inlier_threshold"])
+            vertices, mesh.faces, depth, k, mesh.detection[:4], box_dilation_px=p.box_dilation_px,
+            depth_tolerance=p.depth_tolerance, min_depth=p.min_depth, max_depth=p.max_depth,
+            background_stride=p.background_stride, ground_plane=plane,
+            ground_inlier_threshold=p.ground_inlier_threshold)
         header = depth_msg.header
         header.stamp = mesh_msg.header.stamp  # outputs carry the stamp of the frame the mesh came from
-        out = TargetGeometry(header=header)
-        out.target_points = xyz_to_pointcloud2(result.target_points, header)
-        out.background_points = xyz_to_pointcloud2(result.background_points, header)
-        out.centroid = point_msg(result.centroid if result.valid else np.zeros(3))
-        out.bbox_min = point_msg(result.bbox_min if result.valid else np.zeros(3))
-        out.bbox_max = point_msg(result.bbox_max if result.valid else np.zeros(3))
-        out.mask_pixel_count = int(result.mask_pixel_count)
-        out.visible_fraction = float(result.visible_fraction)
-        out.depth_offset = float(result.depth_offset)
-        out.valid = bool(result.valid)
-        out.camera_info = self.camera_info
-        out.compute_time_ms = (time.perf_counter() - started) * 1e3
+        target = TargetGeometryArrays(
+            target_points=result.target_points, background_points=result.background_points,
+            centroid=result.centroid, bbox_min=result.bbox_min, bbox_max=result.bbox_max,  # zeros when not valid
+            mask_pixel_count=result.mask_pixel_count, visible_fraction=result.visible_fraction,
+            depth_offset=result.depth_offset, valid=result.valid, k=k, width=depth.shape[1], height=depth.shape[0])
+        compute_time_ms = (time.perf_counter() - started) * 1e3
         if not result.valid:
             self.diagnostics.reject("empty_target", result.invalid_reason)
-        self.target_pub.publish(out)
+        self.target_pub.publish(arrays_to_target_geometry(target, header, compute_time_ms))
         self.mask_pub.publish(numpy_to_image(result.mask.astype(np.uint8) * 255, "mono8", header))
         mesh.vertices = result.metric_vertices.astype(np.float32)
         mesh.virtual_intrinsics = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-        self.mesh_pub.publish(arrays_to_human_mesh(mesh, header, out.compute_time_ms))
-        self.diagnostics.frame_out(header.stamp, out.compute_time_ms)
+        self.mesh_pub.publish(arrays_to_human_mesh(mesh, header, compute_time_ms))
+        self.diagnostics.frame_out(header.stamp, compute_time_ms)
 
 
 def main(args=None) -> None:

@@ -40,25 +40,30 @@ class TensorSpec:
 class EngineBackend(abc.ABC):
     """One loaded model that maps named numpy inputs to named numpy outputs.
 
-    Implementations: `OnnxRuntimeBackend` (CPU and tests), `TensorRTBackend` (Jetson).
+    Implementations: `OnnxRuntimeBackend` (CPU and tests), `TensorRTBackend` (Jetson). Each sets
+    ``model_path``, ``_inputs`` and ``_outputs`` (name -> TensorSpec, in model order) and
+    ``_precision`` when it loads its model, and implements ``run``.
     """
 
     model_path: str = ""
+    _inputs: Mapping[str, TensorSpec]
+    _outputs: Mapping[str, TensorSpec]
+    _precision: str
 
     @property
-    @abc.abstractmethod
     def input_specs(self) -> Mapping[str, TensorSpec]:
         """Model inputs: name -> TensorSpec, in model order."""
+        return self._inputs
 
     @property
-    @abc.abstractmethod
     def output_specs(self) -> Mapping[str, TensorSpec]:
         """Model outputs: name -> TensorSpec, in model order."""
+        return self._outputs
 
     @property
-    @abc.abstractmethod
     def precision(self) -> str:
         """Arithmetic the engine runs in: "fp32" or "fp16"."""
+        return self._precision
 
     @abc.abstractmethod
     def run(self, inputs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:

@@ -74,18 +74,6 @@ class OnnxRuntimeBackend(EngineBackend):
         self._precision = precision
 
     @property
-    def input_specs(self) -> Mapping[str, TensorSpec]:
-        return self._inputs
-
-    @property
-    def output_specs(self) -> Mapping[str, TensorSpec]:
-        return self._outputs
-
-    @property
-    def precision(self) -> str:
-        return self._precision
-
-    @property
     def providers(self) -> Sequence[str]:
         """Providers the session actually uses."""
         return self._session.get_providers()

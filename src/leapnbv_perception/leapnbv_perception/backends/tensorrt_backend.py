@@ -416,18 +416,6 @@ class TensorRTBackend(EngineBackend):
             self._bindings = [self._device[name] for name in self._adapter.binding_order(self._engine)]
 
     @property
-    def input_specs(self) -> Mapping[str, TensorSpec]:
-        return self._inputs
-
-    @property
-    def output_specs(self) -> Mapping[str, TensorSpec]:
-        return self._outputs
-
-    @property
-    def precision(self) -> str:
-        return self._precision
-
-    @property
     def uses_tensor_api(self) -> bool:
         """True when the engine runs through the TensorRT 10 tensor API."""
         return self._tensor_api

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import Any, Callable, Optional
 
+from leapnbv_perception.params import EngineParams
+
 
 class RetryingLoader:
     """Calls `load()` now and again every `retry_period_s` until it succeeds.
@@ -37,3 +39,12 @@ class RetryingLoader:
     def _retry(self) -> None:
         if self.try_load() and self._timer is not None:
             self._timer.cancel()
+
+
+def create_engine_backend(params: EngineParams):
+    """The engine backend an EngineParams instance names (onnxruntime or tensorrt) for its model file."""
+    from leapnbv_perception.backends import create_backend
+
+    return create_backend(params.backend, params.model_file_path, precision=params.precision,
+                          providers=list(params.providers), engine_cache_dir=params.engine_cache_dir or None,
+                          intra_op_threads=params.intra_op_threads)

@@ -1,0 +1,95 @@
+"""The parameters of raster_node and ground_node: one source of each default, description and range.
+
+The defaults are the deployed robot's (the ground priors describe its camera mounting).
+Parameters the node builds its subscriptions or caches from are read-only: set at start-up.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from leapnbv_common.params import param
+
+WAIT_MAX_S = 10.0
+MAX_RANGE_M = 100.0
+MIN_RANGE_M = 0.001  # depth 0 is "no return": the valid range starts above it
+
+
+def check_depth_range(min_depth: float, max_depth: float) -> None:
+    """Raises ValueError unless min_depth < max_depth."""
+    if not min_depth < max_depth:
+        raise ValueError(f"min_depth ({min_depth}) must be below max_depth ({max_depth})")
+
+
+@dataclass
+class RasterParams:
+    """raster_node: HumanMesh + depth (+ the frame's GroundPlane) -> TargetGeometry, person mask, metric mesh."""
+
+    slop_s: float = param(0.005, "s: largest stamp difference between a mesh and the depth frame it is paired with",
+                          min=0.0, max=1.0)
+    depth_wait_s: float = param(1.0, "s: how long a mesh waits for its depth frame before it is dropped and counted",
+                                min=0.0, max=WAIT_MAX_S)
+    depth_cache_size: int = param(15, "depth frames kept while their meshes are computed", min=1, max=1000,
+                                  read_only=True)
+    ground_wait_s: float = param(1.0, "s: how long a frame waits for the ground plane of the same stamp, then uses "
+                                 "the latest", min=0.0, max=WAIT_MAX_S)
+    box_dilation_px: float = param(10.0, "px: the detection box is grown by this much before intersecting the "
+                                   "silhouette", min=0.0, max=1000.0)
+    depth_tolerance: float = param(0.15, "metres: mask pixels farther than this from the aligned mesh depth are "
+                                   "dropped", min=MIN_RANGE_M, max=10.0)
+    min_depth: float = param(0.1, "metres: nearer depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
+    max_depth: float = param(10.0, "metres: farther depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
+    background_stride: int = param(4, "px: pixel stride of the background point set", min=1, max=64)
+    ground_inlier_threshold: float = param(0.03, "metres: background points this close to the ground plane are "
+                                           "dropped", min=0.0, max=1.0)
+
+    def check(self) -> None:
+        check_depth_range(self.min_depth, self.max_depth)
+
+
+@dataclass
+class GroundParams:
+    """ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC, or the camera
+    pose's floor)."""
+
+    # The camera's mounting on the robot: pitched at most ~20 deg, 0.8-1.6 m above the floor (the simulated
+    # robot's camera is at 1.0-1.4 m). These priors keep box tops and walls out.
+    max_tilt_deg: float = param(25.0, "deg: largest angle between the plane normal and the camera's up (-y): walls "
+                                "are refused", min=0.0, max=90.0)
+    min_camera_height: float = param(0.8, "metres: the camera is at least this high above the floor (mounting prior)",
+                                     min=0.0, max=MAX_RANGE_M)
+    max_camera_height: float = param(1.6, "metres: the camera is at most this high above the floor (box tops are "
+                                     "refused)", min=0.0, max=MAX_RANGE_M)
+    inlier_threshold: float = param(0.03, "metres from the plane for a point to count as an inlier (at z = 0)",
+                                    min=MIN_RANGE_M, max=1.0)
+    depth_noise_coeff: float = param(0.0, "metres per m^2 added to the inlier threshold at depth z (depth noise ~ "
+                                     "z^2)", min=0.0, max=1.0)
+    iterations: int = param(256, "RANSAC hypotheses per frame (half drawn from neighbouring points)", min=1,
+                            max=100000)
+    min_inliers: int = param(200, "fewer inliers than this: valid=false", min=0, max=10000000)
+    min_inlier_ratio: float = param(0.02, "smaller inlier share than this: valid=false", min=0.0, max=1.0)
+    max_points: int = param(2048, "points subsampled to score the hypotheses (all points refine the winner)", min=3,
+                            max=1000000)
+    stride: int = param(4, "px: pixel stride when back-projecting the depth frame", min=1, max=64)
+    min_depth: float = param(0.1, "metres: nearer depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
+    max_depth: float = param(10.0, "metres: farther depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
+    seed: int = param(0, "RANSAC random seed (deterministic results for replay)", min=0, max=2**31 - 1)
+    mask_max_age_s: float = param(1.0, "s: the person mask is excluded only when it is at most this much older than "
+                                  "the depth", min=0.0, max=60.0)
+    mask_wait_s: float = param(0.3, "s: wait this long for the previous frame's person mask before fitting "
+                               "(0 = never)", min=0.0, max=WAIT_MAX_S)
+    # Occluders can hide all the floor: then the floor z = 0 of the frame's camera pose keeps the planner going.
+    use_camera_pose_fallback: bool = param(True, "when RANSAC finds no floor, publish the floor z = 0 of the camera "
+                                           "pose (in a floor-aligned fixed frame) of the same stamp", read_only=True)
+    camera_pose_source: str = param("topic", "where the camera pose comes from: a key of "
+                                    "leapnbv_common.camera_pose.CAMERA_POSE_SOURCES (topic: PoseStamped on "
+                                    "camera_pose)", read_only=True)
+    # The pose is published before the frame's images, but DDS does not order topics: wait this long for it.
+    camera_pose_wait_s: float = param(0.2, "s: a frame without a RANSAC floor waits this long for its camera pose "
+                                      "before the invalid plane is published (0 = only a pose already received)",
+                                      min=0.0, max=WAIT_MAX_S)
+
+    def check(self) -> None:
+        check_depth_range(self.min_depth, self.max_depth)
+        if not self.min_camera_height <= self.max_camera_height:
+            raise ValueError(f"min_camera_height ({self.min_camera_height}) must not exceed max_camera_height "
+                             f"({self.max_camera_height})")

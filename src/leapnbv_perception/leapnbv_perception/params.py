@@ -1,0 +1,69 @@
+"""The parameters of detector_node and hmr_node: one source of each default, description and range.
+
+The defaults are the deployed robot's, except where the engine lives: the model paths, the
+backend and the precision are the robot's own (its params file names them). Parameters the node
+builds its engine or its subscriptions from are read-only: set at start-up.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List
+
+from leapnbv_common.params import param
+from leapnbv_perception.detector_families import DEFAULT_DETECTOR_FAMILY, detector_family_names
+
+ENGINE_BACKENDS = ("onnxruntime", "tensorrt", "ground_truth")
+PRECISIONS = ("fp16", "fp32")
+THREADS_MAX = 256
+RETRY_PERIOD_MAX_S = 3600.0
+
+
+@dataclass
+class EngineParams:
+    """What every engine-running node takes: the backend and how it runs (all fixed at start-up)."""
+
+    backend: str = param("onnxruntime", "onnxruntime (CPU), tensorrt (Jetson) or ground_truth (the simulator's "
+                         "truth instead of an engine)", choices=ENGINE_BACKENDS, read_only=True)
+    model_file_path: str = param("", "the engine's ONNX model", read_only=True)
+    engine_cache_dir: str = param("", "TensorRT engine cache folder (default: beside the ONNX file)", read_only=True)
+    precision: str = param("fp16", "TensorRT precision (onnxruntime runs the model as exported)",
+                           choices=PRECISIONS, read_only=True)
+    providers: List[str] = param(["CPUExecutionProvider"], "onnxruntime execution providers, in order of preference",
+                                 read_only=True)
+    intra_op_threads: int = param(1, "onnxruntime intra-op threads (0 = its default)", min=0, max=THREADS_MAX,
+                                  read_only=True)
+    model_retry_period_s: float = param(5.0, "s: retry loading a missing or broken model this often (0 = never)",
+                                        min=0.0, max=RETRY_PERIOD_MAX_S, read_only=True)
+
+
+@dataclass
+class DetectorParams(EngineParams):
+    """detector_node: colour image -> PersonDetections."""
+
+    model_file_path: str = param("", "detector ONNX export (yolov8: input 'images' 1x3x640x640, output 'output0' "
+                                 "1x84x8400)", read_only=True)
+    detector_family: str = param(DEFAULT_DETECTOR_FAMILY, "output layout of the exported detector: one of "
+                                 + ", ".join(detector_family_names()) + " (leapnbv_perception.detector_families)",
+                                 read_only=True)
+    score_threshold: float = param(0.25, "minimum person score", min=0.0, max=1.0)
+    iou_threshold: float = param(0.5, "NMS IoU threshold (ultralytics uses 0.7; 0.5 suits people)", min=0.0, max=1.0)
+    max_detections: int = param(20, "most person boxes per frame", min=1, max=1000)
+
+    def check(self) -> None:
+        if self.detector_family not in detector_family_names():
+            raise ValueError(f"detector_family = {self.detector_family!r} is not one of {detector_family_names()}")
+
+
+@dataclass
+class HmrParams(EngineParams):
+    """hmr_node: image + PersonDetections -> HumanMesh of the target person (the SMPL-X tail always runs FP32)."""
+
+    model_file_path: str = param("", "SMPLer-X student ONNX (encoder + heads; see README for the tensor names)",
+                                 read_only=True)
+    body_model_path: str = param("", "SMPL-X body model .npz (SMPLX_NEUTRAL.npz, or the stand-in model)",
+                                 read_only=True)
+    box_scale: float = param(1.25, "crop box scale about its centre (SMPLer-X 1.25, SMPLest-X 1.2)", min=1.0, max=3.0)
+    unmirror_left_hand: bool = param(True, "un-mirror the left hand (SMPLer-X: true, SMPLest-X: false)")
+    track_previous_target: bool = param(True, "follow the person who overlaps the last target, else the best score")
+    min_track_iou: float = param(0.3, "overlap with the last target needed to keep following it", min=0.0, max=1.0)
+    cache_size: int = param(10, "images kept while waiting for their detections", min=1, max=1000, read_only=True)
