@@ -12,6 +12,8 @@ from typing import Callable, Dict, Iterator, List, Optional
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Header
 
 from leapnbv_bringup.graph import default_params_file
@@ -167,3 +169,12 @@ def header_factory(frame_id: str) -> Callable[..., Header]:
 def by_stamp(messages: list, key: tuple) -> list:
     """The messages whose header has the stamp key."""
     return [m for m in messages if stamp_key(m.header) == key]
+
+
+def set_parameters(probe: Probe, node: str, **values) -> list:
+    """``ros2 param set`` over DDS on the node ``node`` (full name): the SetParametersResult of each value."""
+    client = AsyncParameterClient(probe.node, node)
+    assert client.wait_for_services(10.0), f"{node} parameter services"
+    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
+    assert probe.spin_until(future.done, 10.0), f"setting parameters of {node} timed out"
+    return list(future.result().results)

@@ -13,9 +13,7 @@ rclpy = pytest.importorskip("rclpy")
 import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from node_harness import NS, by_stamp, diag_value, send_until, stamp_key  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from node_harness import NS, by_stamp, diag_value, send_until, set_parameters, stamp_key  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
@@ -417,19 +415,10 @@ def test_ground_rejects_a_bad_camera_pose_and_keeps_serving(graph):
 # ----------------------------------------------------------------------------- parameters at runtime
 
 
-def set_parameters(probe, node: str, **values) -> list:
-    """``ros2 param set`` over DDS: the SetParametersResult of each value, in order."""
-    client = AsyncParameterClient(probe.node, f"{NS}/{node}")
-    assert client.wait_for_services(10.0)
-    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
-    assert probe.spin_until(future.done, 10.0)
-    return future.result().results
-
-
 def test_raster_applies_a_wider_slop_at_runtime_and_refuses_an_empty_depth_range(graph, scene):
     probe = graph["probe"]
     frame = scene["frames"][1]
-    (result,) = set_parameters(probe, "raster_node", slop_s=0.1)
+    (result,) = set_parameters(probe, f"{NS}/raster_node", slop_s=0.1)
     assert result.successful, result.reason
     try:
         # 50 ms apart: dropped under the default 5 ms slop (see above), paired under 100 ms.
@@ -441,29 +430,29 @@ def test_raster_applies_a_wider_slop_at_runtime_and_refuses_an_empty_depth_range
                           lambda: by_stamp(graph["targets"], key), 15.0)
         assert by_stamp(graph["targets"], key)[0].valid
     finally:
-        assert set_parameters(probe, "raster_node", slop_s=0.005)[0].successful
-    (empty,) = set_parameters(probe, "raster_node", min_depth=20.0)
+        assert set_parameters(probe, f"{NS}/raster_node", slop_s=0.005)[0].successful
+    (empty,) = set_parameters(probe, f"{NS}/raster_node", min_depth=20.0)
     assert not empty.successful and "min_depth (20.0) must be below max_depth (10.0)" in empty.reason
-    (fixed,) = set_parameters(probe, "raster_node", depth_cache_size=3)
+    (fixed,) = set_parameters(probe, f"{NS}/raster_node", depth_cache_size=3)
     assert not fixed.successful and "depth_cache_size" in fixed.reason
     assert graph["procs"][f"{NS}/raster_node"].poll() is None
 
 
 def test_ground_refuses_invalid_settings_and_applies_ransac_settings_at_runtime(graph, scene):
     probe = graph["probe"]
-    (heights,) = set_parameters(probe, "ground_node", min_camera_height=2.0)
+    (heights,) = set_parameters(probe, f"{NS}/ground_node", min_camera_height=2.0)
     assert not heights.successful and "must not exceed max_camera_height" in heights.reason
-    (source,) = set_parameters(probe, "ground_node", camera_pose_source="tf")
+    (source,) = set_parameters(probe, f"{NS}/ground_node", camera_pose_source="tf")
     assert not source.successful and "camera_pose_source" in source.reason
     depths = {key: numpy_to_image(scene["frames"][0].depth_mm, "16UC1", make_header(*key))
               for key in ((710, 0), (711, 0))}
     # The floor is in view, but no plane can have that many inliers: invalid until the setting is back.
-    assert set_parameters(probe, "ground_node", min_inliers=10_000_000)[0].successful
+    assert set_parameters(probe, f"{NS}/ground_node", min_inliers=10_000_000)[0].successful
     try:
         assert send_until(probe, lambda: send_depth(graph, depths[(710, 0)]),
                           lambda: by_stamp(graph["planes"], (710, 0)), 15.0)
     finally:
-        assert set_parameters(probe, "ground_node", min_inliers=200)[0].successful
+        assert set_parameters(probe, f"{NS}/ground_node", min_inliers=200)[0].successful
     assert send_until(probe, lambda: send_depth(graph, depths[(711, 0)]),
                       lambda: by_stamp(graph["planes"], (711, 0)), 15.0)
     assert not by_stamp(graph["planes"], (710, 0))[0].valid and by_stamp(graph["planes"], (711, 0))[0].valid

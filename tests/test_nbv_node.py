@@ -12,9 +12,7 @@ rclpy = pytest.importorskip("rclpy")
 import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from node_harness import NS, by_stamp, diag_value, read_log, stamp_key  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from node_harness import NS, by_stamp, diag_value, read_log, set_parameters, stamp_key  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
@@ -99,7 +97,6 @@ def graph(tmp_path_factory):
             "goals": probe.collect(PoseStamped, f"{NS}/next_best_view", latched_goal_qos()),
             "base_goals": probe.collect(PoseStamped, f"{NS}/base_goal", latched_goal_qos()),
             "markers": probe.collect(MarkerArray, f"{NS}/markers"),
-            "params": AsyncParameterClient(probe.node, f"{NS}/nbv_node"),
         }
         harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: g["target_pub"].get_subscription_count() >= 1
@@ -152,15 +149,6 @@ def deployed_params():
 
 def deployed_ring_radius() -> float:
     return float(deployed_params().radius)
-
-
-def set_parameters(graph: dict, **values) -> list:
-    """Set parameters of the running node through its parameter service; the SetParametersResult of each."""
-    client = graph["params"]
-    assert client.wait_for_services(10.0), "nbv_node parameter services"
-    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
-    assert graph["probe"].spin_until(future.done, 10.0), "set_parameters timed out"
-    return list(future.result().results)
 
 
 def plan_frame(graph: dict, sec: int) -> ViewCandidates:
@@ -330,7 +318,7 @@ def test_deployed_yaml_values_are_the_defaults():
 
 
 def test_runtime_parameter_change_applies_to_the_next_plan(graph, planned):
-    (result,) = set_parameters(graph, radius=2.0)
+    (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", radius=2.0)
     assert result.successful, result.reason
     try:
         views = plan_frame(graph, 400)
@@ -339,26 +327,26 @@ def test_runtime_parameter_change_applies_to_the_next_plan(graph, planned):
         foot = position - plane_distance(position) * UP
         assert np.linalg.norm(foot - point_to_numpy(views.ring_center)) == pytest.approx(2.0, abs=1e-3)
     finally:
-        (result,) = set_parameters(graph, radius=deployed_ring_radius())
+        (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", radius=deployed_ring_radius())
         assert result.successful, result.reason
 
     # Only the occlusion term, weight 1: the score is S_o.
-    results = set_parameters(graph, score_terms=["occlusion"], weight_occlusion=1.0)
+    results = set_parameters(graph["probe"], f"{NS}/nbv_node", score_terms=["occlusion"], weight_occlusion=1.0)
     assert all(r.successful for r in results), [r.reason for r in results]
     try:
         views = plan_frame(graph, 401)
         assert list(views.term_names) == ["occlusion"]
         np.testing.assert_allclose(views.score, views.term_scores, atol=1e-7)
     finally:
-        results = set_parameters(graph, score_terms=DEFAULT_SCORE_TERMS,
+        results = set_parameters(graph["probe"], f"{NS}/nbv_node", score_terms=DEFAULT_SCORE_TERMS,
                                  weight_occlusion=deployed_params().weight_occlusion)
         assert all(r.successful for r in results), [r.reason for r in results]
     views = plan_frame(graph, 402)
     assert list(views.term_names) == DEFAULT_SCORE_TERMS and views.ring_radius == pytest.approx(deployed_ring_radius())
 
-    (result,) = set_parameters(graph, ground_wait_s=0.5)  # rebuilds the ground wait
+    (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", ground_wait_s=0.5)  # rebuilds the ground wait
     assert result.successful, result.reason
-    (result,) = set_parameters(graph, ground_wait_s=deployed_params().ground_wait_s)
+    (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", ground_wait_s=deployed_params().ground_wait_s)
     assert result.successful, result.reason
 
 
@@ -375,7 +363,7 @@ REFUSED_FRAME_SECONDS = itertools.count(410)
     ("camera_pose_cache", 5, "read-only"),
 ])
 def test_invalid_parameter_change_is_refused_with_the_reason(graph, planned, name, value, reason):
-    (result,) = set_parameters(graph, **{name: value})
+    (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", **{name: value})
     assert not result.successful and reason in result.reason, result.reason
     views = plan_frame(graph, next(REFUSED_FRAME_SECONDS))  # still planning with the old values
     assert list(views.term_names) == DEFAULT_SCORE_TERMS and views.ring_radius == pytest.approx(deployed_ring_radius())
@@ -471,7 +459,7 @@ def test_obstacle_map_resolution_change_rebuilds_the_map(graph, planned):
     (plain,) = by_stamp(graph["candidates"], planned["key"])
     pose_pub = probe.node.create_publisher(PoseStamped, f"{NS}/camera_pose", output_qos(10))
     assert probe.spin_until(lambda: pose_pub.get_subscription_count() >= 1, 5.0)
-    (result,) = set_parameters(graph, obstacle_map_resolution=0.2)
+    (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", obstacle_map_resolution=0.2)
     assert result.successful, result.reason
     assert "obstacle map rebuilt" in read_log(graph["procs"][f"{NS}/nbv_node"])
     try:
@@ -484,5 +472,6 @@ def test_obstacle_map_resolution_change_rebuilds_the_map(graph, planned):
         (mapped,) = by_stamp(graph["candidates"], key)
         assert not mapped.feasible[plain.chosen_index]
     finally:
-        (result,) = set_parameters(graph, obstacle_map_resolution=deployed_params().obstacle_map_resolution)
+        resolution = deployed_params().obstacle_map_resolution
+        (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", obstacle_map_resolution=resolution)
         assert result.successful, result.reason

@@ -9,9 +9,7 @@ rclpy = pytest.importorskip("rclpy")
 
 import node_harness as harness  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
-from node_harness import NS, by_stamp, diag_value, read_log, send_until, stamp_key  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from node_harness import NS, by_stamp, diag_value, read_log, send_until, set_parameters, stamp_key  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
@@ -279,15 +277,6 @@ def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph):
 
 
 # ----------------------------------------------------------------------------- parameters at runtime
-
-
-def set_parameters(probe, node: str, **values) -> list:
-    """``ros2 param set`` over DDS: the SetParametersResult of each value, in order."""
-    client = AsyncParameterClient(probe.node, node)
-    assert client.wait_for_services(10.0)
-    future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
-    assert probe.spin_until(future.done, 10.0)
-    return future.result().results
 
 
 def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(graph):

@@ -91,14 +91,15 @@ def image_to_rgb(msg: Image) -> np.ndarray:
 def depth_to_metres(msg: Image) -> np.ndarray:
     """(H, W) float32 depth in metres from a 16UC1 (millimetres) or 32FC1 (metres) Image.
 
-    Invalid readings (0, NaN, inf) become 0.0, the project's "no return" value.
+    Invalid readings (0, NaN, inf, and negative 32FC1 values) become 0.0, the project's "no return"
+    value: a depth camera never measures a surface behind itself.
     """
     image = image_to_numpy(msg)
     if msg.encoding in ("16UC1", "mono16"):
         return image.astype(np.float32) * np.float32(0.001)
     if msg.encoding == "32FC1":
         depth = np.array(image, dtype=np.float32)
-        depth[~np.isfinite(depth)] = 0.0
+        depth[~(np.isfinite(depth) & (depth > 0.0))] = 0.0
         return depth
     raise ConversionError(f"depth image expected (16UC1 or 32FC1), got {msg.encoding!r}")
 

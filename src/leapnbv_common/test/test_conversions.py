@@ -46,10 +46,10 @@ def test_big_endian_16uc1_depth_in_metres():
     np.testing.assert_allclose(cv.depth_to_metres(msg), [[1.0, 2.5], [0.0, 65.535]], rtol=1e-6)
 
 
-def test_32fc1_nan_and_inf_become_no_return():
-    depth = np.array([[1.5, np.nan], [np.inf, 0.0]], dtype=np.float32)
+def test_32fc1_nan_inf_and_negative_become_no_return():
+    depth = np.array([[1.5, np.nan], [np.inf, 0.0], [-0.5, 2.0]], dtype=np.float32)
     out = cv.depth_to_metres(cv.numpy_to_image(depth, "32FC1"))
-    np.testing.assert_array_equal(out, [[1.5, 0.0], [0.0, 0.0]])
+    np.testing.assert_array_equal(out, [[1.5, 0.0], [0.0, 0.0], [0.0, 2.0]])
 
 
 def test_padded_rows_are_skipped():
