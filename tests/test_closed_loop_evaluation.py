@@ -26,8 +26,8 @@ from leapnbv_evaluation.evaluation import (  # noqa: E402
     write_outputs,
 )
 from leapnbv_msgs.msg import SceneGroundTruth  # noqa: E402
-from leapnbv_sim.nodes.simulator_node import CameraMotion, interpolate_camera_pose  # noqa: E402
-from leapnbv_sim.scene import look_at_pose  # noqa: E402
+from leapnbv_sim.poses import look_at_pose  # noqa: E402
+from leapnbv_sim.simulator import CameraMotion, interpolate_camera_pose  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

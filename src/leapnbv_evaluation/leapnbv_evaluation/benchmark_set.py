@@ -5,7 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, List, Optional
 
-from leapnbv_sim.scene import Scene, SceneConfig, SceneError, generate_scene
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.scene import Scene, SceneError
 
 #: The scene config of the benchmark (its seed is replaced per scene): the defaults plus 2-4
 #: pieces of furniture (shelves, cabinets, standing screens; 0.4-1.2 m wide, 0.8-2.0 m tall) at

@@ -54,7 +54,9 @@ import numpy as np
 
 from leapnbv_evaluation.metrics import body_coverage, pa_mpvpe_mm, surface_coverage
 from leapnbv_evaluation.report import is_success, task_table_markdown, write_task_table
-from leapnbv_sim.scene import PERSON_ID, CameraPose, RenderedFrame, Scene, pose_in_world
+from leapnbv_sim.poses import CameraPose, pose_in_world
+from leapnbv_sim.render import PERSON_ID, RenderedFrame
+from leapnbv_sim.scene import Scene
 
 METHODS: Tuple[str, ...] = ("leap_nbv", "stay", "random", "visibility_only", "area_only", "occlusion_only")
 #: Upper bound (uses the ground truth): the feasible candidate with the best surface coverage.
@@ -475,7 +477,7 @@ class ClosedLoopEvaluator:
         import dataclasses
 
         from leapnbv_evaluation.benchmark_set import BENCHMARK_CONFIG
-        from leapnbv_sim.scene import generate_scene
+        from leapnbv_sim.generation import generate_scene
 
         # The seeds qualify under both rooms: the furniture keeps off the start view.
         clutter = BENCHMARK_CONFIG.clutter_count_range if self.options.room == "furnished" else (0, 0)

@@ -16,7 +16,9 @@ from leapnbv_evaluation.evaluation import (
 from leapnbv_evaluation.metrics import body_coverage, self_visible_vertex_mask, surface_coverage
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_planner.candidates import CandidateRingParams, generate_candidates
-from leapnbv_sim.scene import PERSON_ID, SceneConfig, generate_scene, look_at_pose
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.poses import look_at_pose
+from leapnbv_sim.render import PERSON_ID
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 
