@@ -4,9 +4,10 @@
 #        [--perception onnxruntime --detector-model M --hmr-model M --body-model M] [--seed-offset K]
 #        [--set node.param=value]
 # Writes results.md / results.json / plots, chosen_views.json, evaluation.md and run.json to --out.
-# --workers N: N processes with a graph each; worker k uses ROS domain D + k, where D is --domain-base,
-# else $LEAPNBV_EVAL_DOMAIN_BASE, else this shell's ROS_DOMAIN_ID (else 0); their logs are in
-# --out/workers/worker_<k>/. The tables are the same as with one worker.
+# --workers N: N processes with a graph each, each on its own ROS domain: D + k with --domain-base D
+# (or $LEAPNBV_EVAL_DOMAIN_BASE=D), else N free domains in 1..101 claimed with lock files in
+# $TMPDIR/leapnbv-ros-domains/ (as the test suite does) for the run. Their logs are in
+# --out/workers/worker_<k>/. The tables and chosen views are the same as with one worker.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"

@@ -80,8 +80,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--workers", type=int, default=1,
                         help="worker processes, each with its own graph and ROS domain (default 1: this process)")
     parser.add_argument("--domain-base", type=int, default=None,
-                        help=f"ROS domain of worker 0 (worker k: base + k); default ${DOMAIN_BASE_ENV}, else this "
-                             "process's ROS_DOMAIN_ID, else 0")
+                        help=f"ROS domain of worker 0 (worker k: base + k); default ${DOMAIN_BASE_ENV}, else free "
+                             "domains claimed with locks (see leapnbv_evaluation.parallel)")
     parser.add_argument("--perception", choices=["ground_truth", "onnxruntime", "tensorrt"], default="ground_truth")
     parser.add_argument("--detector-model", default=None, help="YOLOv8 ONNX file (real perception)")
     parser.add_argument("--hmr-model", default=None, help="SMPLer-X student ONNX file (real perception)")
