@@ -233,7 +233,8 @@ def test_simulator_node_latches_each_scenes_map_and_publishes_the_frame_pose(sce
 
     from leapnbv_common.conversions import pointcloud2_to_xyz, pose_to_numpy, stamp_to_ns
     from leapnbv_common.qos import latched_map_qos, stage_input_qos
-    from leapnbv_sim.nodes.simulator_node import CAMERA_POSE_TOPIC, OBSTACLE_MAP_TOPIC, SimulatorNode
+    from leapnbv_common.topics import CAMERA_POSE_TOPIC, OBSTACLE_MAP_TOPIC
+    from leapnbv_sim.nodes.simulator_node import SimulatorNode
 
     assert (CAMERA_POSE_TOPIC, OBSTACLE_MAP_TOPIC) == ("/leapnbv/camera_pose", "/leapnbv/obstacle_map")
     # A frame id of this test alone: messages of other simulators on the same ROS domain are ignored.
@@ -288,6 +289,17 @@ def test_simulator_node_latches_each_scenes_map_and_publishes_the_frame_pose(sce
         executor.spin_once(timeout_sec=0.3)
         assert len(late_maps) == 1 and len(early_maps) == 2
         assert late_maps[0].width == len(side_wall_scene.obstacle_voxel_centres(0.2)) != len(expected)
+
+        # Parameters (leapnbv_sim.simulator.SimulatorParams): a new map resolution at runtime publishes
+        # the map again; the scene's parameters are read-only; values out of range are refused.
+        assert sim.params.obstacle_map_resolution == 0.2 and sim.params.rate_hz == 0.0
+        assert sim.set_parameters([Parameter("obstacle_map_resolution", value=0.25)])[0].successful
+        assert _spin_until(executor, lambda: len(late_maps) >= 2, 20.0), "no map after the resolution change"
+        assert late_maps[-1].width == len(side_wall_scene.obstacle_voxel_centres(0.25))
+        assert sim.params.obstacle_map_resolution == 0.25
+        assert not sim.set_parameters([Parameter("scene_seed", value=5)])[0].successful
+        assert not sim.set_parameters([Parameter("obstacle_map_resolution", value=0.0)])[0].successful
+        assert sim.params.scene_seed == 0 and sim.params.obstacle_map_resolution == 0.25
     finally:
         for node in nodes:
             executor.remove_node(node)
