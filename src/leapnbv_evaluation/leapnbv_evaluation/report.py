@@ -950,7 +950,8 @@ def _plot_coverage_per_scene(path: str, run: EvaluationRun, method: str) -> str:
     after = np.array([100.0 * row.after.surface_coverage for _, row in rows])
     success = np.array([row.success for _, row in rows], dtype=bool)
     positions = np.arange(len(rows))
-    figure = _new_figure((max(6.0, 0.25 * len(rows) + 2.0), 4.5))
+    # Wider with more scenes, up to 16 in (about 1800 px): beyond, the scenes share the width.
+    figure = _new_figure((min(16.0, max(6.0, 0.25 * len(rows) + 2.0)), 4.5))
     axes = figure.add_subplot(1, 1, 1)
     if len(rows):
         axes.vlines(positions, np.minimum(before, after), np.maximum(before, after), colors="0.7", linewidths=2.0)
