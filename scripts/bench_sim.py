@@ -29,7 +29,7 @@ for _package in ("leapnbv_common", "leapnbv_perception", "leapnbv_geometry", "le
 from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS  # noqa: E402
 from leapnbv_geometry.raster import rasterize_mesh, warm_up  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
-from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
+from leapnbv_sim.generation import SceneConfig, generate_scene  # noqa: E402
 from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model  # noqa: E402
 
 

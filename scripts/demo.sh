@@ -10,8 +10,6 @@ bash scripts/setup.sh
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( 100 + $$ % 50 ))}
 started=$(date +%s)
 scripts/env.sh python -m leapnbv_evaluation.demo --out out/demo "$@"
-if [ -f src/leapnbv_sim/leapnbv_sim/evaluation.py ]; then
-  echo "[demo] one closed-loop episode (the robot moves to the chosen view and looks again)"
-  scripts/env.sh python -m leapnbv_evaluation.evaluation --scenes 1 --out out/demo/closed_loop
-fi
+echo "[demo] one closed-loop episode (the robot moves to the chosen view and looks again)"
+scripts/env.sh python -m leapnbv_evaluation.cli --scenes 1 --out out/demo/closed_loop
 echo "[demo] finished in $(( $(date +%s) - started )) s; open out/demo/report.md and out/demo/closed_loop/results.md"

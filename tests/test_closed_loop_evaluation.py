@@ -18,16 +18,13 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 from leapnbv_common.conversions import pose_msg, pose_to_numpy, stamp_to_ns  # noqa: E402
 from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_input_qos  # noqa: E402
-from leapnbv_evaluation.evaluation import (  # noqa: E402
-    END_TO_END,
-    STAGE_TOPICS,
-    ClosedLoopEvaluator,
-    EvaluationOptions,
-    write_outputs,
-)
+from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS  # noqa: E402
+from leapnbv_evaluation.harness import END_TO_END, STAGE_TOPICS, ClosedLoopEvaluator, EvaluationOptions  # noqa: E402
+from leapnbv_evaluation.report import write_evaluation_outputs  # noqa: E402
+from leapnbv_evaluation.results import EvaluationRun  # noqa: E402
 from leapnbv_msgs.msg import SceneGroundTruth  # noqa: E402
-from leapnbv_sim.nodes.simulator_node import CameraMotion, interpolate_camera_pose  # noqa: E402
-from leapnbv_sim.scene import look_at_pose  # noqa: E402
+from leapnbv_sim.poses import look_at_pose  # noqa: E402
+from leapnbv_sim.simulator import CameraMotion, interpolate_camera_pose  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -140,61 +137,71 @@ def test_simulator_node_publishes_one_stamp_on_all_topics_and_follows_a_goal(rep
 
 @pytest.mark.slow
 def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
-    from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS
-
     started = time.monotonic()
     options = EvaluationOptions(log_dir=str(tmp_path / "logs"))
     with ClosedLoopEvaluator(options) as evaluator:
         first = evaluator.evaluate(BENCHMARK_SEEDS[:3])
         second = evaluator.evaluate(BENCHMARK_SEEDS[:2])
+        # A worker's share of a longer run: seed 2 at its place (index 2) gets the same stamps as there.
+        share = evaluator.evaluate(BENCHMARK_SEEDS[2:3], first_index=2)
     elapsed = time.monotonic() - started
-    assert elapsed < 180.0
+    assert elapsed < 240.0
 
-    methods = options.methods
-    assert {"leap_nbv", "stay", "random", "visibility_only", "area_only", "occlusion_only"} <= set(methods)
-    assert len(first["scenes"]) == 3
-    for scene in first["scenes"]:
-        assert scene["graph_failure"] is None, scene["graph_failure"]
-        assert set(scene["per_method"]) == set(methods)
-        for row in scene["per_method"].values():
-            for key in ("coverage_before", "coverage_after", "area_before", "area_after", "chosen_index"):
-                assert row[key] is not None
-            assert 0.0 <= row["coverage_after"] <= 1.0
-        stay = scene["per_method"]["stay"]
-        assert stay["chosen_index"] == 0 and stay["coverage_after"] == pytest.approx(stay["coverage_before"])
-        assert scene["per_method"]["leap_nbv"]["graph_area_after"] > 0
+    methods = first.methods
+    assert methods == ["leap_nbv", "stay", "random", "visibility_only", "area_only", "occlusion_only", "oracle"]
+    assert len(first.scenes) == 3 and first.seeds == BENCHMARK_SEEDS[:3]
+    for scene in first.scenes:
+        assert scene.graph_failure is None, scene.graph_failure
+        assert list(scene.per_method) == methods
+        assert scene.candidates is not None and scene.candidates.term_names == ["visibility", "area", "occlusion"]
+        for row in scene.per_method.values():
+            assert 0.0 <= row.after.surface_coverage <= 1.0
+        stay = scene.per_method["stay"]
+        assert stay.chosen_index == 0 and stay.after.surface_coverage == pytest.approx(stay.before.surface_coverage)
+        assert scene.per_method["leap_nbv"].graph_area_after > 0
     # With the room's obstacle map the planner keeps off views behind furniture it cannot see:
     # without it, seed 1's chosen view looked through a shelf (coverage 51 % -> 35 %).
-    assert [scene["per_method"]["leap_nbv"]["success"] for scene in first["scenes"]] == [True, True, True]
-    for log in first["scene_logs"]:
-        assert log["per_method"]["leap_nbv"]["goal_received"]
-        assert log["per_method"]["leap_nbv"]["goal_position_error_m"] < 1e-6
-        assert log["per_method"]["leap_nbv"]["closed_loop_matches_render"]
+    assert [scene.per_method["leap_nbv"].success for scene in first.scenes] == [True, True, True]
+    for scene in first.scenes:
+        loop = scene.per_method["leap_nbv"].closed_loop
+        assert loop.goal_received and loop.goal_position_error_m < 1e-6 and loop.closed_loop_matches_render
     stages = [stage for stage, _ in STAGE_TOPICS] + [END_TO_END]
+    assert first.stages == stages
     # Three start views and three after-move views went through the graph; an after-move view
     # may end without a plan (in a furnished room it can look mostly at furniture: no ground
     # plane), and then the planner stage and the end-to-end time have no sample for it.
-    after_failures = [log["per_method"]["leap_nbv"]["after_graph_failure"] for log in first["scene_logs"]]
+    after_failures = [scene.per_method["leap_nbv"].closed_loop.after_graph_failure for scene in first.scenes]
     planned = 3 + sum(failure is None for failure in after_failures)
     assert planned >= 5
+    latency = first.latency_ms()
     for stage in stages:
-        count = len(first["latency_ms"][stage])
+        count = len(latency[stage])
         if stage in ("nbv_node", END_TO_END):
             assert count == planned, stage
         else:
             assert planned <= count <= 6, stage
-        assert all(value >= 0.0 for value in first["latency_ms"][stage])
+        assert all(value >= 0.0 for value in latency[stage])
 
     # Same seeds, same chosen views and metrics (the second pass runs on later stamps).
-    for a, b in zip(first["scenes"][:2], second["scenes"]):
-        assert a["seed"] == b["seed"]
+    for a, b in zip(first.scenes[:2], second.scenes):
+        assert a.seed == b.seed
         for method in methods:
-            assert a["per_method"][method]["chosen_index"] == b["per_method"][method]["chosen_index"], method
-            assert a["per_method"][method]["coverage_after"] == b["per_method"][method]["coverage_after"]
-        assert a["per_method"]["leap_nbv"]["graph_area_after"] == b["per_method"]["leap_nbv"]["graph_area_after"]
+            assert a.per_method[method].chosen_index == b.per_method[method].chosen_index, method
+            assert a.per_method[method].after == b.per_method[method].after
+        assert a.per_method["leap_nbv"].graph_area_after == b.per_method["leap_nbv"].graph_area_after
+    # A share of a run (what a worker evaluates) keeps each scene's place: its stamps lie as far into
+    # the share's block as in the whole run's, and the scene gives the same result.
+    place = share.scenes[0]
+    assert place.scene_index == 2
+    assert (place.stamp_ns - first.scenes[2].stamp_ns) % 10_000_000_000 == 0
+    assert place.stamp_ns > second.scenes[-1].stamp_ns
+    assert place.per_method["leap_nbv"].chosen_index == first.scenes[2].per_method["leap_nbv"].chosen_index
+    assert place.candidates.score.tolist() == first.scenes[2].candidates.score.tolist()
 
-    first["ready_s"] = evaluator.ready_s
-    write_outputs(str(tmp_path / "out"), first, options, elapsed)
-    for name in ("results.md", "results.json", "chosen_views.json", "evaluation.md"):
+    first.ready_s = evaluator.ready_s
+    first.total_wall_s = elapsed
+    write_evaluation_outputs(str(tmp_path / "out"), first)
+    for name in ("results.md", "results.json", "chosen_views.json", "evaluation.md", "run.json"):
         assert (tmp_path / "out" / name).exists(), name
+    assert EvaluationRun.read(str(tmp_path / "out" / "run.json")) == first
 

@@ -16,7 +16,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "evaluate = leapnbv_evaluation.evaluation:main",
+            "evaluate = leapnbv_evaluation.cli:main",
             "demo = leapnbv_evaluation.demo:main",
         ],
     },

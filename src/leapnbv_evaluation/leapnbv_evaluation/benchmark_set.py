@@ -1,11 +1,20 @@
-"""The fixed benchmark set of synthetic scenes used by the evaluation (seeds committed as a literal)."""
+"""The benchmark set of synthetic scenes used by the evaluation: seeds, room config, the scene of a seed.
+
+The set is an endless, fixed sequence of seeds: the committed :data:`BENCHMARK_SEEDS` first (the
+tables in the README use their first 50), then every later seed that qualifies
+(:func:`select_benchmark_seeds`'s rule), in ascending order. :func:`benchmark_seeds` gives any
+slice of it without generating a scene while the slice stays below :data:`VERIFIED_BELOW`
+(the seeds there that do not qualify are committed in :data:`UNQUALIFIED_SEEDS`); beyond, it
+checks the seeds with the body model.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Any, List, Optional
 
-from leapnbv_sim.scene import Scene, SceneConfig, SceneError, generate_scene
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.scene import Scene, SceneError
 
 #: The scene config of the benchmark (its seed is replaced per scene): the defaults plus 2-4
 #: pieces of furniture (shelves, cabinets, standing screens; 0.4-1.2 m wide, 0.8-2.0 m tall) at
@@ -89,6 +98,72 @@ BENCHMARK_SEEDS: List[int] = [
 #: A start view must show at least this many person pixels (else the detector has nothing).
 MIN_PERSON_PIXELS = 1500
 
+#: Every seed from the last committed one up to here was checked with ``select_benchmark_seeds``
+#: (BENCHMARK_CONFIG, small stand-in body) ...
+VERIFIED_BELOW = 2104
+#: ... and these are the ones that do not qualify (left out of the set).
+UNQUALIFIED_SEEDS: frozenset = frozenset()
+
+#: Rooms of the benchmark: "furnished" (BENCHMARK_CONFIG) or "open" (no furniture; the seeds
+#: qualify under both, the furniture keeps off the start view's line of sight).
+ROOMS = ("furnished", "open")
+
+
+def checked_seed_count() -> int:
+    """How many seeds of the sequence are known without generating a scene (those below VERIFIED_BELOW)."""
+    later = range(BENCHMARK_SEEDS[-1] + 1, VERIFIED_BELOW)
+    return len(BENCHMARK_SEEDS) + sum(1 for seed in later if seed not in UNQUALIFIED_SEEDS)
+
+
+def benchmark_seeds(count: int, offset: int = 0, body_model: Any = None) -> List[int]:
+    """Seeds ``[offset, offset + count)`` of the benchmark sequence (deterministic for any count).
+
+    Args:
+        count: How many seeds, >= 1.
+        offset: How many seeds of the sequence to skip first, >= 0.
+        body_model: The small stand-in body model; needed only for seeds at or past
+            VERIFIED_BELOW (each is generated to check it qualifies).
+
+    Returns:
+        The seeds, ascending; the first ``len(BENCHMARK_SEEDS)`` of the sequence are the committed ones.
+
+    Raises:
+        ValueError: ``count`` < 1, ``offset`` < 0, or the slice reaches past VERIFIED_BELOW without a body model.
+    """
+    if count < 1 or offset < 0:
+        raise ValueError(f"benchmark seeds need count >= 1 and offset >= 0, got count {count}, offset {offset}")
+    wanted = offset + count
+    seeds = list(BENCHMARK_SEEDS[:wanted])
+    seed = BENCHMARK_SEEDS[-1] + 1
+    while len(seeds) < wanted and seed < VERIFIED_BELOW:
+        if seed not in UNQUALIFIED_SEEDS:
+            seeds.append(seed)
+        seed += 1
+    if len(seeds) < wanted:
+        if body_model is None:
+            raise ValueError(f"{wanted} benchmark seeds reach past the checked ones (below {VERIFIED_BELOW}): "
+                             "give the body model to check the rest")
+        seeds += select_benchmark_seeds(wanted - len(seeds), body_model, first_seed=max(seed, VERIFIED_BELOW),
+                                        max_seed=max(seed, VERIFIED_BELOW) + 100 * wanted)
+    return seeds[offset:wanted]
+
+
+def benchmark_config(seed: int, room: str = "furnished") -> SceneConfig:
+    """The scene config of one benchmark seed in a room ("furnished": BENCHMARK_CONFIG; "open": no furniture).
+
+    Raises:
+        ValueError: An unknown room.
+    """
+    if room not in ROOMS:
+        raise ValueError(f"room must be one of {ROOMS}, got {room!r}")
+    clutter = BENCHMARK_CONFIG.clutter_count_range if room == "furnished" else (0, 0)
+    return dataclasses.replace(BENCHMARK_CONFIG, seed=int(seed), clutter_count_range=clutter)
+
+
+def benchmark_scene(seed: int, body_model: Any, room: str = "furnished") -> Scene:
+    """The scene of one benchmark seed (see :func:`benchmark_config`)."""
+    return generate_scene(benchmark_config(seed, room), body_model)
+
 
 def select_benchmark_seeds(
     n: int,
@@ -142,18 +217,14 @@ def load_benchmark_scenes(
     """Generate the first ``n`` scenes of the benchmark set.
 
     Args:
-        n: How many scenes (at most ``len(BENCHMARK_SEEDS)``).
+        n: How many scenes.
         body_model: The stand-in body model (``SMPLXModel``).
         base_config: Config whose seed is replaced; :data:`BENCHMARK_CONFIG` if None (the
             config the seeds were selected under: keep it for comparable numbers).
 
     Returns:
         The scenes, in seed order.
-
-    Raises:
-        ValueError: ``n`` exceeds the committed seeds.
     """
-    if n > len(BENCHMARK_SEEDS):
-        raise ValueError(f"n = {n} exceeds the {len(BENCHMARK_SEEDS)} committed benchmark seeds")
     config = base_config if base_config is not None else BENCHMARK_CONFIG
-    return [generate_scene(dataclasses.replace(config, seed=seed), body_model) for seed in BENCHMARK_SEEDS[:n]]
+    return [generate_scene(dataclasses.replace(config, seed=seed), body_model)
+            for seed in benchmark_seeds(n, body_model=body_model)]

@@ -1,4 +1,4 @@
-"""Evaluation metrics: body coverage, reconstructed area, PA-MPVPE and latency percentiles."""
+"""Evaluation metrics: body coverage, reconstructed area, PA-MPVPE, the success rule and latency percentiles."""
 
 from __future__ import annotations
 
@@ -7,6 +7,30 @@ from typing import Dict, Sequence
 import numpy as np
 
 from leapnbv_sim.visibility import self_visible_vertex_mask, visible_vertex_mask
+
+# Success rule of the task table: coverage rises by at least this many points (fraction) ...
+SUCCESS_MIN_GAIN = 0.10
+# ... or reaches at least this coverage after the move.
+SUCCESS_MIN_COVERAGE = 0.90
+# Coverages are fractions computed in floating point: 0.60 - 0.50 is 0.0999...98, which must count.
+_SUCCESS_TOLERANCE = 1e-9
+
+
+def is_success(coverage_before: float, coverage_after: float) -> bool:
+    """The task's success rule: coverage rises by >= 10 points or reaches >= 90 % after one move.
+
+    Computed once per method and scene, when the episode is scored; reports read the flag.
+
+    Args:
+        coverage_before: Body coverage before the move, fraction 0-1.
+        coverage_after: Body coverage after the move, fraction 0-1.
+
+    Returns:
+        True for a success.
+    """
+    before, after = float(coverage_before), float(coverage_after)
+    rises_enough = after - before >= SUCCESS_MIN_GAIN - _SUCCESS_TOLERANCE
+    return rises_enough or after >= SUCCESS_MIN_COVERAGE - _SUCCESS_TOLERANCE
 
 
 def body_coverage(
@@ -132,7 +156,6 @@ def latency_summary(samples_ms: Sequence[float]) -> Dict[str, float]:
         "p99": float(p99),
         "max": float(samples.max()),
     }
-
 
 
 def surface_coverage(

@@ -1,27 +1,27 @@
-"""Demo report and evaluation outputs: person overlays, top-down ring maps, task and latency tables."""
+"""Reports: the demo report (person overlays, top-down ring maps) and the evaluation outputs (task and latency
+tables, plots, chosen views, run summary).
+
+Readers only: they take typed inputs (:class:`DemoFrame`, :class:`~leapnbv_evaluation.results.EvaluationRun`)
+and never recompute what the run decided (success comes with each method's result). Every file is
+written atomically (a failed write leaves the previous file intact).
+"""
 
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
+from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 
 from leapnbv_common.atomic_files import write_file_atomically
-from leapnbv_evaluation.metrics import latency_summary
+from leapnbv_common.conversions import GroundPlaneArrays, ViewCandidatesArrays
+from leapnbv_evaluation.metrics import SUCCESS_MIN_COVERAGE, SUCCESS_MIN_GAIN, latency_summary
+from leapnbv_evaluation.results import EvaluationRun, MethodResult, SceneResult
 
-LOGGER = logging.getLogger(__name__)
-
-# Success rule of the task table: coverage rises by at least this many points (fraction) ...
-SUCCESS_MIN_GAIN = 0.10
-# ... or reaches at least this coverage after the move.
-SUCCESS_MIN_COVERAGE = 0.90
-# Coverages are fractions computed in floating point: 0.60 - 0.50 is 0.0999...98, which must count.
-_SUCCESS_TOLERANCE = 1e-9
 # Background points this close to the floor are the floor itself, not occluders (m).
 FLOOR_CLEARANCE_M = 0.05
 # Most background / target points drawn in one map; more only slow the PNG down.
@@ -102,7 +102,11 @@ def _to_plain(value: Any) -> Any:
 
 
 def _new_figure(size_in: Tuple[float, float]) -> Any:
-    """A pyplot-free Agg figure: no global figure registry to leak, safe off the main thread."""
+    """A pyplot-free Agg figure: no global figure registry to leak, safe off the main thread.
+
+    matplotlib is imported here, on the first plot: it takes about a second to import, and the
+    tables and the demo's text need none of it.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -466,6 +470,47 @@ def plot_ring_top_down(
 # ---------------------------------------------------------------------------------------------
 
 
+@dataclass
+class DemoFrame:
+    """One frame of the demo: what the camera saw and what the graph made of it.
+
+    Attributes:
+        index: Frame number in the bag.
+        stamp_ns: Header stamp.
+        rgb: (H,W,3) uint8 colour frame.
+        box: Detection box (x0, y0, x1, y1) in pixels, or None.
+        mask: (H,W) bool person mask, or None.
+        candidates: The graph's scored candidates, or None (the planner produced none).
+        ground: The graph's ground plane, or None (it is used only when valid).
+        target_points: (N,3) person points (optical frame), or None.
+        background_points: (K,3) other scene points, or None.
+        latency_ms: End-to-end latency of the frame, or None.
+        label: Text drawn with the box.
+    """
+
+    index: int
+    stamp_ns: int
+    rgb: np.ndarray
+    box: Optional[Sequence[float]] = None
+    mask: Optional[np.ndarray] = None
+    candidates: Optional[ViewCandidatesArrays] = None
+    ground: Optional[GroundPlaneArrays] = None
+    target_points: Optional[np.ndarray] = None
+    background_points: Optional[np.ndarray] = None
+    latency_ms: Optional[float] = None
+    label: str = "person"
+
+    @property
+    def plane(self) -> Optional[GroundPlaneArrays]:
+        """The ground plane when the graph found one."""
+        return self.ground if self.ground is not None and self.ground.valid else None
+
+    @property
+    def has_goal(self) -> bool:
+        """The graph chose a view for this frame."""
+        return self.candidates is not None and self.candidates.chosen_index >= 0
+
+
 def _format_value(value: Any) -> str:
     if isinstance(value, (bool, np.bool_)):
         return "yes" if value else "no"
@@ -477,47 +522,18 @@ def _format_value(value: Any) -> str:
     return str(value).replace("|", "\\|").replace("\n", " ")
 
 
-def _require(frame: Mapping[str, Any], key: str, position: int) -> Any:
-    if key not in frame:
-        raise ReportError(f"frames[{position}] has no key {key!r}")
-    return frame[key]
+def chosen_view_scores(candidates: ViewCandidatesArrays, index: int) -> Dict[str, float]:
+    """"s_<term>" for every score term of candidate ``index``, then its total "score"."""
+    scores = {f"s_{name}": float(candidates.term(name)[index]) for name in candidates.term_names}
+    scores["score"] = float(candidates.score[index])
+    return scores
 
 
-def _candidate_arrays(candidates: Mapping[str, Any], position: int) -> Dict[str, Any]:
-    """Validate one frame's candidate dict and return it with numpy arrays."""
-    keys = ("positions", "scores", "s_visibility", "s_area", "s_occlusion", "feasible", "chosen_index", "ring_center")
-    for key in keys:
-        if key not in candidates:
-            raise ReportError(f"frames[{position}]['candidates'] has no key {key!r}")
-    positions = np.asarray(candidates["positions"], dtype=np.float64).reshape(-1, 3)
-    count = positions.shape[0]
-    arrays: Dict[str, Any] = {"positions": positions}
-    for key in ("scores", "s_visibility", "s_area", "s_occlusion"):
-        arrays[key] = np.asarray(candidates[key], dtype=np.float64).reshape(-1)
-    arrays["feasible"] = np.asarray(candidates["feasible"], dtype=bool).reshape(-1)
-    for key in ("scores", "s_visibility", "s_area", "s_occlusion", "feasible"):
-        if arrays[key].shape != (count,):
-            raise ReportError(f"frames[{position}]['candidates'][{key!r}] must be ({count},), got {arrays[key].shape}")
-    chosen = int(candidates["chosen_index"])
-    if not -1 <= chosen < count:
-        raise ReportError(f"frames[{position}]['candidates']['chosen_index'] {chosen} out of range for {count}")
-    arrays["chosen_index"] = chosen
-    arrays["ring_center"] = np.asarray(candidates["ring_center"], dtype=np.float64).reshape(3)
-    rotations = candidates.get("rotations")
-    arrays["rotations"] = None if rotations is None else np.asarray(rotations, dtype=np.float64)
-    return arrays
-
-
-def write_demo_report(out_dir: str, frames: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]) -> str:
+def write_demo_report(out_dir: str, frames: Sequence[DemoFrame], summary: Mapping[str, Any]) -> str:
     """Write the demo report: per-frame overlay and ring PNGs, report.md and summary.json.
 
-    Each frame dict holds "index", "stamp_ns", "rgb" (H,W,3 uint8), "box" (xyxy or None),
-    "mask" (H,W bool or None), "candidates" (dict with positions (C,3), scores, s_visibility,
-    s_area, s_occlusion (C,), feasible (C,) bool, chosen_index, ring_center (3,), optional
-    rotations (C,3,3); or None), "target_points" (N,3), "background_points" (K,3), "plane"
-    ((normal, offset) or None), "latency_ms" (end to end), optional "label" (box text).
-    A frame without candidates, without a plane or with chosen_index -1 produced no goal;
-    the report says so. Every file is written atomically.
+    A frame without candidates, without a valid ground plane or with chosen_index -1 produced
+    no goal; the report says so. Every file is written atomically.
 
     Args:
         out_dir: Output folder (created if missing).
@@ -528,7 +544,7 @@ def write_demo_report(out_dir: str, frames: Sequence[Mapping[str, Any]], summary
         Path of report.md.
 
     Raises:
-        ReportError: A frame misses a key or has inconsistent shapes.
+        ReportError: A frame has inconsistent shapes.
     """
     os.makedirs(out_dir, exist_ok=True)
     lines: List[str] = ["# LEAP-NBV demo report", "", "## Summary", "", "| Item | Value |", "|---|---|"]
@@ -536,20 +552,15 @@ def write_demo_report(out_dir: str, frames: Sequence[Mapping[str, Any]], summary
         lines.append(f"| {_format_value(key)} | {_format_value(value)} |")
     lines.append("")
     frame_records: List[Dict[str, Any]] = []
-    for position, frame in enumerate(frames):
-        index = int(_require(frame, "index", position))
-        stamp_ns = int(_require(frame, "stamp_ns", position))
-        latency_ms = _require(frame, "latency_ms", position)
-        name = f"frame_{index:03d}"
-        overlay = overlay_person(
-            _require(frame, "rgb", position), frame.get("box"), frame.get("mask"), str(frame.get("label", "person"))
-        )
+    for frame in frames:
+        name = f"frame_{frame.index:03d}"
+        overlay = overlay_person(frame.rgb, frame.box, frame.mask, frame.label)
         overlay_file = f"{name}_overlay.png"
         _write_rgb_png_atomically(os.path.join(out_dir, overlay_file), overlay)
         record: Dict[str, Any] = {
-            "index": index,
-            "stamp_ns": stamp_ns,
-            "latency_ms": latency_ms,
+            "index": frame.index,
+            "stamp_ns": frame.stamp_ns,
+            "latency_ms": frame.latency_ms,
             "overlay": overlay_file,
             "goal": False,
             "chosen_index": None,
@@ -562,76 +573,70 @@ def write_demo_report(out_dir: str, frames: Sequence[Mapping[str, Any]], summary
             "num_feasible": 0,
         }
         lines += [
-            f"## Frame {index}",
+            f"## Frame {frame.index}",
             "",
-            f"- stamp: {stamp_ns} ns",
-            f"- end-to-end latency: {_format_value(latency_ms)} ms",
+            f"- stamp: {frame.stamp_ns} ns",
+            f"- end-to-end latency: {_format_value(frame.latency_ms)} ms",
         ]
-        candidates = frame.get("candidates")
-        plane = frame.get("plane")
+        candidates = frame.candidates
+        plane = frame.plane
         ring_file: Optional[str] = None
         if candidates is None:
             lines.append("- **no goal for this frame**: the planner produced no candidates")
         else:
-            arrays = _candidate_arrays(candidates, position)
-            chosen = arrays["chosen_index"]
-            count = len(arrays["scores"])
+            chosen = candidates.chosen_index
+            count = len(candidates)
             record["num_candidates"] = count
-            record["num_feasible"] = int(arrays["feasible"].sum())
-            record["candidate_scores"] = arrays["scores"]
+            record["num_feasible"] = int(np.count_nonzero(candidates.feasible))
+            record["candidate_scores"] = candidates.score
             lines.append(f"- candidates: {count} ({record['num_feasible']} feasible)")
             if plane is not None:
                 ring_file = f"{name}_ring.png"
                 plot_ring_top_down(
                     os.path.join(out_dir, ring_file),
-                    arrays["positions"],
-                    arrays["scores"],
-                    arrays["feasible"],
+                    candidates.positions,
+                    candidates.score,
+                    candidates.feasible,
                     chosen,
-                    arrays["ring_center"],
-                    frame.get("target_points"),
-                    frame.get("background_points"),
-                    plane[0],
-                    float(plane[1]),
-                    title=f"frame {index}: candidate ring",
-                    candidate_rotations=arrays["rotations"],
+                    candidates.ring_center,
+                    frame.target_points,
+                    frame.background_points,
+                    plane.normal,
+                    float(plane.offset),
+                    title=f"frame {frame.index}: candidate ring",
+                    candidate_rotations=candidates.rotations,
                 )
                 record["ring"] = ring_file
+            if not -1 <= chosen < count:
+                raise ReportError(f"frame {frame.index}: chosen_index {chosen} out of range for {count} candidates")
             if chosen < 0:
                 lines.append("- **no goal for this frame**: no feasible candidate")
             elif plane is None:
                 lines.append("- **no goal for this frame**: no ground plane (scores below are for information)")
             if chosen >= 0:
-                x, y, z = arrays["positions"][chosen]
-                chosen_scores = {
-                    key: float(arrays[key][chosen]) for key in ("s_visibility", "s_area", "s_occlusion", "scores")
-                }
-                current = float(arrays["scores"][0]) if count else float("nan")
-                gain = chosen_scores["scores"] - current
+                x, y, z = candidates.positions[chosen]
+                scores = chosen_view_scores(candidates, chosen)
+                current = float(candidates.score[0]) if count else float("nan")
+                gain = scores["score"] - current
                 record.update(
                     goal=plane is not None,
                     chosen_index=chosen,
                     chosen_position_m=[float(x), float(y), float(z)],
-                    chosen_scores={
-                        "s_visibility": chosen_scores["s_visibility"],
-                        "s_area": chosen_scores["s_area"],
-                        "s_occlusion": chosen_scores["s_occlusion"],
-                        "score": chosen_scores["scores"],
-                    },
+                    chosen_scores=scores,
                     current_score=current,
                     score_gain=gain,
                 )
                 stay = " (stay: the current view is best)" if chosen == 0 else ""
+                terms = " / ".join(f"{name} {scores['s_' + name]:.3f}" for name in candidates.term_names)
                 lines += [
                     f"- chosen view: {chosen}{stay}",
                     f"- position (x, y, z): ({x:.3f}, {y:.3f}, {z:.3f}) m",
-                    f"- S_v {chosen_scores['s_visibility']:.3f} / S_a {chosen_scores['s_area']:.3f} / "
-                    f"S_o {chosen_scores['s_occlusion']:.3f} / score {chosen_scores['scores']:.3f}",
-                    f"- gain over the current view: {gain:+.3f} (score {current:.3f} -> {chosen_scores['scores']:.3f})",
+                    f"- {terms} / score {scores['score']:.3f}",
+                    f"- gain over the current view: {gain:+.3f} (score {current:.3f} -> {scores['score']:.3f})",
                 ]
-        lines += ["", f"![frame {index} overlay]({overlay_file})"]
+        lines += ["", f"![frame {frame.index} overlay]({overlay_file})"]
         if ring_file is not None:
-            lines.append(f"![frame {index} ring]({ring_file})")
+            lines.append(f"![frame {frame.index} ring]({ring_file})")
         lines.append("")
         frame_records.append(record)
     _write_json_atomically(os.path.join(out_dir, "summary.json"), {"summary": dict(summary), "frames": frame_records})
@@ -639,93 +644,60 @@ def write_demo_report(out_dir: str, frames: Sequence[Mapping[str, Any]], summary
 
 
 # ---------------------------------------------------------------------------------------------
-# 5. Evaluation: task table, latency table, plots
+# 5. Evaluation: task table, latency table, plots, chosen views, run summary
 # ---------------------------------------------------------------------------------------------
 
-
-def is_success(coverage_before: float, coverage_after: float) -> bool:
-    """The task table's success rule: coverage rises by >= 10 points or reaches >= 90 %.
-
-    Args:
-        coverage_before: Body coverage before the move, fraction 0-1.
-        coverage_after: Body coverage after the move, fraction 0-1.
-
-    Returns:
-        True for a success.
-    """
-    before, after = float(coverage_before), float(coverage_after)
-    rises_enough = after - before >= SUCCESS_MIN_GAIN - _SUCCESS_TOLERANCE
-    return rises_enough or after >= SUCCESS_MIN_COVERAGE - _SUCCESS_TOLERANCE
+#: The coverage a table reads: the headline surface coverage, or the raw share of all vertices.
+COVERAGES = ("surface", "raw")
 
 
 def _mean(values: Sequence[float]) -> float:
     return float(np.mean(values)) if len(values) else float("nan")
 
 
-def _scene_results(results: Mapping[str, Any]) -> Tuple[List[str], List[Mapping[str, Any]]]:
-    for key in ("methods", "scenes"):
-        if key not in results:
-            raise ReportError(f"results has no key {key!r}")
-    methods = [str(method) for method in results["methods"]]
-    scenes = list(results["scenes"])
-    for position, scene in enumerate(scenes):
-        if "per_method" not in scene:
-            raise ReportError(f"results['scenes'][{position}] has no key 'per_method'")
-        for method, row in scene["per_method"].items():
-            for key in ("coverage_before", "coverage_after", "area_before", "area_after"):
-                if key not in row:
-                    raise ReportError(f"results['scenes'][{position}]['per_method'][{method!r}] has no key {key!r}")
-    return methods, scenes
+def _coverage(row: MethodResult, coverage: str) -> Tuple[float, float, bool]:
+    """(before, after, success) of a method's move on the surface or the raw coverage."""
+    if coverage == "raw":
+        return row.before.raw_coverage, row.after.raw_coverage, row.raw_success
+    return row.before.surface_coverage, row.after.surface_coverage, row.success
 
 
-def aggregate_task_results(results: Mapping[str, Any]) -> Dict[str, Any]:
-    """Per-method aggregates of the task table, with success recomputed by `is_success`.
+def aggregate_task_results(run: EvaluationRun, coverage: str = "surface") -> Dict[str, Any]:
+    """Per-method aggregates of the task table (success as scored, never recomputed).
 
     Args:
-        results: {"methods": [...], "scenes": [{"seed", "start_occlusion", "per_method": {method:
-            {"coverage_before", "coverage_after", "area_before", "area_after", "pa_mpvpe_mm",
-            "success", "chosen_index"}}}], "latency_ms": {stage: [ms, ...]}}.
+        run: The run.
+        coverage: "surface" (the headline) or "raw" (share of all vertices, with its success flag).
 
     Returns:
         {"methods", "per_method": {method: {"scenes", "coverage_before_pct", "coverage_after_pct",
-        "area_before_kpx", "area_after_kpx", "pa_mpvpe_mm", "pa_mpvpe_scenes", "success_rate_pct",
-        "successes"}}, "latency_ms": {stage: latency_summary}, "success_flag_mismatches":
-        [{"seed", "method", "given", "computed"}]}. Means over the scenes that ran the method; NaN
-        where none did (PA-MPVPE: over the scenes that have one).
+        "area_before_kpx", "area_after_kpx", "pa_mpvpe_mm", "pa_mpvpe_scenes", "successes",
+        "success_rate_pct"}}, "latency_ms": {stage: latency_summary}}. Means over the scenes that
+        ran the method; NaN where none did (PA-MPVPE: over the scenes that have one).
 
     Raises:
-        ReportError: Missing keys.
+        ReportError: An unknown coverage.
     """
-    methods, scenes = _scene_results(results)
+    if coverage not in COVERAGES:
+        raise ReportError(f"coverage must be one of {COVERAGES}, got {coverage!r}")
     per_method: Dict[str, Dict[str, Any]] = {}
-    mismatches: List[Dict[str, Any]] = []
-    for method in methods:
-        rows = [(scene, scene["per_method"][method]) for scene in scenes if method in scene["per_method"]]
-        successes = []
-        for scene, row in rows:
-            computed = is_success(row["coverage_before"], row["coverage_after"])
-            successes.append(computed)
-            given = row.get("success")
-            if given is not None and bool(given) != computed:
-                mismatches.append(
-                    {"seed": scene.get("seed"), "method": method, "given": bool(given), "computed": computed}
-                )
-        errors = [float(row["pa_mpvpe_mm"]) for _, row in rows if row.get("pa_mpvpe_mm") is not None]
+    for method in run.methods:
+        rows = [scene.per_method[method] for scene in run.scenes if method in scene.per_method]
+        values = [_coverage(row, coverage) for row in rows]
+        errors = [float(row.pa_mpvpe_mm) for row in rows if row.pa_mpvpe_mm is not None]
         per_method[method] = {
             "scenes": len(rows),
-            "coverage_before_pct": 100.0 * _mean([float(row["coverage_before"]) for _, row in rows]),
-            "coverage_after_pct": 100.0 * _mean([float(row["coverage_after"]) for _, row in rows]),
-            "area_before_kpx": _mean([float(row["area_before"]) for _, row in rows]) / 1000.0,
-            "area_after_kpx": _mean([float(row["area_after"]) for _, row in rows]) / 1000.0,
+            "coverage_before_pct": 100.0 * _mean([float(before) for before, _, _ in values]),
+            "coverage_after_pct": 100.0 * _mean([float(after) for _, after, _ in values]),
+            "area_before_kpx": _mean([float(row.before.area_px) for row in rows]) / 1000.0,
+            "area_after_kpx": _mean([float(row.after.area_px) for row in rows]) / 1000.0,
             "pa_mpvpe_mm": _mean(errors),
             "pa_mpvpe_scenes": len(errors),
-            "successes": int(sum(successes)),
-            "success_rate_pct": 100.0 * _mean([float(flag) for flag in successes]),
+            "successes": int(sum(success for _, _, success in values)),
+            "success_rate_pct": 100.0 * _mean([float(success) for _, _, success in values]),
         }
-    if mismatches:
-        LOGGER.warning("success flags disagree with the coverage rule in %d rows; using the rule", len(mismatches))
-    latency = {str(stage): latency_summary(samples) for stage, samples in dict(results.get("latency_ms", {})).items()}
-    return {"methods": methods, "per_method": per_method, "latency_ms": latency, "success_flag_mismatches": mismatches}
+    latency = {stage: latency_summary(samples) for stage, samples in run.latency_ms().items()}
+    return {"methods": list(run.methods), "per_method": per_method, "latency_ms": latency}
 
 
 def _number(value: float, digits: int) -> str:
@@ -749,16 +721,17 @@ def _headline_table(aggregates: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def task_table_markdown(results: Mapping[str, Any]) -> str:
-    """The headline task table (one row per method) as markdown, for the README.
+def task_table_markdown(run: EvaluationRun, coverage: str = "surface") -> str:
+    """The task table (one row per method) as markdown, for the README.
 
     Args:
-        results: As for `write_task_table`.
+        run: The run.
+        coverage: "surface" (the headline) or "raw".
 
     Returns:
         Markdown table text ending in a newline.
     """
-    return _headline_table(aggregate_task_results(results))
+    return _headline_table(aggregate_task_results(run, coverage))
 
 
 def _latency_table(latency: Mapping[str, Mapping[str, float]]) -> str:
@@ -771,47 +744,43 @@ def _latency_table(latency: Mapping[str, Mapping[str, float]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _per_scene_table(methods: Sequence[str], scenes: Sequence[Mapping[str, Any]]) -> str:
+def _per_scene_table(run: EvaluationRun) -> str:
+    methods = run.methods
     header = "| Seed | Start occlusion (%) | " + " | ".join(f"{method}: coverage (%)" for method in methods) + " |"
     lines = [header, "|---:|---:|" + "---:|" * len(methods)]
-    for scene in scenes:
-        occlusion = scene.get("start_occlusion")
-        cells = [str(scene.get("seed", "?")), "n/a" if occlusion is None else _number(100.0 * float(occlusion), 0)]
+    for scene in run.scenes:
+        cells = [str(scene.seed), _number(100.0 * float(scene.start_occlusion), 0)]
         for method in methods:
-            row = scene["per_method"].get(method)
+            row = scene.per_method.get(method)
             if row is None:
                 cells.append("-")
                 continue
-            mark = " ok" if is_success(row["coverage_before"], row["coverage_after"]) else ""
-            before, after = 100.0 * float(row["coverage_before"]), 100.0 * float(row["coverage_after"])
+            mark = " ok" if row.success else ""
+            before, after = 100.0 * row.before.surface_coverage, 100.0 * row.after.surface_coverage
             cells.append(f"{before:.1f} -> {after:.1f}{mark}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
-def write_task_table(out_dir: str, results: Mapping[str, Any]) -> str:
+def write_task_table(out_dir: str, run: EvaluationRun) -> str:
     """Write results.md, results.json and the coverage / success / latency plots (atomically).
-
-    Success is recomputed with `is_success` (coverage +10 points or >= 90 %); input flags that
-    disagree are listed in both outputs and logged, never used.
 
     Args:
         out_dir: Output folder (created if missing).
-        results: See `aggregate_task_results`; optional "default_method" picks the method of the
-            per-scene coverage plot (else the first method).
+        run: The run; its default method is the method of the per-scene coverage plot.
 
     Returns:
         Path of results.md.
 
     Raises:
-        ReportError: Missing keys or an unknown default method.
+        ReportError: The default method is not one of the run's methods.
     """
     os.makedirs(out_dir, exist_ok=True)
-    aggregates = aggregate_task_results(results)
-    methods, scenes = _scene_results(results)
-    default_method = str(results.get("default_method", methods[0] if methods else ""))
+    aggregates = aggregate_task_results(run)
+    methods = list(run.methods)
+    default_method = run.default_method
     if methods and default_method not in methods:
-        raise ReportError(f"results['default_method'] {default_method!r} is not one of {methods}")
+        raise ReportError(f"the default method {default_method!r} is not one of {methods}")
 
     plot_files = {
         "coverage_per_scene": "coverage_per_scene.png",
@@ -819,9 +788,9 @@ def write_task_table(out_dir: str, results: Mapping[str, Any]) -> str:
         "latency": "latency.png",
     }
     if methods:
-        _plot_coverage_per_scene(os.path.join(out_dir, plot_files["coverage_per_scene"]), scenes, default_method)
+        _plot_coverage_per_scene(os.path.join(out_dir, plot_files["coverage_per_scene"]), run, default_method)
         _plot_success_rate(os.path.join(out_dir, plot_files["success_rate"]), aggregates)
-    _plot_latency(os.path.join(out_dir, plot_files["latency"]), results.get("latency_ms", {}), aggregates["latency_ms"])
+    _plot_latency(os.path.join(out_dir, plot_files["latency"]), run.latency_ms(), aggregates["latency_ms"])
 
     lines = [
         "# LEAP-NBV task results",
@@ -833,14 +802,8 @@ def write_task_table(out_dir: str, results: Mapping[str, Any]) -> str:
         "",
         _headline_table(aggregates),
     ]
-    if aggregates["success_flag_mismatches"]:
-        lines += [
-            f"Note: {len(aggregates['success_flag_mismatches'])} input success flags disagreed with the rule "
-            "and were recomputed (see results.json).",
-            "",
-        ]
     lines += ["## Latency", "", _latency_table(aggregates["latency_ms"])]
-    lines += ["## Per scene", "", _per_scene_table(methods, scenes)]
+    lines += ["## Per scene", "", _per_scene_table(run)]
     lines += ["## Plots", ""]
     if methods:
         lines += [
@@ -854,36 +817,141 @@ def write_task_table(out_dir: str, results: Mapping[str, Any]) -> str:
     payload["plots"] = plot_files
     payload["scenes"] = [
         {
-            "seed": scene.get("seed"),
-            "start_occlusion": scene.get("start_occlusion"),
+            "seed": scene.seed,
+            "start_occlusion": scene.start_occlusion,
             "per_method": {
                 method: {
-                    "coverage_before": row["coverage_before"],
-                    "coverage_after": row["coverage_after"],
-                    "area_before": row["area_before"],
-                    "area_after": row["area_after"],
-                    "pa_mpvpe_mm": row.get("pa_mpvpe_mm"),
-                    "chosen_index": row.get("chosen_index"),
-                    "success": is_success(row["coverage_before"], row["coverage_after"]),
+                    "coverage_before": row.before.surface_coverage,
+                    "coverage_after": row.after.surface_coverage,
+                    "area_before": row.before.area_px,
+                    "area_after": row.after.area_px,
+                    "pa_mpvpe_mm": row.pa_mpvpe_mm,
+                    "chosen_index": row.chosen_index,
+                    "success": row.success,
                 }
-                for method, row in scene["per_method"].items()
+                for method, row in scene.per_method.items()
             },
         }
-        for scene in scenes
+        for scene in run.scenes
     ]
     _write_json_atomically(os.path.join(out_dir, "results.json"), payload)
     return _write_text_atomically(os.path.join(out_dir, "results.md"), "\n".join(lines))
 
 
-def _plot_coverage_per_scene(path: str, scenes: Sequence[Mapping[str, Any]], method: str) -> str:
+def _rounded(values: Sequence[float], digits: int = 6) -> List[float]:
+    return [round(float(v), digits) for v in values]
+
+
+def chosen_views_record(scene: SceneResult) -> Dict[str, Any]:
+    """chosen_views.json's entry of a scene: stamps, the candidates' scores (6 decimals), each method's pick."""
+    record: Dict[str, Any] = {
+        "seed": scene.seed,
+        "stamp_ns": scene.stamp_ns,
+        "start_occlusion": scene.start_occlusion,
+        "start_pose": scene.start_pose.to_json(),
+        "graph_failure": scene.graph_failure,
+        "graph_area_before_px": scene.graph_area_before_px,
+        "before": scene.before.to_json(),
+        "pa_mpvpe_before_mm": scene.pa_mpvpe_before_mm,
+        "graph_vs_truth": scene.graph_vs_truth.to_json(),
+    }
+    candidates = scene.candidates
+    if candidates is not None:
+        record["candidates"] = {
+            "count": len(candidates),
+            "chosen_index": int(candidates.chosen_index),
+            "feasible": [bool(v) for v in candidates.feasible],
+            "score": _rounded(candidates.score),
+        }
+        for name in candidates.term_names:
+            record["candidates"][f"s_{name}"] = _rounded(candidates.term(name))
+        record["candidates"]["positions_obs_m"] = [_rounded(p) for p in candidates.positions]
+        if scene.candidate_views is not None:
+            record["candidates"]["surface_coverage"] = _rounded([v.surface_coverage for v in scene.candidate_views])
+            record["candidates"]["raw_coverage"] = _rounded([v.raw_coverage for v in scene.candidate_views])
+    per_method: Dict[str, Dict[str, Any]] = {}
+    for method, row in scene.per_method.items():
+        entry: Dict[str, Any] = {"chosen_index": row.chosen_index, "pose": row.pose.to_json(),
+                                 "after": row.after.to_json()}
+        loop = row.closed_loop
+        if loop is not None:
+            entry.update(goal_received=loop.goal_received, goal_position_error_m=loop.goal_position_error_m,
+                         graph_area_after_px=loop.graph_area_after_px, after_stamp_ns=loop.after_stamp_ns,
+                         after_graph_failure=loop.after_graph_failure,
+                         after_graph_chosen_index=loop.after_graph_chosen_index,
+                         closed_loop_matches_render=loop.closed_loop_matches_render)
+        entry["success"] = row.success
+        per_method[method] = entry
+    record["per_method"] = per_method
+    return record
+
+
+def evaluation_summary_markdown(run: EvaluationRun) -> str:
+    """evaluation.md: what ran, the raw-coverage table, the graph's own areas, failures, wall time."""
+    failures = [(scene.seed, scene.graph_failure) for scene in run.scenes if scene.graph_failure]
+    graph_before = [scene.graph_area_before_px for scene in run.scenes if scene.graph_area_before_px is not None]
+    graph_after = [scene.per_method[run.default_method].graph_area_after for scene in run.scenes
+                   if run.default_method in scene.per_method
+                   and scene.per_method[run.default_method].graph_area_after is not None]
+    ready = _number(run.ready_s, 1) if run.ready_s is not None else "n/a"
+    workers = f"; {run.workers} worker processes (one graph each)" if run.workers > 1 else ""
+    lines = [
+        "# LEAP-NBV closed-loop evaluation",
+        "",
+        f"Scenes: {len(run.scenes)} (seeds {', '.join(str(seed) for seed in run.seeds)}); rooms: "
+        f"{run.room}; obstacle map: {'used' if run.obstacle_map else 'not used'}; perception: "
+        f"{run.perception}; wall time {run.total_wall_s:.1f} s (graph ready in {ready} s, "
+        f"scenes {run.scenes_wall_s:.1f} s){workers}.",
+        "",
+        "Headline coverage (results.md) is the surface coverage: the share of the body surface the "
+        "viewpoint could show (self-visible vertices, image bounds ignored) that the view does show. "
+        "The raw body coverage below divides by all vertices (its ceiling is ~50-55 %: the back of "
+        "a body is always hidden); success there uses the same rule, so read it with that in mind.",
+        "",
+        "## Raw body coverage (share of all vertices)",
+        "",
+        task_table_markdown(run, coverage="raw"),
+        "## Reconstructed area measured by the graph (leap_nbv, mask pixels with depth)",
+        "",
+        f"before {np.mean(graph_before) / 1000.0:.1f} k px -> after {np.mean(graph_after) / 1000.0:.1f} k px "
+        f"over {len(graph_after)} scenes" if graph_after and graph_before else "n/a",
+        "",
+        "## Graph failures",
+        "",
+    ]
+    lines += [f"- seed {seed}: {reason}" for seed, reason in failures] or ["none"]
+    lines.append("")
+    return "\n".join(lines)
+
+
+def write_evaluation_outputs(out_dir: str, run: EvaluationRun) -> str:
+    """Write every output of a run: results.md/.json and plots, chosen_views.json, evaluation.md, run.json.
+
+    run.json is the typed run itself (``EvaluationRun.read`` reads it back).
+
+    Returns:
+        Path of results.md.
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    path = write_task_table(out_dir, run)
+    records = [chosen_views_record(scene) for scene in run.scenes]
+    _write_text_atomically(os.path.join(out_dir, "chosen_views.json"),
+                           json.dumps(_to_plain(records), indent=1, allow_nan=False) + "\n")
+    _write_text_atomically(os.path.join(out_dir, "evaluation.md"), evaluation_summary_markdown(run))
+    run.write(os.path.join(out_dir, "run.json"))
+    return path
+
+
+def _plot_coverage_per_scene(path: str, run: EvaluationRun, method: str) -> str:
     """Dumbbell plot: coverage before (grey) -> after (green success / red not) per scene, sorted by before."""
-    rows = [(scene.get("seed"), scene["per_method"][method]) for scene in scenes if method in scene["per_method"]]
-    rows.sort(key=lambda item: float(item[1]["coverage_before"]))
-    before = np.array([100.0 * float(row["coverage_before"]) for _, row in rows])
-    after = np.array([100.0 * float(row["coverage_after"]) for _, row in rows])
-    success = np.array([is_success(row["coverage_before"], row["coverage_after"]) for _, row in rows], dtype=bool)
+    rows = [(scene.seed, scene.per_method[method]) for scene in run.scenes if method in scene.per_method]
+    rows.sort(key=lambda item: item[1].before.surface_coverage)
+    before = np.array([100.0 * row.before.surface_coverage for _, row in rows])
+    after = np.array([100.0 * row.after.surface_coverage for _, row in rows])
+    success = np.array([row.success for _, row in rows], dtype=bool)
     positions = np.arange(len(rows))
-    figure = _new_figure((max(6.0, 0.25 * len(rows) + 2.0), 4.5))
+    # Wider with more scenes, up to 16 in (about 1800 px): beyond, the scenes share the width.
+    figure = _new_figure((min(16.0, max(6.0, 0.25 * len(rows) + 2.0)), 4.5))
     axes = figure.add_subplot(1, 1, 1)
     if len(rows):
         axes.vlines(positions, np.minimum(before, after), np.maximum(before, after), colors="0.7", linewidths=2.0)

@@ -1,4 +1,4 @@
-"""Tests of leapnbv_evaluation.metrics and leapnbv_sim.depth_noise."""
+"""Tests of leapnbv_evaluation.metrics: PA-MPVPE, coverage, area, latency percentiles, the success rule."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import pytest
 
 from leapnbv_evaluation.metrics import (
     body_coverage,
+    is_success,
     latency_summary,
     pa_mpvpe_mm,
     procrustes_align,
     reconstructed_area,
-    visible_vertex_mask,
 )
 from leapnbv_perception.rotations import axis_angle_to_matrix
-from leapnbv_sim.depth_noise import DepthNoiseConfig, apply_depth_noise, depth_edge_mask, depth_m_to_mm
+from leapnbv_sim.visibility import visible_vertex_mask
 
 K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
 
@@ -90,33 +90,17 @@ def test_latency_summary_percentiles() -> None:
     assert latency_summary([])["n"] == 0
 
 
-def test_depth_noise_is_seeded_and_depth_dependent() -> None:
-    depth = np.zeros((60, 80), dtype=np.float32)
-    depth[:, :40] = 1.0
-    depth[:, 40:] = 4.0
-    config = DepthNoiseConfig(random_dropout_probability=0.0, edge_dropout_probability=0.0)
-    a = apply_depth_noise(depth, 7, config)
-    assert np.array_equal(a, apply_depth_noise(depth, 7, config))
-    assert not np.array_equal(a, apply_depth_noise(depth, 8, config))
-    near = a[:, :38] - 1.0
-    far = a[:, 42:] - 4.0
-    # sigma(z) = 0.0026 z^2 + 0.0005: ~3.1 mm at 1 m, ~42 mm at 4 m.
-    assert np.std(near) == pytest.approx(0.0031, rel=0.15)
-    assert np.std(far) == pytest.approx(0.0421, rel=0.15)
-
-
-def test_depth_noise_drops_edges() -> None:
-    depth = np.full((20, 20), 2.0, dtype=np.float32)
-    depth[:, 10:] = 3.0
-    edges = depth_edge_mask(depth, 0.1)
-    assert edges[:, 9].all() and edges[:, 10].all() and not edges[:, :9].any()
-    config = DepthNoiseConfig(edge_dropout_probability=1.0, random_dropout_probability=0.0)
-    noisy = apply_depth_noise(depth, 0, config)
-    assert (noisy[:, 9:11] == 0).all()
-    assert (noisy[:, :9] > 0).all()
-
-
-def test_depth_m_to_mm_rounds_and_keeps_zero() -> None:
-    out = depth_m_to_mm(np.array([[0.0, 1.2344, 1.2346, 70.0]]))
-    assert out.dtype == np.uint16
-    assert out.tolist() == [[0, 1234, 1235, 65535]]
+@pytest.mark.parametrize(
+    "before, after, expected",
+    [
+        (0.50, 0.59, False),
+        (0.50, 0.60, True),
+        (0.85, 0.90, True),
+        (0.85, 0.89, False),
+        (0.95, 0.92, True),
+        (0.30, 0.25, False),
+        (0.70, 0.80, True),
+    ],
+)
+def test_is_success_rule(before, after, expected):
+    assert is_success(before, after) is expected

@@ -23,7 +23,7 @@ from leapnbv_common.topics import (
     GROUND_TRUTH_TOPIC,
 )
 from leapnbv_msgs.msg import SceneGroundTruth
-from leapnbv_sim.scene import RenderedFrame
+from leapnbv_sim.render import RenderedFrame
 
 
 def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: str) -> SceneGroundTruth:

@@ -14,10 +14,17 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Header
 
 from leapnbv_bags.bag_io import RELIABLE_QOS, SENSOR_DATA_QOS, BagWriter, make_typestore
-from leapnbv_common.topics import GROUND_TRUTH_TOPIC
-from leapnbv_sim.scene import CameraPose, RenderedFrame, SceneConfig, generate_scene
+from leapnbv_common.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPIC
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_sim.frame_messages import camera_frame_messages
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.poses import CameraPose
+from leapnbv_sim.render import RenderedFrame
+from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 # name -> scene seed and options; two different scenes (with and without walls).
 SAMPLE_BAGS = {
@@ -77,12 +84,6 @@ def write_scene_bag(
     Raises:
         BagError: ``path`` exists (without overwrite) or writing fails.
     """
-    from rclpy.serialization import serialize_message
-    from std_msgs.msg import Header
-
-    from leapnbv_common.topics import CAMERA_TOPICS
-    from leapnbv_sim.frame_messages import camera_frame_messages
-
     image_types = {"image": "sensor_msgs/msg/Image", "camera_info": "sensor_msgs/msg/CameraInfo",
                    "depth": "sensor_msgs/msg/Image", "depth/camera_info": "sensor_msgs/msg/CameraInfo"}
     with BagWriter(path, overwrite=overwrite, typestore=make_typestore()) as bag:
@@ -107,9 +108,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--out", default="bags", help="folder for the bags")
     parser.add_argument("--force", action="store_true", help="replace existing bags (atomically)")
     args = parser.parse_args(argv)
-
-    from leapnbv_perception.smplx_layer import SMPLXModel
-    from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
     body_model = SMPLXModel.load(ensure_stand_in_body_model("small"))
     for name, spec in SAMPLE_BAGS.items():

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from leapnbv_geometry.raster import rasterize_mesh
+
 
 def project_points(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pinhole projection u = fx x/z + cx, v = fy y/z + cy (pixel centres at integer u, v).
@@ -101,8 +103,6 @@ def self_visible_vertex_mask(
     Raises:
         ValueError: Bad shapes.
     """
-    from leapnbv_geometry.raster import rasterize_mesh
-
     vertices = np.asarray(vertices_cam, dtype=np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"vertices_cam must be (V,3), got {vertices.shape}")

@@ -14,8 +14,10 @@ from leapnbv_bags import bag_io
 from leapnbv_bags.bag_io import BagError, BagWriter, read_bag, validate_bag_crcs
 from leapnbv_common import topics
 from leapnbv_common.conversions import ConversionError
+from leapnbv_sim.body import BodyParams
+from leapnbv_sim.poses import CameraPose
+from leapnbv_sim.render import FrameGroundTruth, RenderedFrame
 from leapnbv_sim.sample_bags import write_scene_bag
-from leapnbv_sim.scene import BodyParams, CameraPose, FrameGroundTruth, RenderedFrame
 
 
 def _frame(seed: int, width: int = 32, height: int = 24) -> RenderedFrame:

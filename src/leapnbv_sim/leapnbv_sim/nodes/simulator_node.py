@@ -1,13 +1,13 @@
 """simulator_node: a simulated RGB-D camera on a robot that drives to the next-best-view goals it gets.
 
-The node holds one synthetic scene (:mod:`leapnbv_sim.scene`) and renders it from the robot's
-current camera pose, publishing what a RealSense driver would (colour, aligned depth in mm, both
-camera infos) plus the simulator's ground truth, all five with one header (stamp = the sim time of
-the frame, frame_id = the camera's optical frame). Before the images it publishes the world pose of
-the camera it rendered from on ``/leapnbv/camera_pose`` (geometry_msgs/PoseStamped,
-T_world_camera_optical, frame ``world_frame_id``, stamp = the frame's stamp): what the robot's
-localization would give the graph, so a node that needs the pose of a frame has it when the frame
-arrives.
+The node holds one synthetic scene (:mod:`leapnbv_sim.scene`, made by :mod:`leapnbv_sim.generation`)
+and renders it from the robot's current camera pose, publishing what a RealSense driver would
+(colour, aligned depth in mm, both camera infos) plus the simulator's ground truth, all five with
+one header (stamp = the sim time of the frame, frame_id = the camera's optical frame). Before the
+images it publishes the world pose of the camera it rendered from on ``/leapnbv/camera_pose``
+(geometry_msgs/PoseStamped, T_world_camera_optical, frame ``world_frame_id``, stamp = the frame's
+stamp): what the robot's localization would give the graph, so a node that needs the pose of a
+frame has it when the frame arrives.
 
 Every scene it switches to (:meth:`SimulatorNode.set_scene`, also the first one) it publishes once
 as a map of its static obstacles (occluders, walls, furniture: not the floor, not the person) on
@@ -36,7 +36,10 @@ Frames are rendered at ``rate_hz`` from a timer (stamp = the node clock, which f
 under use_sim_time), or, with ``rate_hz`` = 0, only when an in-process caller asks
 (:meth:`SimulatorNode.publish_frame`, which takes the stamp to use). An in-process caller may
 also hand the node a ready :class:`~leapnbv_sim.scene.Scene` (:meth:`SimulatorNode.set_scene`)
-instead of the ``scene_seed`` parameters.
+instead of the ``scene_seed`` parameters. The parameters are
+:class:`~leapnbv_sim.simulator.SimulatorParams` (the scene ones, the rate and the frame ids are read at
+start-up; the others may change at runtime, and a change of the obstacle map's parameters publishes
+the map again).
 
     python -m leapnbv_sim.nodes.simulator_node --ros-args -p scene_seed:=3 -p rate_hz:=5.0
 """
@@ -45,7 +48,7 @@ from __future__ import annotations
 import sys
 import time
 from collections import OrderedDict
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Set, Tuple
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -61,7 +64,7 @@ from leapnbv_common.conversions import (
     xyz_to_pointcloud2,
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
-from leapnbv_common.node_params import declare_parameters, run_node
+from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.qos import camera_input_qos, latched_goal_qos, latched_map_qos, stage_output_qos
 from leapnbv_common.topics import (
     CAMERA_POSE_TOPIC,
@@ -74,9 +77,11 @@ from leapnbv_common.topics import (
     OBSTACLE_MAP_TOPIC,
 )
 from leapnbv_msgs.msg import SceneGroundTruth
-from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_sim.frame_messages import camera_frame_messages
-from leapnbv_sim.scene import CameraPose, RenderedFrame, Scene, pose_in_world
+from leapnbv_sim.poses import CameraPose, pose_in_world
+from leapnbv_sim.render import RenderedFrame
+from leapnbv_sim.scene import Scene
+from leapnbv_sim.simulator import CameraMotion, SimulatorParams, load_scene
 
 DEFAULT_GOAL_TOPIC = NEXT_BEST_VIEW_TOPIC
 # Local remap of the relative goal topic applied unless the caller remaps it itself.
@@ -84,87 +89,9 @@ DEFAULT_GOAL_REMAP = ["--ros-args", "-r", "goal:=" + DEFAULT_GOAL_TOPIC]
 # Camera drivers offer sensor-data QoS: best effort, keep the last 5 frames.
 CAMERA_QOS_DEPTH = 5
 
-PARAMETERS = {
-    "scene_seed": (0, "seed of the synthetic scene (leapnbv_sim.scene.SceneConfig.seed)"),
-    "body_resolution": ("small", "stand-in body model resolution: small or full"),
-    "body_model_path": ("", "SMPL-X layout .npz of the scene's body (empty: the stand-in of body_resolution)"),
-    "walls": (True, "add a wall behind the person (and sometimes one beside)"),
-    "depth_noise": (True, "corrupt the depth like a structured-light sensor"),
-    "rate_hz": (10.0, "frames per second from a timer; 0 = only when an in-process caller asks"),
-    "move_speed_m_s": (0.0, "0 = jump to each goal; > 0 = drive there on a straight line at this speed"),
-    "frame_id": ("camera_color_optical_frame", "frame_id of every published frame"),
-    "world_frame_id": ("sim_world", "frame_id of the published camera pose and obstacle map (the simulator's world)"),
-    "pose_memory": (300, "how many published stamps keep their camera pose for goal lookups"),
-    "obstacle_map_resolution": (0.1, "metres: voxel edge of the published obstacle map"),
-    "publish_obstacle_map": (
-        True,
-        "publish the scene's static obstacles as a voxel map, as a robot's mapping stack would",
-    ),
-}
-
 
 class SimulatorError(ValueError):
     """The simulator cannot do what was asked (no scene, bad stamp); the text says why."""
-
-
-def interpolate_camera_pose(start: CameraPose, goal: CameraPose, fraction: float) -> CameraPose:
-    """A pose between two camera poses: position on the straight line, orientation slerped.
-
-    R(f) = R_0 exp(f log(R_0^T R_1)), p(f) = p_0 + f (p_1 - p_0), with f clipped to [0, 1].
-
-    Args:
-        start: Pose at fraction 0.
-        goal: Pose at fraction 1.
-        fraction: Progress along the motion.
-
-    Returns:
-        The interpolated T_world_camera (exactly ``goal`` at fraction >= 1).
-    """
-    f = min(1.0, max(0.0, float(fraction)))
-    if f >= 1.0:
-        return CameraPose(goal.rotation.copy(), goal.position.copy())
-    relative = matrix_to_axis_angle(start.rotation.T @ goal.rotation)
-    rotation = start.rotation @ axis_angle_to_matrix(f * np.asarray(relative, dtype=np.float64))
-    position = start.position + f * (goal.position - start.position)
-    return CameraPose(rotation, position)
-
-
-class CameraMotion:
-    """A straight-line camera motion in sim time (speed 0: the goal is reached at once)."""
-
-    def __init__(self, start: CameraPose, goal: CameraPose, start_ns: int, speed_m_s: float) -> None:
-        self.start = start
-        self.goal = goal
-        self.start_ns = int(start_ns)
-        self.speed_m_s = float(speed_m_s)
-        self.distance_m = float(np.linalg.norm(goal.position - start.position))
-
-    def fraction_at(self, stamp_ns: int) -> float:
-        """Progress in [0, 1] at a sim time (1 for an instant move or a pure turn)."""
-        if self.speed_m_s <= 0.0 or self.distance_m < 1e-9:
-            return 1.0
-        travelled = max(0, int(stamp_ns) - self.start_ns) * 1e-9 * self.speed_m_s
-        return min(1.0, travelled / self.distance_m)
-
-    def pose_at(self, stamp_ns: int) -> CameraPose:
-        return interpolate_camera_pose(self.start, self.goal, self.fraction_at(stamp_ns))
-
-
-def load_scene(seed: int, body_resolution: str = "small", body_model_path: str = "", walls: bool = True,
-               depth_noise: bool = True) -> Scene:
-    """Generate the scene the node's parameters describe (default SceneConfig otherwise).
-
-    Raises:
-        SceneError: The seed gives no usable scene.
-    """
-    from leapnbv_perception.smplx_layer import SMPLXModel
-    from leapnbv_sim.scene import SceneConfig, generate_scene
-    from leapnbv_stand_ins.files import ensure_stand_in_body_model
-
-    path = body_model_path or ensure_stand_in_body_model(body_resolution)
-    config = SceneConfig(seed=int(seed), walls=bool(walls), depth_noise=bool(depth_noise),
-                         body_resolution=str(body_resolution))
-    return generate_scene(config, SMPLXModel.load(path))
 
 
 class SimulatorNode(Node):
@@ -179,9 +106,10 @@ class SimulatorNode(Node):
     def __init__(self, scene: Optional[Scene] = None, **node_kwargs: Any) -> None:
         node_kwargs.setdefault("cli_args", list(DEFAULT_GOAL_REMAP))
         super().__init__("simulator_node", **node_kwargs)
-        p = self.params = declare_parameters(self, PARAMETERS)
+        self.node_params = NodeParams(self, SimulatorParams, on_change=self._on_params_change)
+        p = self.node_params.value
         self.diagnostics = StageDiagnostics(self, hardware_id="simulator")
-        self.frame_id = str(p["frame_id"])
+        self.frame_id = p.frame_id
         camera_qos = camera_input_qos(CAMERA_QOS_DEPTH)
         self.frame_pubs = {
             COLOR_IMAGE_TOPIC: self.create_publisher(Image, COLOR_IMAGE_TOPIC, camera_qos),
@@ -205,11 +133,20 @@ class SimulatorNode(Node):
         self.goals_accepted = 0
         self._poses: Dict[int, CameraPose] = OrderedDict()  # oldest stamp first
         if scene is None:
-            scene = load_scene(p["scene_seed"], p["body_resolution"], p["body_model_path"], p["walls"],
-                               p["depth_noise"])
+            scene = load_scene(p)
         self.set_scene(scene)
-        if float(p["rate_hz"]) > 0.0:
-            self.create_timer(1.0 / float(p["rate_hz"]), self.on_timer)
+        if p.rate_hz > 0.0:
+            self.create_timer(1.0 / p.rate_hz, self.on_timer)
+
+    @property
+    def params(self) -> SimulatorParams:
+        """The parameters in force."""
+        return self.node_params.value
+
+    def _on_params_change(self, params: SimulatorParams, changed: Set[str]) -> None:
+        """A runtime change: a new obstacle map resolution or switch publishes the map again."""
+        if changed & {"obstacle_map_resolution", "publish_obstacle_map"} and params.publish_obstacle_map:
+            self.publish_obstacle_map(params.obstacle_map_resolution)
 
     # ------------------------------------------------------------------ scene and camera state
 
@@ -219,31 +156,32 @@ class SimulatorNode(Node):
         Forgetting the stamps makes any goal planned in the previous scene (e.g. the latched
         last goal) a rejected one instead of a jump to nonsense. The new scene's obstacle map is
         published once (unless ``publish_obstacle_map`` is off).
-
-        Raises:
-            SceneError: ``obstacle_map_resolution`` is not > 0 (the scene is switched all the same).
         """
         self.scene = scene
         start = camera if camera is not None else scene.start_camera
-        self.camera = CameraPose(start.rotation.copy(), start.position.copy())
+        self.camera = start.copy()
         self.motion = None
         self.frame_count = 0
         self._poses.clear()
         self.last_goal_stamp_ns = None
-        if bool(self.params["publish_obstacle_map"]):
+        if self.params.publish_obstacle_map:
             self.publish_obstacle_map()
 
-    def publish_obstacle_map(self) -> PointCloud2:
+    def publish_obstacle_map(self, resolution: Optional[float] = None) -> PointCloud2:
         """Publish the current scene's obstacle voxel centres (world frame, stamp = now) and return the message.
+
+        Args:
+            resolution: Voxel edge (m); ``obstacle_map_resolution`` when None.
 
         Raises:
             SimulatorError: No scene.
-            SceneError: ``obstacle_map_resolution`` is not > 0.
         """
         if self.scene is None:
             raise SimulatorError("no scene loaded")
-        centres = self.scene.obstacle_voxel_centres(float(self.params["obstacle_map_resolution"]))
-        header = Header(frame_id=str(self.params["world_frame_id"]), stamp=self.get_clock().now().to_msg())
+        if resolution is None:
+            resolution = self.params.obstacle_map_resolution
+        centres = self.scene.obstacle_voxel_centres(resolution)
+        header = Header(frame_id=self.params.world_frame_id, stamp=self.get_clock().now().to_msg())
         msg = xyz_to_pointcloud2(centres, header)
         self.map_pub.publish(msg)
         return msg
@@ -265,7 +203,7 @@ class SimulatorNode(Node):
         """
         if start_ns is None:
             start_ns = self.last_stamp_ns if self.last_stamp_ns is not None else 0
-        speed = float(self.params["move_speed_m_s"])
+        speed = self.params.move_speed_m_s
         self.motion = CameraMotion(self.camera, goal, int(start_ns), speed)
         if speed <= 0.0:
             self.camera = self.motion.pose_at(int(start_ns))
@@ -313,13 +251,13 @@ class SimulatorNode(Node):
         # or their pose has them on arrival.
         for topic in (COLOR_INFO_TOPIC, DEPTH_INFO_TOPIC):
             self.frame_pubs[topic].publish(messages.pop(topic))
-        pose_header = Header(frame_id=str(self.params["world_frame_id"]), stamp=header.stamp)
+        pose_header = Header(frame_id=self.params.world_frame_id, stamp=header.stamp)
         self.pose_pub.publish(PoseStamped(header=pose_header, pose=pose_msg(camera.rotation, camera.position)))
         for topic, message in messages.items():  # ground truth, colour, depth
             self.frame_pubs[topic].publish(message)
 
-        self._poses[stamp_ns] = CameraPose(camera.rotation.copy(), camera.position.copy())
-        while len(self._poses) > max(1, int(self.params["pose_memory"])):
+        self._poses[stamp_ns] = camera.copy()
+        while len(self._poses) > self.params.pose_memory:
             self._poses.popitem(last=False)
         self.last_stamp_ns = stamp_ns
         self.frame_count += 1

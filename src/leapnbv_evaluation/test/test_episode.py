@@ -1,4 +1,5 @@
-"""Closed-loop pieces without ROS: surface coverage, candidate poses in the world, method choices."""
+"""The evaluator core without ROS (leapnbv_evaluation.episode): surface coverage on scenes, candidate poses in the
+world, method choices, scoring every method."""
 from __future__ import annotations
 
 import dataclasses
@@ -6,17 +7,24 @@ import dataclasses
 import numpy as np
 import pytest
 
-from leapnbv_evaluation.evaluation import (
-    ScoredCandidates,
+from leapnbv_common.conversions import ViewCandidatesArrays
+from leapnbv_evaluation.episode import (
+    AFTER_FRAME_INDEX,
+    ORACLE_METHOD,
     candidate_world_pose,
     choose_method_views,
     frame_stamp_ns,
+    method_names,
+    score_methods,
     view_metrics,
 )
-from leapnbv_evaluation.metrics import body_coverage, self_visible_vertex_mask, surface_coverage
+from leapnbv_evaluation.metrics import body_coverage, is_success, surface_coverage
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_planner.candidates import CandidateRingParams, generate_candidates
-from leapnbv_sim.scene import PERSON_ID, SceneConfig, generate_scene, look_at_pose
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.poses import look_at_pose
+from leapnbv_sim.render import PERSON_ID
+from leapnbv_sim.visibility import self_visible_vertex_mask
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 
@@ -76,10 +84,7 @@ def test_candidate_pose_in_world_matches_the_ring_geometry(scene):
     centroid = start.world_to_camera(centroid_world[None])[0]
     params = CandidateRingParams(num_candidates=8, radius=2.0)
     ring = generate_candidates(centroid, normal, offset, params)
-    candidates = ScoredCandidates(
-        rotations=ring.rotations, positions=ring.positions, score=np.zeros(len(ring.positions)),
-        s_visibility=np.zeros(9), s_area=np.zeros(9), s_occlusion=np.zeros(9), feasible=np.ones(9, bool),
-        chosen_index=-1, includes_current_view=True)
+    candidates = _arrays(ring.rotations, ring.positions, {"visibility": np.zeros(9)}, np.ones(9, bool), chosen=-1)
     stay = candidate_world_pose(start, candidates, 0)
     np.testing.assert_allclose(stay.as_matrix(), start.as_matrix(), atol=1e-12)
     for index in range(1, 9):
@@ -96,13 +101,23 @@ def test_candidate_pose_in_world_matches_the_ring_geometry(scene):
     assert np.dot(first, bearing) / (np.linalg.norm(first) * np.linalg.norm(bearing)) == pytest.approx(1.0)
 
 
+def _arrays(rotations, positions, terms, feasible, chosen):
+    """ViewCandidatesArrays with the given score terms (name -> (C,) values), total score 0."""
+    count = len(positions)
+    names = list(terms)
+    return ViewCandidatesArrays(
+        rotations=np.asarray(rotations, float), positions=np.asarray(positions, float), term_names=names,
+        term_weights=np.full(len(names), 1.0 / len(names)),
+        term_scores=np.stack([np.asarray(terms[name], float) for name in names], axis=1),
+        score=np.zeros(count), feasible=np.asarray(feasible, bool), infeasible_reason=np.zeros(count, np.uint8),
+        chosen_index=chosen, includes_current_view=True, ring_center=np.zeros(3), ring_radius=1.0)
+
+
 def _candidates(s_v, s_a, s_o, feasible, chosen=1):
     count = len(s_v)
     positions = np.array([[float(i), 0.0, 0.0] for i in range(count)])
-    return ScoredCandidates(
-        rotations=np.repeat(np.eye(3)[None], count, axis=0), positions=positions, score=np.zeros(count),
-        s_visibility=np.asarray(s_v, float), s_area=np.asarray(s_a, float), s_occlusion=np.asarray(s_o, float),
-        feasible=np.asarray(feasible, bool), chosen_index=chosen, includes_current_view=True)
+    return _arrays(np.repeat(np.eye(3)[None], count, axis=0), positions,
+                   {"visibility": s_v, "area": s_a, "occlusion": s_o}, feasible, chosen)
 
 
 def test_methods_choose_among_the_same_feasible_candidates():
@@ -119,6 +134,17 @@ def test_methods_choose_among_the_same_feasible_candidates():
     assert choose_method_views(c, scene_seed=11)["random"] == choices["random"]
     draws = {choose_method_views(c, scene_seed=seed)["random"] for seed in range(40)}
     assert draws == {1, 3, 4}
+
+
+def test_term_only_baselines_follow_the_planners_terms():
+    c = _arrays(np.repeat(np.eye(3)[None], 3, axis=0), np.eye(3), {"area": [0.1, 0.9, 0.2], "novelty": [0.3, 0.1, 0.8]},
+                [True, True, True], chosen=1)
+    choices = choose_method_views(c, scene_seed=0)
+    assert list(choices) == ["leap_nbv", "stay", "random", "area_only", "novelty_only"]
+    assert choices["area_only"] == 1 and choices["novelty_only"] == 2
+    assert method_names(c.term_names, oracle=True) == list(choices) + [ORACLE_METHOD]
+    assert method_names(["visibility", "area", "occlusion"], oracle=False) == [
+        "leap_nbv", "stay", "random", "visibility_only", "area_only", "occlusion_only"]
 
 
 def test_methods_stay_when_nothing_is_feasible():
@@ -143,3 +169,39 @@ def test_frame_stamps_are_deterministic_and_ordered():
     assert frame_stamp_ns(base, 0, 0) == base
     assert frame_stamp_ns(base, 2, 1) == base + 20_000_000_000 + 100_000_000
     assert frame_stamp_ns(base, 1, 0) > frame_stamp_ns(base, 0, 1)
+
+
+def test_score_methods_renders_each_pick_and_decides_success_once(scene):
+    start = scene.start_camera
+    normal = start.rotation.T @ np.array([0.0, 0.0, 1.0])
+    centroid = start.world_to_camera(scene.body_centre_world[None])[0]
+    ring = generate_candidates(centroid, normal, float(start.position[2]), CandidateRingParams(num_candidates=8,
+                                                                                              radius=2.0))
+    feasible = np.ones(9, bool)
+    feasible[4] = False
+    candidates = _arrays(ring.rotations, ring.positions, {"visibility": np.linspace(1.0, 0.2, 9),
+                                                          "area": np.linspace(0.0, 0.8, 9)}, feasible, chosen=3)
+    before = view_metrics(scene, scene.render(start, frame_index=0))
+    views = score_methods(scene, before, candidates, seed=3, score_all_candidates=True, methods_when_staying=[])
+    assert list(views.per_method) == ["leap_nbv", "stay", "random", "visibility_only", "area_only", "oracle"]
+    assert len(views.candidate_views) == 9
+    coverage = [view.surface_coverage for view in views.candidate_views]
+    oracle = views.per_method["oracle"]
+    assert feasible[oracle.chosen_index]
+    assert coverage[oracle.chosen_index] == max(c for c, f in zip(coverage, feasible) if f)
+    for method, result in views.per_method.items():
+        pose = candidate_world_pose(start, candidates, result.chosen_index)
+        frame = scene.render(pose, frame_index=AFTER_FRAME_INDEX)
+        assert result.after == view_metrics(scene, frame), method
+        assert result.before == before
+        assert result.success == is_success(before.surface_coverage, result.after.surface_coverage)
+        assert result.raw_success == is_success(before.raw_coverage, result.after.raw_coverage)
+    assert views.per_method["leap_nbv"].chosen_index == 3 and views.per_method["stay"].chosen_index == 0
+    # Without candidates (a graph failure) every method stays where it is.
+    staying = score_methods(scene, before, None, seed=3, score_all_candidates=True,
+                            methods_when_staying=["leap_nbv", "stay", "oracle"])
+    assert list(staying.per_method) == ["leap_nbv", "stay", "oracle"] and staying.candidate_views is None
+    for result in staying.per_method.values():
+        assert result.chosen_index == -1
+        np.testing.assert_allclose(result.pose.position_m, np.round(start.position, 6))
+        assert result.after.surface_coverage == pytest.approx(before.surface_coverage)

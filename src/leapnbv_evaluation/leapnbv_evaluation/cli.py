@@ -1,0 +1,123 @@
+"""Closed-loop evaluation from the command line: benchmark scenes through the running node graph, one move each.
+
+    python -m leapnbv_evaluation.cli --scenes 50 --out out/eval
+    python -m leapnbv_evaluation.cli --scenes 1000 --workers 2 --out out/eval1000
+    python -m leapnbv_evaluation.cli --scenes 10 --out out/eval_models --perception onnxruntime \\
+        --detector-model yolov8s.onnx --hmr-model smplerx.onnx --body-model SMPLX_NEUTRAL.npz \\
+        --scene-body-model SMPLX_NEUTRAL.npz
+
+What runs: :mod:`leapnbv_evaluation.harness` (the graph, the in-process simulator, the closed
+loop), :mod:`leapnbv_evaluation.episode` (the methods and how a view is scored); with
+``--workers N`` the scenes are split among N processes with a graph each
+(:mod:`leapnbv_evaluation.parallel`: ROS domains, log folders, merging).
+
+Outputs in ``--out`` (:func:`leapnbv_evaluation.report.write_evaluation_outputs`): results.md /
+results.json / plots, chosen_views.json (per scene: stamps, candidates' scores, each method's pick,
+world pose and metrics), evaluation.md (raw-coverage table, the graph's own areas, failures, wall
+time), run.json (the typed run), and logs/ (one log per node; workers/worker_<k>/ with --workers).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from typing import List, Optional, Sequence
+
+from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS, ROOMS, benchmark_seeds, checked_seed_count
+from leapnbv_evaluation.episode import EvaluationError
+from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
+from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, run_in_workers
+from leapnbv_evaluation.report import task_table_markdown, write_evaluation_outputs
+from leapnbv_evaluation.results import EvaluationRun
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_stand_ins.files import ensure_stand_in_body_model
+
+
+def seeds_for(count: int, offset: int = 0) -> List[int]:
+    """Benchmark seeds [offset, offset + count) (the small stand-in checks seeds past the committed checks).
+
+    Raises:
+        EvaluationError: A count below 1 or a negative offset.
+    """
+    body = None
+    if offset + count > checked_seed_count():
+        body = SMPLXModel.load(ensure_stand_in_body_model("small"))
+    try:
+        return benchmark_seeds(count, offset, body)
+    except ValueError as error:
+        raise EvaluationError(f"--scenes {count} --seed-offset {offset}: {error}") from error
+
+
+def run_evaluation(seeds: Sequence[int], out_dir: str, options: Optional[EvaluationOptions] = None,
+                   workers: int = 1, domain_base: Optional[int] = None) -> EvaluationRun:
+    """Evaluate the scenes (in this process, or in ``workers`` worker processes), write the outputs.
+
+    Returns:
+        The run.
+    """
+    options = options or EvaluationOptions()
+    started = time.monotonic()
+    if workers > 1:
+        run = run_in_workers(seeds, out_dir, options, workers, domain_base)
+    else:
+        if options.log_dir is None:
+            options.log_dir = os.path.join(out_dir, "logs")
+        with ClosedLoopEvaluator(options) as evaluator:
+            run = evaluator.evaluate(seeds)
+    run.total_wall_s = time.monotonic() - started
+    write_evaluation_outputs(out_dir, run)
+    return run
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", type=int, default=50,
+                        help=f"how many benchmark scenes (any number; the first {len(BENCHMARK_SEEDS)} seeds are "
+                             "the committed ones)")
+    parser.add_argument("--seed-offset", type=int, default=0, help="skip this many benchmark seeds first")
+    parser.add_argument("--out", default=os.path.join("out", "evaluation"), help="output folder")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="worker processes, each with its own graph and ROS domain (default 1: this process)")
+    parser.add_argument("--domain-base", type=int, default=None,
+                        help=f"ROS domain of worker 0 (worker k: base + k); default ${DOMAIN_BASE_ENV}, else free "
+                             "domains claimed with locks (see leapnbv_evaluation.parallel)")
+    parser.add_argument("--perception", choices=["ground_truth", "onnxruntime", "tensorrt"], default="ground_truth")
+    parser.add_argument("--detector-model", default=None, help="YOLOv8 ONNX file (real perception)")
+    parser.add_argument("--hmr-model", default=None, help="SMPLer-X student ONNX file (real perception)")
+    parser.add_argument("--body-model", default=None,
+                        help="SMPL-X .npz of the HMR node (ground truth default: the small stand-in)")
+    parser.add_argument("--scene-body-model", default=None,
+                        help="body model of the scenes (default: the small stand-in the seeds were chosen for)")
+    parser.add_argument("--params", default=None, help="graph parameter YAML")
+    parser.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
+                        help="override one graph parameter (repeatable)")
+    parser.add_argument("--frame-timeout", type=float, default=15.0, help="seconds to wait for a frame's plan")
+    parser.add_argument("--room", choices=list(ROOMS), default="furnished",
+                        help="benchmark rooms with furniture around the person (default) or without")
+    parser.add_argument("--no-obstacle-map", action="store_true",
+                        help="the planner gets no map of the room: it knows only what each frame shows")
+    args = parser.parse_args(argv)
+
+    options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
+                                hmr_model=args.hmr_model, body_model=args.body_model,
+                                scene_body_model=args.scene_body_model, params_file=args.params,
+                                set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
+                                room=args.room, obstacle_map=not args.no_obstacle_map)
+    try:
+        if args.workers < 1:
+            raise EvaluationError(f"--workers must be >= 1, got {args.workers}")
+        seeds = seeds_for(args.scenes, args.seed_offset)
+        run = run_evaluation(seeds, args.out, options, workers=args.workers, domain_base=args.domain_base)
+    except EvaluationError as exc:
+        print(f"[evaluation] {exc}", file=sys.stderr)
+        return 1
+    print(task_table_markdown(run), end="")
+    failures = sum(1 for scene in run.scenes if scene.graph_failure)
+    print(f"[evaluation] {len(seeds)} scenes ({failures} graph failures) in {run.total_wall_s:.1f} s "
+          f"with {run.workers} worker(s); outputs in {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,219 @@
+"""Rendering a scene: flat-shaded RGB, depth (noisy like the sensor, and noise-free), object ids, ground truth.
+
+The mesh is rasterized by :func:`leapnbv_geometry.raster.rasterize_mesh` (z-buffer, pixel centres
+at integer coordinates). Faces are flat shaded once, when the scene is assembled
+(:func:`shade_faces`: Lambert with both sides lit, plus ambient).
+
+Object ids, in a scene's faces and in ``RenderedFrame.object_id``: -1 background (frames only),
+:data:`FLOOR_ID` 0, :data:`PERSON_ID` 1, occluders from :data:`FIRST_OCCLUDER_ID` 2 on, then
+walls, then clutter (see ``Scene.object_names``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional, Tuple
+
+import numpy as np
+
+from leapnbv_geometry.raster import rasterize_mesh
+from leapnbv_sim.body import BodyParams
+from leapnbv_sim.depth_noise import apply_depth_noise, depth_m_to_mm
+from leapnbv_sim.poses import CameraPose
+from leapnbv_sim.visibility import visible_vertex_mask
+
+if TYPE_CHECKING:  # annotations only: the Scene's methods render through this module
+    from leapnbv_sim.scene import Scene
+
+FLOOR_ID = 0
+PERSON_ID = 1
+FIRST_OCCLUDER_ID = 2
+BACKGROUND_RGB = np.array([40, 40, 48], dtype=np.uint8)
+# Light travelling down and slightly sideways (world frame), plus ambient.
+_LIGHT_DIRECTION = np.array([0.3, 0.5, -1.0]) / np.linalg.norm([0.3, 0.5, -1.0])
+_AMBIENT = 0.35
+
+
+@dataclass
+class FrameGroundTruth:
+    """What the simulator knows about one rendered view (camera optical frame, metres).
+
+    Attributes:
+        person_box_xyxy: (x_min, y_min, x_max, y_max) of the visible person pixels, max edges
+            exclusive; None when no person pixel is visible.
+        body_params_camera: Body parameters; root_pose is the orientation in the camera frame.
+        translation_camera: (3,) added to ``model.forward(params).vertices`` to get
+            ``vertices_camera``.
+        vertices_camera: (V,3) body vertices in the camera frame.
+        visible_vertices: (V,) bool, the vertices this view sees (see visibility.visible_vertex_mask).
+        occlusion_share: Share of body vertices hidden from this view (by occluders, by the
+            body itself, or outside the image) = 1 - body coverage.
+        occluder_share: Share of the body's self-visible in-image vertices that other objects
+            hide (0 without occluders in the line of sight).
+        person_pixel_count: Visible person pixels.
+    """
+
+    person_box_xyxy: Optional[Tuple[int, int, int, int]]
+    body_params_camera: BodyParams
+    translation_camera: np.ndarray
+    vertices_camera: np.ndarray
+    visible_vertices: np.ndarray
+    occlusion_share: float
+    occluder_share: float
+    person_pixel_count: int
+
+
+@dataclass
+class RenderedFrame:
+    """One rendered RGB-D view with its ground truth.
+
+    Attributes:
+        rgb: (H,W,3) uint8.
+        depth_mm: (H,W) uint16 millimetres, 0 = no return (noisy when the scene's noise is on).
+        depth_m: (H,W) float32 metres, the same data as depth_mm (noisy when noise is on).
+        depth_clean_m: (H,W) float32 metres, noise-free render (for metrics).
+        object_id: (H,W) int16, -1 background (ids: see Scene.object_names).
+        K: (3,3) intrinsics.
+        camera_pose: The T_world_camera it was rendered from.
+        ground_truth: FrameGroundTruth.
+    """
+
+    rgb: np.ndarray
+    depth_mm: np.ndarray
+    depth_m: np.ndarray
+    depth_clean_m: np.ndarray
+    object_id: np.ndarray
+    K: np.ndarray
+    camera_pose: CameraPose
+    ground_truth: FrameGroundTruth
+
+
+def shade_faces(vertices: np.ndarray, faces: np.ndarray, base_rgb: np.ndarray) -> np.ndarray:
+    """Lambert flat shading per face (both sides lit: |n . l|), (M,3) uint8."""
+    a = vertices[faces[:, 0]]
+    normals = np.cross(vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a)
+    lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = normals / np.maximum(lengths, 1e-12)
+    lambert = np.abs(normals @ _LIGHT_DIRECTION)
+    shade = _AMBIENT + (1.0 - _AMBIENT) * lambert
+    colour = base_rgb[None, :] * shade[:, None] if base_rgb.ndim == 1 else base_rgb * shade[:, None]
+    return np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
+
+
+def render_depth(
+    scene: Scene, camera: CameraPose, include: Optional[np.ndarray] = None
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Noise-free depth and object id of the scene (or of a subset of its objects).
+
+    Args:
+        scene: The scene.
+        camera: T_world_camera.
+        include: Object ids to draw; all if None.
+
+    Returns:
+        depth (H,W) float32 metres (0 = nothing), object_id (H,W) int32 (-1 = nothing).
+    """
+    faces = scene.faces
+    face_ids = scene.face_object_id
+    if include is not None:
+        keep = np.isin(face_ids, include)
+        faces = faces[keep]
+        face_ids = face_ids[keep]
+    result = rasterize_mesh(
+        camera.world_to_camera(scene.vertices_world),
+        faces,
+        scene.K,
+        scene.config.width,
+        scene.config.height,
+        face_object_id=face_ids,
+    )
+    return result.depth, result.object_id
+
+
+def occluder_share(
+    scene: Scene, camera: CameraPose, scene_depth_m: Optional[np.ndarray] = None
+) -> Tuple[float, np.ndarray]:
+    """Share of the body's self-visible in-image vertices hidden by other objects.
+
+    Args:
+        scene: The scene.
+        camera: T_world_camera.
+        scene_depth_m: Noise-free depth of the whole scene from this camera, if at hand.
+
+    Returns:
+        (share, visible (V,) bool in the full scene).
+    """
+    vertices_camera = camera.world_to_camera(scene.body_vertices_world)
+    body_depth, _ = render_depth(scene, camera, include=np.array([PERSON_ID]))
+    if scene_depth_m is None:
+        scene_depth_m, _ = render_depth(scene, camera)
+    self_visible = visible_vertex_mask(vertices_camera, body_depth, scene.K)
+    visible = visible_vertex_mask(vertices_camera, scene_depth_m, scene.K) & self_visible
+    count = int(np.count_nonzero(self_visible))
+    share = 1.0 - float(np.count_nonzero(visible)) / count if count else 1.0
+    return share, visible
+
+
+def render_frame(scene: Scene, camera: CameraPose, frame_index: int = 0) -> RenderedFrame:
+    """Render RGB, depth and object ids from a camera, with ground truth.
+
+    Args:
+        scene: The scene.
+        camera: T_world_camera.
+        frame_index: Selects the depth-noise draw (seeded by (config.seed, frame_index)).
+
+    Returns:
+        The rendered frame.
+    """
+    result = rasterize_mesh(
+        camera.world_to_camera(scene.vertices_world),
+        scene.faces,
+        scene.K,
+        scene.config.width,
+        scene.config.height,
+        face_object_id=scene.face_object_id,
+    )
+    depth_clean = result.depth
+    # One gather: index -1 (no hit) picks the background colour appended as the last row.
+    rgb = np.take(scene.colour_table, result.face_index, axis=0)
+    object_id = result.object_id.astype(np.int16)
+
+    if scene.config.depth_noise:
+        seed = int(np.random.SeedSequence([int(scene.config.seed) & 0xFFFFFFFF, int(frame_index)]).generate_state(1)[0])
+        depth_noisy = apply_depth_noise(depth_clean, seed, scene.config.noise)
+    else:
+        depth_noisy = depth_clean
+    depth_mm = depth_m_to_mm(depth_noisy)
+    depth_m = depth_mm.astype(np.float32) / 1000.0
+
+    params, translation = scene.body_params_in_camera(camera)
+    vertices_camera = camera.world_to_camera(scene.body_vertices_world)
+    share, _ = occluder_share(scene, camera, depth_clean)
+    visible = visible_vertex_mask(vertices_camera, depth_clean, scene.K)
+    person = object_id == PERSON_ID
+    person_pixels = int(np.count_nonzero(person))
+    box: Optional[Tuple[int, int, int, int]] = None
+    if person_pixels:
+        rows = np.nonzero(person.any(axis=1))[0]
+        columns = np.nonzero(person.any(axis=0))[0]
+        box = (int(columns[0]), int(rows[0]), int(columns[-1]) + 1, int(rows[-1]) + 1)
+    truth = FrameGroundTruth(
+        person_box_xyxy=box,
+        body_params_camera=params,
+        translation_camera=translation,
+        vertices_camera=vertices_camera,
+        visible_vertices=visible,
+        occlusion_share=1.0 - float(np.count_nonzero(visible)) / max(1, visible.size),
+        occluder_share=share,
+        person_pixel_count=person_pixels,
+    )
+    return RenderedFrame(
+        rgb=rgb,
+        depth_mm=depth_mm,
+        depth_m=depth_m,
+        depth_clean_m=depth_clean,
+        object_id=object_id,
+        K=scene.K.copy(),
+        camera_pose=camera,
+        ground_truth=truth,
+    )

@@ -1,0 +1,101 @@
+"""The simulated robot without ROS: its parameters, the scene they describe, and how its camera moves.
+
+:class:`SimulatorParams` is the one source of the simulator node's parameters (names, defaults,
+ranges, read-only flags: ``leapnbv_common.params``). A goal is reached at once (speed 0) or along a
+straight line in sim time (:class:`CameraMotion`), the orientation slerped with the same progress
+(:func:`interpolate_camera_pose`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from leapnbv_common.params import param
+from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.poses import CameraPose
+from leapnbv_sim.scene import Scene
+from leapnbv_stand_ins.files import ensure_stand_in_body_model
+
+
+@dataclass
+class SimulatorParams:
+    """Parameters of the simulator node (the scene ones are read at start-up only)."""
+
+    scene_seed: int = param(0, "seed of the synthetic scene (leapnbv_sim.generation.SceneConfig.seed)", min=0,
+                            read_only=True)
+    body_resolution: str = param("small", "stand-in body model resolution: small or full", choices=("small", "full"),
+                                 read_only=True)
+    body_model_path: str = param("", "SMPL-X layout .npz of the scene's body (empty: the stand-in of body_resolution)",
+                                 read_only=True)
+    walls: bool = param(True, "add a wall behind the person (and sometimes one beside)", read_only=True)
+    depth_noise: bool = param(True, "corrupt the depth like a structured-light sensor", read_only=True)
+    rate_hz: float = param(10.0, "frames per second from a timer; 0 = only when an in-process caller asks", min=0.0,
+                           max=1000.0, read_only=True)
+    move_speed_m_s: float = param(0.0, "0 = jump to each goal; > 0 = drive there on a straight line at this speed",
+                                  min=0.0, max=100.0)
+    frame_id: str = param("camera_color_optical_frame", "frame_id of every published frame", read_only=True)
+    world_frame_id: str = param("sim_world", "frame_id of the published camera pose and obstacle map (the "
+                                "simulator's world)", read_only=True)
+    pose_memory: int = param(300, "how many published stamps keep their camera pose for goal lookups", min=1,
+                             max=1_000_000)
+    obstacle_map_resolution: float = param(0.1, "metres: voxel edge of the published obstacle map", min=0.01, max=2.0)
+    publish_obstacle_map: bool = param(True, "publish the scene's static obstacles as a voxel map, as a robot's "
+                                       "mapping stack would")
+
+
+def load_scene(params: SimulatorParams) -> Scene:
+    """Generate the scene the parameters describe (default SceneConfig otherwise).
+
+    Raises:
+        SceneError: The seed gives no usable scene.
+    """
+    path = params.body_model_path or ensure_stand_in_body_model(params.body_resolution)
+    config = SceneConfig(seed=int(params.scene_seed), walls=bool(params.walls), depth_noise=bool(params.depth_noise),
+                         body_resolution=str(params.body_resolution))
+    return generate_scene(config, SMPLXModel.load(path))
+
+
+def interpolate_camera_pose(start: CameraPose, goal: CameraPose, fraction: float) -> CameraPose:
+    """A pose between two camera poses: position on the straight line, orientation slerped.
+
+    R(f) = R_0 exp(f log(R_0^T R_1)), p(f) = p_0 + f (p_1 - p_0), with f clipped to [0, 1].
+
+    Args:
+        start: Pose at fraction 0.
+        goal: Pose at fraction 1.
+        fraction: Progress along the motion.
+
+    Returns:
+        The interpolated T_world_camera (exactly ``goal`` at fraction >= 1).
+    """
+    f = min(1.0, max(0.0, float(fraction)))
+    if f >= 1.0:
+        return goal.copy()
+    relative = matrix_to_axis_angle(start.rotation.T @ goal.rotation)
+    rotation = start.rotation @ axis_angle_to_matrix(f * np.asarray(relative, dtype=np.float64))
+    position = start.position + f * (goal.position - start.position)
+    return CameraPose(rotation, position)
+
+
+class CameraMotion:
+    """A straight-line camera motion in sim time (speed 0: the goal is reached at once)."""
+
+    def __init__(self, start: CameraPose, goal: CameraPose, start_ns: int, speed_m_s: float) -> None:
+        self.start = start
+        self.goal = goal
+        self.start_ns = int(start_ns)
+        self.speed_m_s = float(speed_m_s)
+        self.distance_m = float(np.linalg.norm(goal.position - start.position))
+
+    def fraction_at(self, stamp_ns: int) -> float:
+        """Progress in [0, 1] at a sim time (1 for an instant move or a pure turn)."""
+        if self.speed_m_s <= 0.0 or self.distance_m < 1e-9:
+            return 1.0
+        travelled = max(0, int(stamp_ns) - self.start_ns) * 1e-9 * self.speed_m_s
+        return min(1.0, travelled / self.distance_m)
+
+    def pose_at(self, stamp_ns: int) -> CameraPose:
+        return interpolate_camera_pose(self.start, self.goal, self.fraction_at(stamp_ns))
