@@ -33,7 +33,7 @@ from leapnbv_geometry.ground import floor_plane_from_camera_pose  # noqa: E402
 from leapnbv_geometry.params import MIN_RANGE_M  # noqa: E402
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
-from leapnbv_sim.scene import SceneConfig, generate_scene  # noqa: E402
+from leapnbv_sim.generation import SceneConfig, generate_scene  # noqa: E402
 from leapnbv_stand_ins.files import ensure_stand_in_body_model  # noqa: E402
 
 pytestmark = [pytest.mark.ros]

@@ -10,12 +10,14 @@ from dataclasses import dataclass, field
 from typing import Dict, List
 
 from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch file and tools
+    CAMERA_POSE,
     CAMERA_TOPICS,
     FINAL_OUTPUT_TOPIC,
     GROUND_TRUTH,
     GROUND_TRUTH_TOPIC,
     INPUT_TOPICS,
     NAMESPACE,
+    OBSTACLE_MAP,
     OUTPUT_TOPICS,
     ROBOT_TOPICS,
 )
@@ -49,9 +51,9 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
                  {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"]}),
         NodeSpec("ground_node", "leapnbv_geometry", "leapnbv_geometry.nodes.ground_node",
                  {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"],
-                  "camera_pose": cam["camera_pose"]}),
+                  CAMERA_POSE: cam[CAMERA_POSE]}),
         NodeSpec("nbv_node", "leapnbv_planner", "leapnbv_planner.nodes.nbv_node",
-                 {"camera_pose": cam["camera_pose"], "obstacle_map": cam["obstacle_map"]}),
+                 {CAMERA_POSE: cam[CAMERA_POSE], OBSTACLE_MAP: cam[OBSTACLE_MAP]}),
     ]
 
 

@@ -3,8 +3,13 @@
 The pose is the camera's optical frame in a fixed, floor-aligned frame (z up, floor z = 0: a
 ``map`` frame), looked up by the frame's stamp. Today it comes from a ``geometry_msgs/PoseStamped``
 topic (relative name ``camera_pose``) stamped with each camera frame, as the simulator and a TF
-relay publish it. Another source (a TF lookup of ``map -> camera optical frame``) is one more
-class here with the same two methods, and one more entry in :data:`CAMERA_POSE_SOURCES`.
+relay publish it.
+
+A source has two methods: ``pose_at(stamp_ns, camera_frame)`` answers for a frame now (None when it
+cannot), and ``expect(stamp_ns, camera_frame)`` says that a frame is waiting for its pose, which the
+source hands to its ``on_pose`` callback when it has it. Another source (a TF lookup of
+``map -> camera optical frame``, which would poll its buffer for the expected stamps) is one more
+class here with those two methods, and one more entry in :data:`CAMERA_POSE_SOURCES`.
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from leapnbv_common.conversions import ConversionError, pose_to_numpy, stamp_to_
 from leapnbv_common.diagnostics import rejects_bad_input
 from leapnbv_common.qos import stage_input_qos
 from leapnbv_common.stamp_cache import StampCache
+from leapnbv_common.topics import CAMERA_POSE
 
 # | |q| - 1 | of an accepted orientation: a pose whose quaternion is not unit is refused, not normalized.
 QUATERNION_TOLERANCE = 1e-3
@@ -61,7 +67,7 @@ class TopicCameraPoseSource:
     """
 
     def __init__(self, node, capacity: int, on_pose: Optional[Callable[[StampedCameraPose], None]] = None,
-                 topic: str = "camera_pose") -> None:
+                 topic: str = CAMERA_POSE) -> None:
         self.diagnostics = node.diagnostics
         self.get_logger = node.get_logger  # rejects_bad_input logs through it
         self.poses: StampCache = StampCache(max(1, int(capacity)))
@@ -75,9 +81,12 @@ class TopicCameraPoseSource:
         if self.on_pose is not None:
             self.on_pose(pose)
 
-    def pose_at(self, stamp_ns: int) -> Optional[StampedCameraPose]:
-        """The pose with exactly this stamp, if it arrived and is still remembered."""
+    def pose_at(self, stamp_ns: int, camera_frame: str = "") -> Optional[StampedCameraPose]:
+        """The pose with exactly this stamp, if it arrived and is still remembered (the topic names the frame)."""
         return self.poses.get_exact(int(stamp_ns))
+
+    def expect(self, stamp_ns: int, camera_frame: str = "") -> None:
+        """A frame of this stamp waits for its pose: topic poses are handed to on_pose as they arrive anyway."""
 
 
 # camera_pose_source parameter value -> class.

@@ -89,15 +89,6 @@ class NodeParams(Generic[P]):
         return SetParametersResult(successful=True)
 
 
-def declare_parameters(node, table) -> dict:
-    """Old form (name -> (default, description)); kept until every node declares a params dataclass."""
-    values = {}
-    for name, (default, description) in table.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=description))
-        values[name] = node.get_parameter(name).value
-    return values
-
-
 def run_node(make_node, args=None) -> None:
     """Standard main(): init, make the node (a class or any factory), spin until Ctrl-C or shutdown, clean up."""
     import rclpy

@@ -27,9 +27,11 @@ DEPTH_INFO_TOPIC = CAMERA_TOPICS["depth/camera_info"]
 # fixed, floor-aligned frame (z up, floor z = 0; from the robot's localization / TF), stamped
 # with each camera frame, and the robot's map of static obstacles as occupied voxel centres in
 # that frame (latched).
+CAMERA_POSE = "camera_pose"
+OBSTACLE_MAP = "obstacle_map"
 ROBOT_TOPICS: Dict[str, str] = {
-    "camera_pose": NAMESPACE + "/camera_pose",
-    "obstacle_map": NAMESPACE + "/obstacle_map",
+    CAMERA_POSE: NAMESPACE + "/" + CAMERA_POSE,
+    OBSTACLE_MAP: NAMESPACE + "/" + OBSTACLE_MAP,
 }
 CAMERA_POSE_TOPIC = ROBOT_TOPICS["camera_pose"]
 OBSTACLE_MAP_TOPIC = ROBOT_TOPICS["obstacle_map"]

@@ -187,8 +187,11 @@ class GroundNode(Node):
             self.publish_plane(frame, None)
             return
         # No floor in view: the floor of this frame's camera pose, once it is here (or the wait ran out).
-        ready = self.pose_floors.add_frame(stamp_to_ns(msg.header.stamp), frame, self.get_clock().now().nanoseconds)
-        if ready is not None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        ready = self.pose_floors.add_frame(stamp, frame, self.get_clock().now().nanoseconds)
+        if ready is None:
+            self.camera_pose.expect(stamp, msg.header.frame_id)
+        else:
             self.publish_plane(ready[0], ready[1])
 
     def publish_plane(self, frame: FittedFrame, pose_floor: Optional[Tuple[int, np.ndarray, float]]) -> None:

@@ -66,7 +66,7 @@ class NbvNode(Node):
         self.obstacle_map_frame = ""
         self.camera_poses = None
         if p.use_obstacle_map:
-            self.create_subscription(PointCloud2, "obstacle_map", self.on_obstacle_map, latched_map_qos())
+            self.create_subscription(PointCloud2, topics.OBSTACLE_MAP, self.on_obstacle_map, latched_map_qos())
             self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, p.camera_pose_cache)
         self.create_subscription(TargetGeometry, topics.TARGET_GEOMETRY, self.on_target, stage_input_qos(5))
         self.create_subscription(GroundPlane, topics.GROUND_PLANE, self.on_ground, stage_input_qos(5))
@@ -93,11 +93,11 @@ class NbvNode(Node):
         self.obstacle_map_frame = msg.header.frame_id
         self.get_logger().info(f"obstacle map: {self.obstacle_map.voxel_count} voxels in frame {msg.header.frame_id!r}")
 
-    def camera_pose_for_frame(self, stamp_ns: int) -> Optional[StampedCameraPose]:
+    def camera_pose_for_frame(self, stamp_ns: int, camera_frame: str) -> Optional[StampedCameraPose]:
         """The frame's camera pose in the obstacle map's frame, or None when the frame cannot use the map."""
         if self.obstacle_map is None or self.camera_poses is None:
             return None
-        pose = self.camera_poses.pose_at(stamp_ns)
+        pose = self.camera_poses.pose_at(stamp_ns, camera_frame)
         if pose is None:
             self.diagnostics.reject("no_camera_pose", "no camera pose with this frame's stamp: planned without the map")
             return None
@@ -141,7 +141,7 @@ class NbvNode(Node):
             self.diagnostics.reject("no_ground_plane", "no valid ground plane for this frame: no goal published")
             return
         target_arrays = target_geometry_to_arrays(target)
-        camera_pose = self.camera_pose_for_frame(stamp_to_ns(target.header.stamp))
+        camera_pose = self.camera_pose_for_frame(stamp_to_ns(target.header.stamp), target.header.frame_id)
         plan = plan_views(target_arrays, ground_plane_to_arrays(ground), self.params.value,
                           self.obstacle_map if camera_pose is not None else None, camera_pose)
         out = arrays_to_view_candidates(plan.to_arrays(), target.header, (time.perf_counter() - started) * 1e3)
