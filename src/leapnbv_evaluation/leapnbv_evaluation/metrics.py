@@ -39,7 +39,7 @@ def body_coverage(
     K: np.ndarray,
     tolerance: float = 0.02,
 ) -> float:
-    """Share of ground-truth body vertices visible in the view (ALGORITHMS.md 8).
+    """Share of ground-truth body vertices visible in the view (docs/ALGORITHMS.md §8).
 
     Use the rendered scene depth WITHOUT noise; see :func:`visible_vertex_mask`.
 
@@ -59,7 +59,7 @@ def body_coverage(
 
 
 def reconstructed_area(mask: np.ndarray, depth: np.ndarray) -> int:
-    """Pixels of the person mask with valid depth (ALGORITHMS.md 8).
+    """Pixels of the person mask with valid depth (docs/ALGORITHMS.md §8).
 
     Args:
         mask: (H,W) bool person mask.

@@ -40,7 +40,7 @@ class ViewMetrics:
 
     Attributes:
         surface_coverage: Share of the self-visible body surface that this view sees, 0-1.
-        raw_coverage: Share of all body vertices this view sees, 0-1 (ALGORITHMS.md 8).
+        raw_coverage: Share of all body vertices this view sees, 0-1 (docs/ALGORITHMS.md §8).
         area_px: Person pixels with a depth return (ground-truth reconstructed area).
         person_pixels: Person pixels, with or without depth.
     """

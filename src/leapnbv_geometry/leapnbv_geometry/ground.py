@@ -1,4 +1,4 @@
-"""Ground plane by RANSAC with a tilt prior, refined by least squares (ALGORITHMS.md sec. 6).
+"""Ground plane by RANSAC with a tilt prior, refined by least squares (docs/ALGORITHMS.md §5).
 
 Also the floor given by the camera's pose in a floor-aligned frame, for views where RANSAC
 finds none (:func:`floor_plane_from_camera_pose`).

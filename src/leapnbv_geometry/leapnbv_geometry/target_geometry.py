@@ -277,7 +277,7 @@ def compute_target_geometry(
     ground_plane: Optional[Tuple[np.ndarray, float]] = None,
     ground_inlier_threshold: float = 0.03,
 ) -> TargetGeometryResult:
-    """Person mask, target points and background points of one frame (ALGORITHMS.md sec. 5).
+    """Person mask, target points and background points of one frame (docs/ALGORITHMS.md §4).
 
     Steps:
       1. Rasterize the metric mesh with the real K: silhouette M_sil and mesh depth D_mesh.

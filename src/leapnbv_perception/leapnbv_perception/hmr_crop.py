@@ -1,4 +1,4 @@
-"""SMPLer-X body crop: box processing (3:4 aspect, 1.25 scale) and the affine crop."""
+"""SMPLer-X body crop: box processing (3:4 aspect, 1.25 scale) and the affine crop (docs/ALGORITHMS.md §2)."""
 
 from __future__ import annotations
 

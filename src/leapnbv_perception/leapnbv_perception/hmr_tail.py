@@ -1,4 +1,5 @@
-"""The FP32 tail after the HMR engine: camera translation, virtual intrinsics, hand un-mirroring."""
+"""The FP32 tail after the HMR engine: camera translation, virtual intrinsics, hand un-mirroring
+(docs/ALGORITHMS.md §3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Candidate camera poses on a ring around the target, and their feasibility on the ground.
+"""Candidate camera poses on a ring around the target, and their feasibility on the ground
+(docs/ALGORITHMS.md §6).
 
 The ring's parameters are :class:`leapnbv_planner.params.CandidateRingParams` (the nbv node's
 parameters are an extension of it, so a node's params instance can be passed as they are).

@@ -1,4 +1,5 @@
-"""A RealSense-like depth noise model: depth-squared Gaussian noise, edge dropouts, range limits."""
+"""A RealSense-like depth noise model: depth-squared Gaussian noise, edge dropouts, range limits
+(docs/ALGORITHMS.md §9)."""
 
 from __future__ import annotations
 

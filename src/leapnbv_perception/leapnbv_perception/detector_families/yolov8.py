@@ -1,4 +1,5 @@
-"""The "yolov8" detector family: ultralytics YOLOv8 ONNX exports (COCO classes, person = class 0).
+"""The "yolov8" detector family: ultralytics YOLOv8 ONNX exports (COCO classes, person = class 0);
+docs/ALGORITHMS.md §1 lists where the decoding differs from the reference predictor.
 
 Input ``images`` (1, 3, 640, 640) float32 RGB / 255, letterboxed (aspect kept, padded with 114,
 centred as ultralytics does); output ``output0`` (1, 84, 8400): cx, cy, w, h in letterbox pixels

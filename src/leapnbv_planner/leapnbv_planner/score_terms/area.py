@@ -1,4 +1,5 @@
-"""S_a: how much of the image the target's projected 3D bounding box covers."""
+"""S_a: how much of the image the target's projected 3D bounding box covers (docs/ALGORITHMS.md §7: the bounding
+rectangle of the projected box, a deliberate deviation from the box's own image area)."""
 
 from __future__ import annotations
 

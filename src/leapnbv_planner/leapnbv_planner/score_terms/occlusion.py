@@ -1,4 +1,5 @@
-"""S_o: the share of the framed target points that nothing hides."""
+"""S_o: the share of the framed target points that nothing hides (docs/ALGORITHMS.md §7: a square
+pixel window, camera z as depth)."""
 
 from __future__ import annotations
 

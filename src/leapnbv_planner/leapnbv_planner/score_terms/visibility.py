@@ -1,4 +1,4 @@
-"""S_v: the share of the target's points that a candidate view frames."""
+"""S_v: the share of the target's points that a candidate view frames (docs/ALGORITHMS.md §7)."""
 
 from __future__ import annotations
 
