@@ -1,65 +1,13 @@
-"""Next-best-view planning: candidate ring, feasibility, named score terms, one-call plan_views, nbv node."""
+"""Next-best-view planning: candidate ring, feasibility, named score terms, one-call plan_views, nbv node.
+
+The entry points: :func:`plan_views` plans one frame without ROS; :class:`PlannerParams` (with the
+term weights: :func:`default_nbv_params`) holds every setting; :func:`score_term` registers a term.
+"""
 
 from __future__ import annotations
 
-from leapnbv_planner.candidates import (
-    CandidateGenerationError,
-    CandidateSet,
-    FeasibilityReason,
-    FeasibilityResult,
-    camera_look_at,
-    check_feasibility,
-    generate_candidates,
-)
-from leapnbv_planner.params import (
-    DEFAULT_SCORE_TERMS,
-    CandidateRingParams,
-    PlannerParams,
-    default_nbv_params,
-    nbv_params_class,
-)
-from leapnbv_planner.plan import Plan, PlanInputError, base_goal_frame, plan_views
-from leapnbv_planner.score_terms import (
-    ScoreTerm,
-    ScoringContext,
-    ScoringInputError,
-    get_term,
-    register_term,
-    registered_terms,
-    score_term,
-    unregister_term,
-)
-from leapnbv_planner.score_terms.area import bounding_box_area_fraction
-from leapnbv_planner.scoring import CandidateScores, choose_best, score_candidates, warm_up_scoring
+from leapnbv_planner.params import PlannerParams, default_nbv_params
+from leapnbv_planner.plan import Plan, plan_views
+from leapnbv_planner.score_terms import score_term
 
-__all__ = [
-    "DEFAULT_SCORE_TERMS",
-    "CandidateGenerationError",
-    "CandidateRingParams",
-    "CandidateScores",
-    "CandidateSet",
-    "FeasibilityReason",
-    "FeasibilityResult",
-    "Plan",
-    "PlanInputError",
-    "PlannerParams",
-    "ScoreTerm",
-    "ScoringContext",
-    "ScoringInputError",
-    "base_goal_frame",
-    "bounding_box_area_fraction",
-    "camera_look_at",
-    "check_feasibility",
-    "choose_best",
-    "default_nbv_params",
-    "generate_candidates",
-    "get_term",
-    "nbv_params_class",
-    "plan_views",
-    "register_term",
-    "registered_terms",
-    "score_candidates",
-    "score_term",
-    "unregister_term",
-    "warm_up_scoring",
-]
+__all__ = ["Plan", "PlannerParams", "default_nbv_params", "plan_views", "score_term"]
