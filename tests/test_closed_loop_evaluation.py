@@ -20,8 +20,8 @@ from leapnbv_common.conversions import pose_msg, pose_to_numpy, stamp_to_ns  # n
 from leapnbv_common.qos import camera_input_qos, latched_goal_qos, stage_input_qos  # noqa: E402
 from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS  # noqa: E402
 from leapnbv_evaluation.harness import END_TO_END, STAGE_TOPICS, ClosedLoopEvaluator, EvaluationOptions  # noqa: E402
-from leapnbv_evaluation.report import write_evaluation_outputs  # noqa: E402
 from leapnbv_evaluation.results import EvaluationRun  # noqa: E402
+from leapnbv_evaluation.task_report import write_evaluation_outputs  # noqa: E402
 from leapnbv_msgs.msg import SceneGroundTruth  # noqa: E402
 from leapnbv_sim.poses import look_at_pose  # noqa: E402
 from leapnbv_sim.simulator import CameraMotion, interpolate_camera_pose  # noqa: E402

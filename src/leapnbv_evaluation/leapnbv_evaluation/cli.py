@@ -11,7 +11,7 @@ loop), :mod:`leapnbv_evaluation.episode` (the methods and how a view is scored);
 ``--workers N`` the scenes are split among N processes with a graph each
 (:mod:`leapnbv_evaluation.parallel`: ROS domains, log folders, merging).
 
-Outputs in ``--out`` (:func:`leapnbv_evaluation.report.write_evaluation_outputs`): results.md /
+Outputs in ``--out`` (:func:`leapnbv_evaluation.task_report.write_evaluation_outputs`): results.md /
 results.json / plots, chosen_views.json (per scene: stamps, candidates' scores, each method's pick,
 world pose and metrics), evaluation.md (raw-coverage table, the graph's own areas, failures, wall
 time), run.json (the typed run), and logs/ (one log per node; workers/worker_<k>/ with --workers).
@@ -28,8 +28,8 @@ from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS, ROOMS, benchmark_s
 from leapnbv_evaluation.episode import EvaluationError
 from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
 from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, run_in_workers
-from leapnbv_evaluation.report import task_table_markdown, write_evaluation_outputs
 from leapnbv_evaluation.results import EvaluationRun
+from leapnbv_evaluation.task_report import task_table_markdown, write_evaluation_outputs
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 

@@ -41,8 +41,8 @@ from leapnbv_common.topics import (
     VIEW_CANDIDATES,
     short_topic,
 )
+from leapnbv_evaluation.demo_report import DemoFrame, chosen_view_scores, write_demo_report
 from leapnbv_evaluation.metrics import latency_summary
-from leapnbv_evaluation.report import DemoFrame, chosen_view_scores, write_demo_report
 
 #: The stages whose compute times the summary lists.
 STAGE_OUTPUTS = (DETECTIONS, HUMAN_MESH, TARGET_GEOMETRY, GROUND_PLANE, VIEW_CANDIDATES)

@@ -10,22 +10,24 @@ import numpy as np
 import pytest
 
 from leapnbv_common.conversions import GroundPlaneArrays, ViewCandidatesArrays
-from leapnbv_evaluation import report
-from leapnbv_evaluation.report import (
+from leapnbv_evaluation import demo_report, report_files
+from leapnbv_evaluation.demo_report import (
     DemoFrame,
-    aggregate_task_results,
-    chosen_views_record,
-    evaluation_summary_markdown,
     ground_frame,
     overlay_person,
     plot_ring_top_down,
-    task_table_markdown,
     to_ground_2d,
     write_demo_report,
+)
+from leapnbv_evaluation.results import EvaluationRun, GraphVsTruth, MethodResult, PoseRecord, SceneResult, ViewMetrics
+from leapnbv_evaluation.task_report import (
+    aggregate_task_results,
+    chosen_views_record,
+    evaluation_summary_markdown,
+    task_table_markdown,
     write_evaluation_outputs,
     write_task_table,
 )
-from leapnbv_evaluation.results import EvaluationRun, GraphVsTruth, MethodResult, PoseRecord, SceneResult, ViewMetrics
 
 # A camera 1.2 m above a level floor, looking horizontally: the floor is y = 1.2 (y down),
 # so n = (0, -1, 0) points up and d = 1.2.
@@ -61,13 +63,14 @@ def test_overlay_changes_exactly_mask_and_box_pixels():
     assert out.shape == rgb.shape and out.dtype == np.uint8
     np.testing.assert_array_equal(rgb, original)  # input untouched
     # Mask pixels are the blend with the tint, to rounding.
-    expected = (1.0 - report.MASK_TINT_ALPHA) * original[mask].astype(np.float64) + report.MASK_TINT_ALPHA * np.array(
-        report.MASK_TINT_RGB, dtype=np.float64
+    alpha = demo_report.MASK_TINT_ALPHA
+    expected = (1.0 - alpha) * original[mask].astype(np.float64) + alpha * np.array(
+        demo_report.MASK_TINT_RGB, dtype=np.float64
     )
     assert np.max(np.abs(out[mask].astype(np.float64) - expected)) <= 0.5 + 1e-6
     # The box outline has the box colour on all four sides.
     for y, x in ((80, 200), (200, 200), (140, 150), (140, 260)):
-        assert tuple(out[y, x]) == report.BOX_COLOUR_RGB
+        assert tuple(out[y, x]) == demo_report.BOX_COLOUR_RGB
     # The box interior away from the label strip keeps its pixels.
     np.testing.assert_array_equal(out[120:190, 160:250], original[120:190, 160:250])
     # Far from both (the label strip sits just above the box): unchanged.
@@ -87,7 +90,7 @@ def test_overlay_without_box_or_mask_is_a_copy():
 
 
 def test_overlay_rejects_mismatched_mask():
-    with pytest.raises(report.ReportError, match="mask"):
+    with pytest.raises(report_files.ReportError, match="mask"):
         overlay_person(np.zeros((10, 10, 3), np.uint8), None, np.zeros((10, 11), bool))
 
 
@@ -151,7 +154,7 @@ def test_ground_frame_camera_looking_straight_down_uses_image_up():
 
 
 def test_ground_frame_rejects_zero_normal():
-    with pytest.raises(report.ReportError, match="degenerate"):
+    with pytest.raises(report_files.ReportError, match="degenerate"):
         ground_frame([0.0, 0.0, 0.0], 1.0)
 
 
@@ -198,7 +201,7 @@ def test_plot_ring_top_down_writes_png(tmp_path):
 
 def test_plot_ring_rejects_bad_chosen_index(tmp_path):
     positions, _, scores, feasible, center = _ring_candidates()
-    with pytest.raises(report.ReportError, match="chosen_index"):
+    with pytest.raises(report_files.ReportError, match="chosen_index"):
         plot_ring_top_down(
             str(tmp_path / "x.png"), positions, scores, feasible, 99, center, None, None, LEVEL_NORMAL, LEVEL_OFFSET
         )
@@ -283,7 +286,7 @@ def test_write_demo_report_names_a_bad_chosen_index(tmp_path):
     frame = _demo_frames()[0]
     frame.candidates = _demo_candidates(chosen=42)
     frame.ground = None
-    with pytest.raises(report.ReportError, match="frame 4: chosen_index 42"):
+    with pytest.raises(report_files.ReportError, match="frame 4: chosen_index 42"):
         write_demo_report(str(tmp_path), [frame], {})
 
 
@@ -368,7 +371,7 @@ def test_raw_coverage_table_reads_the_raw_coverage_and_its_success():
     assert raw["coverage_after_pct"] == pytest.approx(100.0 * (0.35 + 0.3 + 0.3) / 3.0)
     assert raw["successes"] == 1
     assert "| leap_nbv | 3 | 20.0 -> 31.7 |" in task_table_markdown(run, coverage="raw")
-    with pytest.raises(report.ReportError, match="coverage"):
+    with pytest.raises(report_files.ReportError, match="coverage"):
         aggregate_task_results(run, coverage="volume")
 
 
@@ -398,7 +401,7 @@ def test_evaluation_outputs(tmp_path):
 def test_task_table_rejects_an_unknown_default_method(tmp_path):
     run = _crafted_run()
     run.default_method = "oracle"
-    with pytest.raises(report.ReportError, match="default method 'oracle'"):
+    with pytest.raises(report_files.ReportError, match="default method 'oracle'"):
         write_task_table(str(tmp_path), run)
 
 
@@ -433,9 +436,9 @@ def test_failing_image_write_leaves_previous_overlay_intact(tmp_path, monkeypatc
     write_demo_report(str(tmp_path), frames, {})
     overlay = tmp_path / "frame_005_overlay.png"
     good = overlay.read_bytes()
-    monkeypatch.setattr(report.cv2, "imwrite", lambda *args, **kwargs: False)
+    monkeypatch.setattr(report_files.cv2, "imwrite", lambda *args, **kwargs: False)
     frames[0].rgb = np.zeros_like(frames[0].rgb)
-    with pytest.raises(report.ReportError, match="imwrite"):
+    with pytest.raises(report_files.ReportError, match="imwrite"):
         write_demo_report(str(tmp_path), frames, {})
     assert overlay.read_bytes() == good
     assert not [name for name in os.listdir(tmp_path) if ".tmp" in name]
