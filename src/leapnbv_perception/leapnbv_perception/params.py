@@ -28,6 +28,8 @@ class EngineParams:
     engine_cache_dir: str = param("", "TensorRT engine cache folder (default: beside the ONNX file)", read_only=True)
     precision: str = param("fp16", "TensorRT precision (onnxruntime runs the model as exported)",
                            choices=PRECISIONS, read_only=True)
+    precision_plan_path: str = param("", "TensorRT FP16 precision plan JSON: the layers kept in FP32 (written by the "
+                                     "FP16 check; empty = none)", read_only=True)
     providers: List[str] = param(["CPUExecutionProvider"], "onnxruntime execution providers, in order of preference",
                                  read_only=True)
     intra_op_threads: int = param(1, "onnxruntime intra-op threads (0 = its default)", min=0, max=THREADS_MAX,

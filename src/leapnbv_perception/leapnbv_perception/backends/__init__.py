@@ -23,6 +23,7 @@ def create_backend(
     providers: Optional[Sequence[str]] = None,
     engine_cache_dir: Optional[str] = None,
     intra_op_threads: int = 0,
+    precision_plan_path: Optional[str] = None,
 ) -> EngineBackend:
     """Create the named backend for one ONNX model.
 
@@ -33,6 +34,8 @@ def create_backend(
         providers: onnxruntime execution providers; default CPU only.
         engine_cache_dir: TensorRT engine cache folder; default next to the ONNX file.
         intra_op_threads: onnxruntime intra-op threads (0 = its default).
+        precision_plan_path: TensorRT FP16 precision plan JSON (layers kept in FP32; see
+            backends/precision_plan.py); None or "" for none. onnxruntime ignores it.
 
     Returns:
         A ready EngineBackend.
@@ -40,7 +43,7 @@ def create_backend(
     Raises:
         ModelFileNotFoundError: when model_path does not exist (message names it).
         ValueError: for an unknown backend name or precision.
-        BackendError: when the runtime cannot load the model.
+        BackendError: when the runtime cannot load the model (or the precision plan is invalid).
     """
     key = (name or "").strip().lower()
     if key not in BACKEND_NAMES:
@@ -55,7 +58,9 @@ def create_backend(
         )
     from leapnbv_perception.backends.tensorrt_backend import TensorRTBackend
 
-    return TensorRTBackend(model_path, precision=precision, engine_cache_dir=engine_cache_dir)
+    return TensorRTBackend(
+        model_path, precision=precision, engine_cache_dir=engine_cache_dir, precision_plan_path=precision_plan_path
+    )
 
 
 __all__ = [
