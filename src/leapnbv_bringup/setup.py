@@ -20,7 +20,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-
+            "power_node = leapnbv_bringup.nodes.power_node:main",
         ],
     },
 )

@@ -9,6 +9,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Dict, List
 
+from leapnbv_common.power_monitor import power_node_wanted
 from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch file and tools
     CAMERA_POSE,
     CAMERA_TOPICS,
@@ -54,6 +55,9 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
                   CAMERA_POSE: cam[CAMERA_POSE]}),
         NodeSpec("nbv_node", "leapnbv_planner", "leapnbv_planner.nodes.nbv_node",
                  {CAMERA_POSE: cam[CAMERA_POSE], OBSTACLE_MAP: cam[OBSTACLE_MAP]}),
+        # energy per frame on /diagnostics, where the board has power rails ($LEAPNBV_POWER_NODE=1/0 forces)
+        *([NodeSpec("power_node", "leapnbv_bringup", "leapnbv_bringup.nodes.power_node")]
+          if power_node_wanted() else []),
     ]
 
 

@@ -397,6 +397,20 @@ def power_rails_present(sysfs_root: str = "/sys", wanted: Sequence[str] = DEFAUL
     return True
 
 
+POWER_NODE_ENV = "LEAPNBV_POWER_NODE"
+
+
+def power_node_wanted(sysfs_root: str = "/sys") -> bool:
+    """Whether the graph runs power_node: $LEAPNBV_POWER_NODE "1"/"on" always, "0"/"off" never,
+    unset or "auto" when the board's rails exist (a Jetson)."""
+    choice = os.environ.get(POWER_NODE_ENV, "auto").strip().lower()
+    if choice in ("1", "on", "true", "yes"):
+        return True
+    if choice in ("0", "off", "false", "no"):
+        return False
+    return power_rails_present(sysfs_root)
+
+
 def measure_energy(fn: Callable[[], object], monitor: Optional[PowerMonitor], settle_s: float = 0.0
                    ) -> Tuple[object, Optional[FrameEnergy]]:
     """Run `fn()` and integrate the rails over its run (benchmarks: J per call); (result, None) without rails."""

@@ -1,0 +1,1 @@
+"""Nodes that belong to the whole graph rather than to one stage (power_node)."""
