@@ -17,6 +17,9 @@ log "vermin: src/ must run on Python 3.8"
 .venv/bin/vermin -q -t=3.8- --no-tips --violations --eval-annotations --backport dataclasses \
   --exclude-regex '/(build|install|log)/' src
 
+log "hadolint: the Dockerfiles (docker/.hadolint.yaml)"
+.venv/bin/hadolint --config docker/.hadolint.yaml docker/*/Dockerfile
+
 if [ -x scripts/test_py38.sh ]; then
   bash scripts/test_py38.sh
 fi
