@@ -212,3 +212,58 @@ def test_jetson_requirements_pin_cuda_11_bindings() -> None:
     assert "pycuda" in pins  # the backend's fallback
     assert pins["numpy"] == "1.24.4"  # what scripts/requirements-py38.lock tests the cores with
     assert os.access(JETSON / "entrypoint.sh", os.X_OK) and os.access(JETSON / "apply_patches.sh", os.X_OK)
+
+
+def test_device_check_says_what_it_would_run_without_a_gpu(tmp_path: Path) -> None:
+    s32 = tmp_path / "s32.onnx"
+    s32.write_bytes(b"onnx")
+    env = dict(os.environ, LEAPNBV_YOLO_ONNX=str(tmp_path / "missing_yolov8s.onnx"))
+    result = subprocess.run(["bash", str(ROOT / "scripts" / "device_check.sh"), "--no-gpu", "--s32", str(s32)],
+                            capture_output=True, text=True, env=env, timeout=60)
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "no-GPU mode: --no-gpu given" in out and "nothing was run; exit 0" in out
+    assert f"s32: {s32}" in out and "relative L2 error <= 1e-3" in out and "relative L2 error <= 2e-2" in out
+    assert "note: yolov8s ONNX not found: " + str(tmp_path / "missing_yolov8s.onnx") in out
+    assert "the graph step would be skipped" in out or "the graph step would run" in out
+    bad = subprocess.run(["bash", str(ROOT / "scripts" / "device_check.sh"), "--bogus"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "unknown argument: --bogus" in bad.stderr
+
+
+def test_device_check_tolerances() -> None:
+    import importlib.util
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("device_check", ROOT / "scripts" / "device_check.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    reference = {"pose": np.linspace(-1.0, 1.0, 100), "cam": np.array([0.1, -0.2, 5.0])}
+    close = {"pose": reference["pose"] * (1 + 5e-3), "cam": reference["cam"] + 1e-4}
+    rows = module.compare(reference, close, module.TOLERANCES["fp16"])
+    assert all(row["ok"] for row in rows) and rows[0]["rel_l2"] == pytest.approx(5e-3, rel=1e-6)
+    assert not any(row["ok"] for row in module.compare(reference, close, module.TOLERANCES["fp32"])[:1])
+    broken = {"pose": np.full(100, np.nan), "cam": reference["cam"]}
+    assert [row["ok"] for row in module.compare(reference, broken, 1.0)] == [False, True]
+
+
+def test_patches_apply_in_order_and_a_stale_one_stops_the_build(tmp_path: Path) -> None:
+    repo = tmp_path / "src" / "ros2" / "demo"
+    repo.mkdir(parents=True)
+    (repo / "a.py").write_text("x: list[int] = []\n")
+    patches = tmp_path / "patches"
+    patches.mkdir()
+    (patches / "0001-typing.patch").write_text(
+        "Repository: ros2/demo\nReason: Python 3.8 cannot subscript list at runtime\n"
+        "--- a/a.py\n+++ b/a.py\n@@ -1 +1 @@\n-x: list[int] = []\n+x = []  # type: List[int]\n")
+    script = str(JETSON / "apply_patches.sh")
+    result = subprocess.run(["bash", script, str(tmp_path / "src"), str(patches)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert (repo / "a.py").read_text() == "x = []  # type: List[int]\n"
+    assert "0001-typing.patch -> ros2/demo: Python 3.8 cannot subscript" in result.stdout
+    stale = subprocess.run(["bash", script, str(tmp_path / "src"), str(patches)], capture_output=True, text=True)
+    assert stale.returncode != 0  # already applied: the sources moved under the patch
+    empty = tmp_path / "none"
+    empty.mkdir()
+    assert "0 applied" in subprocess.run(["bash", script, str(tmp_path / "src"), str(empty)],
+                                         capture_output=True, text=True).stdout
