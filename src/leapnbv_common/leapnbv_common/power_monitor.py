@@ -367,8 +367,9 @@ class PowerMonitor:
         return result
 
 
-def start_power_monitor(params: Optional[PowerParams] = None) -> Tuple[Optional[PowerMonitor], str]:
-    """Open the rails the params name and start sampling; never raises.
+def start_power_monitor(params: Optional[PowerParams] = None, clock: Callable[[], float] = time.time
+                        ) -> Tuple[Optional[PowerMonitor], str]:
+    """Open the rails the params name and start sampling on `clock` (seconds); never raises.
 
     Returns:
         (monitor or None, a one-line message: the rails and layout in use, or why there are none).
@@ -380,7 +381,7 @@ def start_power_monitor(params: Optional[PowerParams] = None) -> Tuple[Optional[
         return None, "no power rails: %s" % error
     except OSError as error:  # an unreadable sysfs tree
         return None, "no power rails: %s: %s" % (type(error).__name__, error)
-    monitor = PowerMonitor(rails, params.rate_hz, params.history_s).start()
+    monitor = PowerMonitor(rails, params.rate_hz, params.history_s, clock=clock).start()
     layouts = sorted({rail.layout for rail in rails.values()})
     message = "sampling %s at %g Hz (%s)" % (", ".join(rails), params.rate_hz, "/".join(layouts))
     if notes:

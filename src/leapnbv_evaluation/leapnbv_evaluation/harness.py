@@ -51,6 +51,7 @@ from leapnbv_common.conversions import (
     target_geometry_to_arrays,
     view_candidates_to_arrays,
 )
+from leapnbv_common.power_monitor import RAIL_TOTAL, PowerMonitor, start_power_monitor
 from leapnbv_common.topics import (
     COLOR_INFO_TOPIC,
     DETECTIONS,
@@ -177,6 +178,14 @@ class FrameOutputs:
             out[END_TO_END] = (self.received_ns[VIEW_CANDIDATES] - self.published_ns) * 1e-6
         return out
 
+    def energy_j(self, power: Optional[PowerMonitor]) -> Optional[float]:
+        """Joules the board's input rail (VDD_IN) took from the frame's publication to its view
+        candidates (monotonic clock); None without rails or without candidates."""
+        if power is None or VIEW_CANDIDATES not in self.received_ns:
+            return None
+        frame = power.energy(self.published_ns * 1e-9, self.received_ns[VIEW_CANDIDATES] * 1e-9)
+        return frame.energy_j.get(RAIL_TOTAL) if frame is not None else None
+
     def candidates(self) -> Optional[ViewCandidatesArrays]:
         """The view candidates as arrays, or None when the graph published none.
 
@@ -223,6 +232,8 @@ class ClosedLoopEvaluator:
         #: The planner's score terms, from the first view candidates seen (the methods follow them).
         self.term_names: Optional[List[str]] = None
         self.ready_s: Optional[float] = None
+        #: The board's power rails, sampled while the graph runs (None without rails: no J/frame then).
+        self.power: Optional[PowerMonitor] = None
 
     @property
     def methods(self) -> List[str]:
@@ -279,6 +290,7 @@ class ClosedLoopEvaluator:
         self.executor.add_node(self.sim)
         self.executor.add_node(self.collector)
         self._wait_connected()
+        self.power, _ = start_power_monitor(clock=time.monotonic)
         # One throw-away frame: the first frame through fresh processes pays for imports and
         # caches; it must not count in the latency tables. Its candidates name the planner's terms.
         stamp = self._take_stamps(1)
@@ -290,6 +302,9 @@ class ClosedLoopEvaluator:
 
     def stop(self) -> None:
         """Stop the graph's processes and the in-process nodes (safe to call twice)."""
+        if self.power is not None:
+            self.power.stop()
+            self.power = None
         if self.runner is not None and self._started:
             self.runner.stop()
         self._started = False
@@ -481,7 +496,8 @@ class ClosedLoopEvaluator:
             pa_mpvpe_before_mm=self._pa_mpvpe(outputs0, before_frame),
             graph_vs_truth=graph_vs_truth(scene, target, ground, candidates if outputs0.failure is None else None),
             candidates=candidates, candidate_views=views.candidate_views, per_method=views.per_method,
-            latency_ms=latency)
+            latency_ms=latency,
+            energy_j=[joules for joules in (frame.energy_j(self.power) for frame in frames) if joules is not None])
 
     def _closed_loop_after(self, scene: Scene, candidates: ViewCandidatesArrays, stamp_base: int, scene_index: int,
                            render: RenderedFrame, result: MethodResult) -> FrameOutputs:

@@ -264,6 +264,8 @@ class SceneResult:
         per_method: Method name -> its move, in the run's method order.
         latency_ms: Stage -> latency samples of this scene's frames through the graph (start view,
             then the after-view of the closed loop), in the run's stage order.
+        energy_j: Joules of the board's input rail (VDD_IN) per frame of this scene, from its
+            publication to its view candidates; empty where the machine has no power rails.
     """
 
     seed: int
@@ -280,6 +282,7 @@ class SceneResult:
     candidate_views: Optional[List[ViewMetrics]]
     per_method: Dict[str, MethodResult]
     latency_ms: Dict[str, List[float]] = field(default_factory=dict)
+    energy_j: List[float] = field(default_factory=list)
 
     def __eq__(self, other: object) -> bool:
         # The candidates hold arrays: compare the lossless JSON forms.
@@ -302,6 +305,7 @@ class SceneResult:
                                 if self.candidate_views is not None else None),
             "per_method": {method: result.to_json() for method, result in self.per_method.items()},
             "latency_ms": {stage: list(samples) for stage, samples in self.latency_ms.items()},
+            **({"energy_j": list(self.energy_j)} if self.energy_j else {}),
         }
 
     @classmethod
@@ -322,6 +326,7 @@ class SceneResult:
                              if data["candidate_views"] is not None else None),
             per_method={str(method): MethodResult.from_json(result) for method, result in data["per_method"].items()},
             latency_ms={str(stage): [float(v) for v in samples] for stage, samples in data["latency_ms"].items()},
+            energy_j=[float(v) for v in data.get("energy_j", [])],
         )
 
 
@@ -369,6 +374,10 @@ class EvaluationRun:
             for stage, samples in scene.latency_ms.items():
                 merged.setdefault(stage, []).extend(samples)
         return merged
+
+    def energy_j(self) -> List[float]:
+        """Joules per frame (VDD_IN) of every scene, in scene order; empty without power rails."""
+        return [joules for scene in self.scenes for joules in scene.energy_j]
 
     def to_json(self) -> Dict[str, Any]:
         return {

@@ -78,7 +78,10 @@ def aggregate_task_results(run: EvaluationRun, coverage: str = "surface") -> Dic
             "success_rate_pct": 100.0 * _mean([float(success) for _, _, success in values]),
         }
     latency = {stage: latency_summary(samples) for stage, samples in run.latency_ms().items()}
-    return {"methods": list(run.methods), "per_method": per_method, "latency_ms": latency}
+    aggregates = {"methods": list(run.methods), "per_method": per_method, "latency_ms": latency}
+    if run.energy_j():  # the board's power rails were there (a Jetson)
+        aggregates["energy_j_per_frame"] = latency_summary(run.energy_j())
+    return aggregates
 
 
 def _number(value: float, digits: int) -> str:
@@ -184,6 +187,11 @@ def write_task_table(out_dir: str, run: EvaluationRun) -> str:
         _headline_table(aggregates),
     ]
     lines += ["## Latency", "", _latency_table(aggregates["latency_ms"])]
+    energy = aggregates.get("energy_j_per_frame")
+    if energy:
+        lines += [f"Energy per frame (VDD_IN, from a frame's publication to its view candidates): median "
+                  f"{_number(energy['p50'], 3)} J, mean {_number(energy['mean'], 3)} J, "
+                  f"p95 {_number(energy['p95'], 3)} J over {energy['n']} frames.", ""]
     lines += ["## Per scene", "", _per_scene_table(run)]
     lines += ["## Plots", ""]
     if methods:
