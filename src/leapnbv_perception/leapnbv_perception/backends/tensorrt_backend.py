@@ -169,8 +169,8 @@ class CudaPythonMemory:
     def __init__(self, device: int = 0, cudart: Any = None) -> None:
         try:
             self._cudart = cudart if cudart is not None else _import_cudart()
-        except ImportError as error:
-            raise CudaUnavailable("cuda-python is not importable (%s)" % error) from error
+        except Exception as error:  # noqa: BLE001 - ImportError, or a loader error raised at import
+            raise CudaUnavailable("cuda-python is not importable (%s: %s)" % (type(error).__name__, error)) from error
         self._device = device
         self._allocations: Dict[int, int] = {}
         try:
@@ -252,8 +252,8 @@ class PyCudaMemory:
     def __init__(self, device: int = 0, driver: Any = None) -> None:
         try:
             self._driver = driver if driver is not None else _import_pycuda()
-        except ImportError as error:
-            raise CudaUnavailable("pycuda is not importable (%s)" % error) from error
+        except Exception as error:  # noqa: BLE001 - ImportError (e.g. no libcuda.so.1), or its own errors
+            raise CudaUnavailable("pycuda is not importable (%s: %s)" % (type(error).__name__, error)) from error
         self._device = device
         self._allocations: Dict[int, Any] = {}
         try:
