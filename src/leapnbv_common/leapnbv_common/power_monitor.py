@@ -194,7 +194,8 @@ def open_rails(sysfs_root: str = "/sys", wanted: Sequence[str] = DEFAULT_RAILS) 
     if not usable:
         where = os.path.join(sysfs_root, "bus", "i2c", "devices")
         present = ", ".join(sorted(found)) if found else "no INA3221 rails at all"
-        raise PowerRailError("no power rails usable under %s (%s; present: %s)" % (where, "; ".join(notes), present))
+        raise PowerRailError("none of the rails is usable under %s (%s; present: %s)"
+                             % (where, "; ".join(notes), present))
     return usable, notes
 
 
