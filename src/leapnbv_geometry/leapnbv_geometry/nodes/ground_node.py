@@ -141,8 +141,9 @@ class GroundNode(Node):
     @rejects_bad_input("bad_depth")
     def on_depth(self, msg: Image) -> None:
         self.diagnostics.frame_in()
-        check_image(msg, DEPTH_ENCODINGS, "depth")  # the depth contract (a view, no conversion)
-        if refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
+        # The depth contract (a view, no conversion)
+        if refused(self.diagnostics, "bad_depth", check_image, msg, DEPTH_ENCODINGS, "depth") or \
+                refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
             return
         if self.pending is not None:  # a newer frame: the waiting one is served now
             depth, self.pending = self.pending[0], None

@@ -73,8 +73,9 @@ class RasterNode(Node):
 
     @rejects_bad_input("bad_depth")
     def on_depth(self, msg: Image) -> None:
-        check_image(msg, DEPTH_ENCODINGS, "depth")  # the depth contract (a view, no conversion)
-        if refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
+        # The depth contract (a view, no conversion)
+        if refused(self.diagnostics, "bad_depth", check_image, msg, DEPTH_ENCODINGS, "depth") or \
+                refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
             return
         stamp = stamp_to_ns(msg.header.stamp)
         self.depth_frames.put(stamp, msg)
@@ -86,8 +87,9 @@ class RasterNode(Node):
 
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:
-        ground_plane_to_arrays(msg)  # the contract: unit normal pointing up toward the camera, camera above it
-        if refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
+        # The contract: unit normal pointing up toward the camera, camera above it
+        if refused(self.diagnostics, "bad_ground_plane", ground_plane_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
             return
         ready = self.ground.add_companion(stamp_to_ns(msg.header.stamp), msg)
         if ready is not None:
@@ -96,8 +98,9 @@ class RasterNode(Node):
     @rejects_bad_input("bad_human_mesh")
     def on_mesh(self, msg: HumanMesh) -> None:
         self.diagnostics.frame_in()
-        human_mesh_to_arrays(msg)  # the contract: a finite mesh with faces in range
-        if refused(self.diagnostics, "bad_human_mesh", self.stamps.check, "human_mesh", msg):
+        # The contract: a finite mesh with faces in range
+        if refused(self.diagnostics, "bad_human_mesh", human_mesh_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_human_mesh", self.stamps.check, "human_mesh", msg):
             return
         stamp = stamp_to_ns(msg.header.stamp)
         match = self.depth_frames.find_nearest(stamp, int(self.params.value.slop_s * 1e9))

@@ -77,8 +77,9 @@ class DetectorNode(Node):
     def on_image(self, msg: Image) -> None:
         self.diagnostics.frame_in()
         started = time.perf_counter()
-        check_image(msg, COLOUR_ENCODINGS, "colour")  # the colour contract (a view, no copy), ground truth too
-        if refused(self.diagnostics, "bad_image", self.stamps.check, "image", msg):
+        # The colour contract (a view, no copy), ground truth too
+        if refused(self.diagnostics, "bad_image", check_image, msg, COLOUR_ENCODINGS, "colour") or \
+                refused(self.diagnostics, "bad_image", self.stamps.check, "image", msg):
             return
         if self.ground_truth:
             pair = self.pairer.add_first(stamp_to_ns(msg.header.stamp), msg)
@@ -93,8 +94,9 @@ class DetectorNode(Node):
 
     @rejects_bad_input("bad_ground_truth")
     def on_ground_truth(self, msg: SceneGroundTruth) -> None:
-        scene_ground_truth_to_arrays(msg)  # the contract: finite values, a box or none
-        if refused(self.diagnostics, "bad_ground_truth", self.stamps.check, "ground_truth", msg):
+        # The contract: finite values, a box or none
+        if refused(self.diagnostics, "bad_ground_truth", scene_ground_truth_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_truth", self.stamps.check, "ground_truth", msg):
             return
         pair = self.pairer.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:

@@ -94,8 +94,9 @@ class HmrNode(Node):
 
     @rejects_bad_input("bad_ground_truth")
     def on_ground_truth(self, msg: SceneGroundTruth) -> None:
-        scene_ground_truth_to_arrays(msg)  # the contract: finite values, a box or none
-        if refused(self.diagnostics, "bad_ground_truth", self.stamps.check, "ground_truth", msg):
+        # The contract: finite values, a box or none
+        if refused(self.diagnostics, "bad_ground_truth", scene_ground_truth_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_truth", self.stamps.check, "ground_truth", msg):
             return
         pair = self.pairer.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
@@ -104,8 +105,9 @@ class HmrNode(Node):
     @rejects_bad_input("bad_detections")
     def on_detections(self, msg: PersonDetections) -> None:
         self.diagnostics.frame_in()
-        detections_to_boxes(msg)  # the contract: finite boxes in the image, scores in [0, 1]
-        if refused(self.diagnostics, "bad_detections", self.stamps.check, "detections", msg):
+        # The contract: finite boxes in the image, scores in [0, 1]
+        if refused(self.diagnostics, "bad_detections", detections_to_boxes, msg) or \
+                refused(self.diagnostics, "bad_detections", self.stamps.check, "detections", msg):
             return
         stamp = stamp_to_ns(msg.header.stamp)
         if self.ground_truth:

@@ -111,8 +111,9 @@ class NbvNode(Node):
 
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:
-        ground_plane_to_arrays(msg)  # the contract: unit normal pointing up toward the camera, camera above it
-        if refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
+        # The contract: unit normal pointing up toward the camera, camera above it
+        if refused(self.diagnostics, "bad_ground_plane", ground_plane_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
             return
         ready = self.ground.add_companion(stamp_to_ns(msg.header.stamp), msg)
         if ready is not None:
@@ -121,8 +122,9 @@ class NbvNode(Node):
     @rejects_bad_input("bad_target")
     def on_target(self, msg: TargetGeometry) -> None:
         self.diagnostics.frame_in()
-        target_geometry_to_arrays(msg)  # the contract: finite points and box, its camera_info in its frame
-        if refused(self.diagnostics, "bad_target", self.stamps.check, "target_geometry", msg):
+        # The contract: finite points and box, its camera_info in its frame
+        if refused(self.diagnostics, "bad_target", target_geometry_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_target", self.stamps.check, "target_geometry", msg):
             return
         ready = self.ground.add_frame(stamp_to_ns(msg.header.stamp), msg, self.now_ns())
         if ready is not None:
