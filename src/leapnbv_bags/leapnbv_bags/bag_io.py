@@ -524,7 +524,7 @@ def _walk_mcap(path: Path, on_message: Optional[Any] = None) -> McapFileCheck:
         BagError: the data section is truncated (the file ends before its DataEnd record) or corrupt
             (a CRC that does not match, a chunk that does not decompress, a record that does not parse).
     """
-    from mcap.exceptions import EndOfFile
+    from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
     from mcap.records import Channel, DataEnd, Footer, Message, Schema
     from mcap.stream_reader import StreamReader
 
@@ -551,7 +551,8 @@ def _walk_mcap(path: Path, on_message: Optional[Any] = None) -> McapFileCheck:
                     check.summary = True
                 last_good = stream.tell()
         except Exception as error:  # noqa: BLE001 - mcap, zstd, struct, KeyError (a message before its channel)
-            ends = isinstance(error, EndOfFile) or stream.tell() >= size
+            # A record longer than the whole file (the limit) runs past its end: cut, like an early end of file.
+            ends = isinstance(error, (EndOfFile, RecordLengthLimitExceeded)) or stream.tell() >= size
             detail = "the file ends" if isinstance(error, EndOfFile) else \
                 f"{type(error).__name__}: {' '.join(str(error).split())}"
             if check.data_complete:
@@ -605,7 +606,8 @@ def read_bag(
 
     A bag whose MCAP summary or footer is missing but whose data section is complete (a recorder
     stopped before it wrote them) is read sequentially, and ``note`` is told so (by default one
-    line on stderr).
+    line on stderr). CRCs are checked by :func:`check_bag` (the bag tools call it first) and on a
+    sequential read, not by rosbags' seeking reader.
 
     Args:
         path: rosbag2 directory (MCAP or SQLite storage).
