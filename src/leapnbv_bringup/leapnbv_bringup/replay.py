@@ -150,12 +150,21 @@ class BagReplayer:
         self.completed.add(header_stamp_ns(cdr))
 
     def wait_for_subscribers(self, timeout_s: float = 10.0) -> None:
-        """Give DDS discovery time to match every publisher with the graph's subscriptions."""
+        """Give DDS discovery time to match every publisher with the graph's subscriptions.
+
+        A camera topic has several subscribers (depth: raster and ground): each publisher waits
+        until it is matched with every subscription the graph cache knows on its topic, so that the
+        first frame reaches all of them, not only the first one matched.
+        """
         import rclpy
+
+        def matched(topic: str, publisher) -> bool:
+            known = len(self.node.get_subscriptions_info_by_topic(topic))
+            return known > 0 and publisher.get_subscription_count() >= known
 
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if all(p.get_subscription_count() > 0 for t, p in self.publishers.items() if t.startswith("/camera/")):
+            if all(matched(t, p) for t, p in self.publishers.items() if t.startswith("/camera/")):
                 break
             rclpy.spin_once(self.node, timeout_sec=0.05)
         # Let the subscriptions' matching settle on both sides before the first frame.
