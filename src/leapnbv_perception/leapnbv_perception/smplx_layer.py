@@ -402,11 +402,16 @@ class SMPLXModel:
             raise BodyModelNotFoundError(
                 "SMPL-X model file not found: '%s' (absolute: '%s')" % (path, os.path.abspath(path))
             )
+        if os.path.getsize(path) == 0:
+            raise SMPLXModelError("SMPL-X model '%s' is empty (0 bytes); copy the file again" % path)
         try:
             archive = np.load(path, allow_pickle=False)
         except ValueError as error:
-            if "pickle" not in str(error):
-                raise SMPLXModelError("'%s' is not a readable .npz: %s" % (path, error)) from error
+            with open(path, "rb") as handle:
+                looks_pickled = handle.read(1) == b"\x80"  # a pickle's protocol opcode
+            if "pickle" not in str(error) or not looks_pickled:  # older numpy calls any unknown format a pickle
+                raise SMPLXModelError("'%s' is not a readable .npz (truncated or corrupt?): %s" % (path, error)) \
+                    from error
             raise SMPLXModelError("'%s' needs pickle to load (%s). %s" % (path, error, _CONVERSION_HINT)) from error
         except _CORRUPT_ARCHIVE_ERRORS as error:
             raise SMPLXModelError(_corrupt_message(path, error)) from error
