@@ -178,3 +178,33 @@ def set_parameters(probe: Probe, node: str, **values) -> list:
     future = client.set_parameters([Parameter(name, value=value) for name, value in values.items()])
     assert probe.spin_until(future.done, 10.0), f"setting parameters of {node} timed out"
     return list(future.result().results)
+
+
+# ----------------------------------------------------------------------------- whole graph, signals
+
+
+def start_graph(log_dir: str, overrides: Optional[Dict[str, Dict[str, str]]] = None,
+                namespace: str = NS) -> Dict[str, subprocess.Popen]:
+    """The five nodes of leapnbv_bringup.graph as processes, remapped and configured as the runner does,
+    keyed by full node name; ``overrides`` maps a node's short name to parameter values."""
+    from leapnbv_bringup.graph import graph_nodes
+
+    procs = {}
+    for spec in graph_nodes():
+        procs[f"{namespace}/{spec.name}"] = start_node(
+            spec.module, os.path.join(log_dir, f"{spec.name}.log"), namespace=namespace,
+            params=(overrides or {}).get(spec.name), remaps=spec.remaps)
+    return procs
+
+
+def stop_with_signal(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 20.0) -> Optional[int]:
+    """Send one signal and wait: the exit code, or None when the process had to be killed."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+            return None
+    return proc.returncode

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
@@ -427,31 +428,221 @@ def _rename(source: Path, destination: Path) -> None:
         raise BagError(f"cannot move {source} to {destination}: {error}") from error
 
 
+# Exit codes of the bag tools (this module's check, leapnbv_bringup.replay and .regression).
+EXIT_OK = 0
+EXIT_OUTPUTS_CHANGED = 1
+EXIT_USAGE = 2  # a wrong argument, or a missing golden file
+EXIT_UNREADABLE_BAG = 3
+
+METADATA_FILE = "metadata.yaml"
+
+
+@dataclass
+class McapFileCheck:
+    """What a sequential, CRC-checked walk of one MCAP file found.
+
+    ``data_complete``: the data section ends with its DataEnd record (every chunk read and its CRC
+    right); ``summary``: the summary and footer followed (a seeking reader can open the file).
+    """
+
+    path: Path
+    messages: int = 0
+    data_complete: bool = False
+    summary: bool = False
+    summary_problem: str = ""
+
+
+@dataclass
+class BagCheck:
+    """A rosbag2 directory checked before use: its storage, files, message count, and notes."""
+
+    path: Path
+    storage: str
+    files: List[Path]
+    messages: int = 0
+    mcap: List[McapFileCheck] = field(default_factory=list)
+    notes: List[str] = field(default_factory=list)
+
+    @property
+    def summary_intact(self) -> bool:
+        """Every MCAP file has its summary and footer (rosbags' seeking reader can open them)."""
+        return all(f.summary for f in self.mcap)
+
+
+def _bag_layout(bag_path: Path) -> Tuple[str, List[Path]]:
+    """(storage identifier, data files) of a rosbag2 directory, after the checks that cost nothing.
+
+    Raises:
+        BagError: no such path, a file instead of a directory, an empty directory, no or an
+            unreadable metadata.yaml, or a listed data file that is missing or empty.
+    """
+    if not bag_path.exists():
+        raise BagError(f"{bag_path}: no such bag (the path does not exist)")
+    if not bag_path.is_dir():
+        raise BagError(f"{bag_path}: a file, not a rosbag2 bag directory (pass the directory that holds "
+                       f"{METADATA_FILE})")
+    entries = sorted(p.name for p in bag_path.iterdir())
+    if not entries:
+        raise BagError(f"{bag_path}: empty directory, not a rosbag2 bag (no {METADATA_FILE}, no data files)")
+    metadata_path = bag_path / METADATA_FILE
+    if not metadata_path.is_file():
+        raise BagError(f"{bag_path}: {METADATA_FILE} is missing (the directory holds {', '.join(entries)}); "
+                       f"`ros2 bag reindex {bag_path}` rebuilds it")
+    import yaml
+
+    try:
+        document = yaml.safe_load(metadata_path.read_text(encoding="utf-8"))
+        info = document["rosbag2_bagfile_information"]
+        storage = str(info.get("storage_identifier") or "")
+        relative = [str(f) for f in (info.get("relative_file_paths") or [])]
+    except Exception as error:  # noqa: BLE001 - yaml errors, a missing key, a document that is not a mapping
+        detail = " ".join(str(error).split())
+        raise BagError(f"{metadata_path}: not rosbag2 metadata ({type(error).__name__}: {detail})") from None
+    if not relative:
+        raise BagError(f"{metadata_path}: lists no data files")
+    files = [bag_path / name for name in relative]
+    for data_file in files:
+        if not data_file.is_file():
+            raise BagError(f"{data_file}: listed in {METADATA_FILE} but missing")
+        if data_file.stat().st_size == 0:
+            raise BagError(f"{data_file}: empty file (0 bytes)")
+    return storage, files
+
+
+def _walk_mcap(path: Path, on_message: Optional[Any] = None) -> McapFileCheck:
+    """Read an MCAP file record by record from its start, checking every chunk's and the data section's CRC.
+
+    Args:
+        path: the .mcap file.
+        on_message: called as ``on_message(schema, channel, message)`` for each message (mcap records).
+
+    Returns:
+        What was found; a missing or damaged summary / footer after a complete data section is noted,
+        not raised: the data is whole.
+
+    Raises:
+        BagError: the data section is truncated (the file ends before its DataEnd record) or corrupt
+            (a CRC that does not match, a chunk that does not decompress, a record that does not parse).
+    """
+    from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+    from mcap.records import Channel, DataEnd, Footer, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    check = McapFileCheck(path)
+    size = path.stat().st_size
+    schemas: Dict[int, Any] = {}
+    channels: Dict[int, Any] = {}
+    with open(path, "rb") as stream:
+        last_good = 0
+        try:
+            for record in StreamReader(stream, validate_crcs=True, record_size_limit=max(size, 1)).records:
+                if isinstance(record, Message):
+                    check.messages += 1
+                    if on_message is not None:
+                        channel = channels[record.channel_id]
+                        on_message(schemas.get(channel.schema_id), channel, record)
+                elif isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, DataEnd):
+                    check.data_complete = True
+                elif isinstance(record, Footer):
+                    check.summary = True
+                last_good = stream.tell()
+        except Exception as error:  # noqa: BLE001 - mcap, zstd, struct, KeyError (a message before its channel)
+            # A record longer than the whole file (the limit) runs past its end: cut, like an early end of file.
+            ends = isinstance(error, (EndOfFile, RecordLengthLimitExceeded)) or stream.tell() >= size
+            detail = "the file ends" if isinstance(error, EndOfFile) else \
+                f"{type(error).__name__}: {' '.join(str(error).split())}"
+            if check.data_complete:
+                check.summary_problem = detail
+                return check
+            if ends:
+                raise BagError(f"{path}: truncated: the data section stops inside a record after byte {last_good} "
+                               f"of {size} ({check.messages} complete messages before it, no DataEnd record; "
+                               f"{detail})") from None
+            raise BagError(f"{path}: corrupt data after byte {last_good} of {size} ({check.messages} messages "
+                           f"read before it): {detail}") from None
+    return check
+
+
+def check_bag(path: Union[str, Path]) -> BagCheck:
+    """Open a rosbag2 bag and check all of it before it is used (the bag tools call this first).
+
+    Checks the directory and metadata.yaml, then walks every MCAP file from its start with CRC
+    checks. A file whose summary or footer is missing or damaged after a complete data section is
+    readable (noted in ``notes``: :func:`read_bag` reads it sequentially); SQLite storage is left to
+    rosbags.
+
+    Raises:
+        BagError: one line naming the path and what is wrong (see _bag_layout and _walk_mcap).
+    """
+    bag_path = Path(path)
+    storage, files = _bag_layout(bag_path)
+    check = BagCheck(bag_path, storage, files)
+    if storage != "mcap":
+        return check
+    for data_file in files:
+        found = _walk_mcap(data_file)
+        check.mcap.append(found)
+        check.messages += found.messages
+        if not found.summary:
+            check.notes.append(_summary_note(found))
+    return check
+
+
+def _summary_note(found: McapFileCheck) -> str:
+    why = f" ({found.summary_problem})" if found.summary_problem else ""
+    return (f"{found.path}: no MCAP summary/footer{why}; the data section is complete ({found.messages} "
+            "messages, CRCs right): read sequentially")
+
+
 def read_bag(
-    path: Union[str, Path], topics: Optional[Sequence[str]] = None, raw: bool = False
+    path: Union[str, Path], topics: Optional[Sequence[str]] = None, raw: bool = False,
+    note: Optional[Any] = None,
 ) -> Iterator[Tuple[str, str, int, object]]:
     """Iterate over a bag's messages in log-time order, deserialized with the bag's own definitions.
+
+    A bag whose MCAP summary or footer is missing but whose data section is complete (a recorder
+    stopped before it wrote them) is read sequentially, and ``note`` is told so (by default one
+    line on stderr). CRCs are checked by :func:`check_bag` (the bag tools call it first) and on a
+    sequential read, not by rosbags' seeking reader.
 
     Args:
         path: rosbag2 directory (MCAP or SQLite storage).
         topics: Only these topics; all if None.
         raw: Yield the CDR bytes as stored instead of deserialized messages (for replay).
+        note: called with a line for each file read without its summary; None prints it on stderr.
 
     Yields:
         (topic, msgtype, timestamp_ns, message) tuples.
 
     Raises:
-        BagError: The bag cannot be opened or a message does not deserialize.
+        BagError: The bag cannot be opened (see check_bag), is truncated or corrupt, or a message
+            does not deserialize; the text names the path and what is wrong.
     """
     bag_path = Path(path)
+    storage, files = _bag_layout(bag_path)
     try:
         reader = AnyReader([bag_path])
         reader.open()
-    except Exception as error:
-        raise BagError(f"{bag_path}: cannot open bag: {error}") from error
+    except Exception as error:  # noqa: BLE001 - an MCAP file without its summary: read it sequentially
+        if storage != "mcap":
+            raise BagError(f"{bag_path}: cannot open bag: {error}") from None
+        yield from _read_mcap_sequentially(bag_path, files, topics, raw, note)
+        return
     try:
         connections = [c for c in reader.connections if topics is None or c.topic in topics]
-        for connection, timestamp, rawdata in reader.messages(connections=connections):
+        messages = reader.messages(connections=connections)
+        while True:
+            try:
+                connection, timestamp, rawdata = next(messages)
+            except StopIteration:
+                break
+            except Exception as error:  # noqa: BLE001 - a chunk that does not decompress, a short read
+                detail = " ".join(str(error).split()) or type(error).__name__
+                raise BagError(f"{bag_path}: corrupt data: {type(error).__name__}: {detail}") from None
             if raw:
                 yield connection.topic, connection.msgtype, int(timestamp), rawdata
                 continue
@@ -465,6 +656,48 @@ def read_bag(
             yield connection.topic, connection.msgtype, int(timestamp), message
     finally:
         reader.close()
+
+
+def _read_mcap_sequentially(bag_path: Path, files: List[Path], topics: Optional[Sequence[str]], raw: bool,
+                            note: Optional[Any]) -> Iterator[Tuple[str, str, int, object]]:
+    """The messages of MCAP files read from their start (no summary needed), in log-time order."""
+    import sys
+
+    collected: List[Tuple[int, int, str, str, bytes]] = []
+    schema_texts: Dict[str, str] = {}
+
+    def keep(schema, channel, message) -> None:
+        if topics is not None and channel.topic not in topics:
+            return
+        msgtype = schema.name if schema is not None else ""
+        if schema is not None and schema.encoding == "ros2msg":
+            schema_texts.setdefault(msgtype, schema.data.decode("utf-8", errors="replace"))
+        collected.append((int(message.log_time), len(collected), channel.topic, msgtype, message.data))
+
+    for data_file in files:
+        found = _walk_mcap(data_file, keep)
+        if not found.summary:
+            line = _summary_note(found)
+            if note is None:
+                print(f"[bag] {line}", file=sys.stderr, flush=True)
+            else:
+                note(line)
+    collected.sort()
+    typestore = None
+    if not raw:
+        typestore = make_typestore()
+        for msgtype, text in schema_texts.items():
+            if _normalize_msgtype(msgtype) not in typestore.fielddefs:
+                _register_definitions(typestore, {msgtype: text.split("\n====", 1)[0]})
+    for timestamp, _, topic, msgtype, data in collected:
+        if raw:
+            yield topic, msgtype, timestamp, data
+            continue
+        try:
+            message = typestore.deserialize_cdr(data, _normalize_msgtype(msgtype))
+        except Exception as error:
+            raise BagError(f"{bag_path}: message on {topic} does not deserialize as {msgtype}: {error}") from error
+        yield topic, msgtype, timestamp, message
 
 
 def validate_bag_crcs(path: Union[str, Path]) -> Dict[str, int]:
@@ -497,3 +730,33 @@ def validate_bag_crcs(path: Union[str, Path]) -> Dict[str, int]:
         except Exception as error:
             raise BagError(f"{mcap_file}: MCAP validation failed: {error}") from error
     return counts
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m leapnbv_bags.bag_io BAG``: check a bag and print its topics and message counts."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(
+        prog="python -m leapnbv_bags.bag_io",
+        description="Check a rosbag2 bag (metadata.yaml, every MCAP chunk's CRC) and print its topics. "
+                    f"Exit codes: {EXIT_OK} readable, {EXIT_USAGE} usage, {EXIT_UNREADABLE_BAG} unreadable bag "
+                    "(one line: the path and what is wrong).")
+    parser.add_argument("bag", help="rosbag2 directory")
+    args = parser.parse_args(argv)
+    try:
+        check = check_bag(args.bag)
+        counts: Dict[str, int] = {}
+        for topic, msgtype, _, _ in read_bag(args.bag, raw=True):
+            counts[f"{topic} ({msgtype})"] = counts.get(f"{topic} ({msgtype})", 0) + 1
+    except BagError as error:
+        print(f"[bag] unreadable bag: {error}", file=sys.stderr)
+        return EXIT_UNREADABLE_BAG
+    print(f"[bag] {args.bag}: {check.storage}, {len(check.files)} file(s), {sum(counts.values())} messages")
+    for name, count in sorted(counts.items()):
+        print(f"  {count:6d}  {name}")
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

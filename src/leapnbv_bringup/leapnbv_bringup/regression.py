@@ -8,6 +8,17 @@ frame at a time (each once the previous frame's final output arrived); every out
 recorded to an output bag (for inspection) and reduced to per-frame values that are compared
 with `<bag>.golden.npz` under the tolerances in TOLERANCES. The report names each topic,
 frame and field that changed, and frames that are missing.
+
+The bag is opened and checked (metadata.yaml, every MCAP chunk's CRC) before the graph starts; a
+bag whose MCAP summary/footer is missing but whose data section is complete is read (said on
+stderr). Every failure is one line on stderr.
+
+Exit codes:
+  0  pass (or golden files written with --update-golden)
+  1  outputs changed (the report names topics, frames and fields), or missing outputs
+  2  usage: a wrong argument, a missing or unreadable golden file
+  3  unreadable bag: the path and what is wrong (missing metadata.yaml, truncated, corrupt, empty)
+  4  the graph failed (a node died or never became ready); its logs are under <out>/logs
 """
 from __future__ import annotations
 
@@ -23,8 +34,11 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_bags.bag_io import EXIT_OK, EXIT_OUTPUTS_CHANGED, EXIT_UNREADABLE_BAG, EXIT_USAGE, BagError
 from leapnbv_bringup.graph import NAMESPACE, OUTPUT_TOPICS
 from leapnbv_common.atomic_files import write_bytes_atomically
+
+EXIT_GRAPH_FAILED = 4  # a node died or never became ready (0-3: leapnbv_bags.bag_io's EXIT_*)
 
 # (topic short name, field) -> absolute tolerance; fields not listed must match exactly.
 TOLERANCES: Dict[Tuple[str, str], float] = {
@@ -202,13 +216,22 @@ def save_golden(path: str, values: Dict[str, Dict[int, Dict[str, np.ndarray]]]) 
 
 
 def load_golden(path: str) -> Dict[str, Dict[int, Dict[str, np.ndarray]]]:
+    """The golden values of a bag.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file is not a golden .npz (truncated, another layout).
+    """
     if not os.path.exists(path):
         raise FileNotFoundError(f"golden file not found: {path} (create it with --update-golden)")
     out: Dict[str, Dict[int, Dict[str, np.ndarray]]] = {}
-    with np.load(path, allow_pickle=False) as data:
-        for name in data.files:
-            topic, stamp, key = name.split("|")
-            out.setdefault(topic, {}).setdefault(int(stamp), {})[key] = data[name]
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            for name in data.files:
+                topic, stamp, key = name.split("|")
+                out.setdefault(topic, {}).setdefault(int(stamp), {})[key] = data[name]
+    except Exception as error:  # noqa: BLE001 - BadZipFile, EOFError, ValueError: not a readable golden file
+        raise ValueError(f"golden file {path} is unreadable: {type(error).__name__}: {error}") from None
     return out
 
 
@@ -279,11 +302,18 @@ def overrides_for_bag_run(args: argparse.Namespace):
 
 
 def run_graph_on_bag(bag: str, out_dir: str, overrides, params_file: Optional[str] = None,
-                     frame_timeout_s: float = 20.0) -> Dict[str, object]:
+                     frame_timeout_s: float = 20.0, frames=None) -> Dict[str, object]:
     """Start the graph, replay `bag` in keep-up mode, record the outputs to out_dir/outputs.
+
+    The bag is read and checked first (leapnbv_bringup.replay.load_camera_frames, unless ``frames``
+    holds it already): an unreadable bag raises BagError before any node starts.
 
     Returns a dict with the decoded outputs, the input frame stamps, missing frames and timings.
     """
+    from leapnbv_bringup.replay import load_camera_frames
+
+    if frames is None:
+        frames = load_camera_frames(bag)
     import rclpy
     from rclpy.node import Node
 
@@ -299,7 +329,7 @@ def run_graph_on_bag(bag: str, out_dir: str, overrides, params_file: Optional[st
         runner.start()
         ready_s = runner.wait_ready(probe, timeout_s=60.0)
         recorder = OutputRecorder(probe)
-        replayer = BagReplayer(probe, bag, rate=None, frame_timeout_s=frame_timeout_s)
+        replayer = BagReplayer(probe, bag, rate=None, frame_timeout_s=frame_timeout_s, frames=frames)
         replay_started = time.monotonic()
         count, timed_out = replayer.run()
         replay_s = time.monotonic() - replay_started
@@ -321,6 +351,7 @@ def run_graph_on_bag(bag: str, out_dir: str, overrides, params_file: Optional[st
 
 def main(argv: Optional[List[str]] = None) -> int:
     from leapnbv_bringup.graph_runner import add_graph_arguments
+    from leapnbv_bringup.replay import load_camera_frames
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", help="input rosbag2 directory (MCAP)")
@@ -335,14 +366,29 @@ def main(argv: Optional[List[str]] = None) -> int:
     golden_npz = args.golden or golden_npz
     out_dir = args.out or os.path.join("out", "regression", os.path.basename(bag))
     try:
+        frames = load_camera_frames(bag)  # open and check the bag before anything starts
+    except BagError as error:
+        print(f"[regression] unreadable bag: {error}", file=sys.stderr)
+        return EXIT_UNREADABLE_BAG
+    try:
         _, overrides = overrides_for_bag_run(args)
     except ValueError as exc:
         print(f"[regression] {exc}", file=sys.stderr)
-        return 2
-    if not args.update_golden and not os.path.exists(golden_npz):
-        print(f"[regression] golden file not found: {golden_npz} (run with --update-golden)", file=sys.stderr)
-        return 2
-    run = run_graph_on_bag(bag, out_dir, overrides, args.params)
+        return EXIT_USAGE
+    golden = None
+    if not args.update_golden:
+        try:
+            golden = load_golden(golden_npz)
+        except (FileNotFoundError, ValueError) as error:
+            print(f"[regression] {error}", file=sys.stderr)
+            return EXIT_USAGE
+    try:
+        run = run_graph_on_bag(bag, out_dir, overrides, args.params, frames=frames)
+    except Exception as error:  # noqa: BLE001 - a node died or never became ready: one line, not a traceback
+        detail = " ".join(str(error).split())
+        print(f"[regression] the graph failed: {type(error).__name__}: {detail[:500]} (logs: "
+              f"{os.path.join(out_dir, 'logs')})", file=sys.stderr)
+        return EXIT_GRAPH_FAILED
     values = collect_frame_values(run["decoded"])
     stamps = run["input_stamps"]
     print(f"[regression] {bag}: {run['frames']} frames replayed in {run['replay_s']:.1f} s "
@@ -353,12 +399,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         if missing:
             print(f"[regression] refusing to write golden files: {len(missing)} outputs missing, e.g. {missing[:5]}",
                   file=sys.stderr)
-            return 1
+            return EXIT_OUTPUTS_CHANGED
         save_golden(golden_npz, values)
         write_bytes_atomically(golden_json, json.dumps(golden_summary(values), indent=1).encode())
         print(f"[regression] wrote {golden_npz} and {golden_json}")
-        return 0
-    golden = load_golden(golden_npz)
+        return EXIT_OK
     findings = compare_outputs(values, golden)
     for topic in sorted(short_topic(t) for t in OUTPUT_TOPICS):  # every input frame, every topic
         for stamp in stamps:
@@ -369,7 +414,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     print(text)
     print(f"[regression] {'PASS' if failures == 0 else 'FAIL'}: {failures} problems over "
           f"{len(stamps)} frames x {len(OUTPUT_TOPICS)} topics")
-    return 0 if failures == 0 else 1
+    return EXIT_OK if failures == 0 else EXIT_OUTPUTS_CHANGED
 
 
 if __name__ == "__main__":

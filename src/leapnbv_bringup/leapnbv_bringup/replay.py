@@ -7,6 +7,10 @@ Replay publishes each message's recorded CDR bytes as they are (no re-serializat
     final output for the previous frame arrived (or a timeout passed) -- the regression mode.
 
     python -m leapnbv_bringup.replay bags/sample_a [--rate 2.0 | --keep-up]
+
+The bag is opened and checked (every MCAP chunk's CRC) before anything is published; a bag
+whose MCAP summary/footer is missing but whose data section is complete is replayed (said on
+stderr). Exit codes: 0 replayed, 2 usage, 3 unreadable bag (one line: the path and what is wrong).
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Dict, Iterator, List, Optional, Set, Tuple
 
+from leapnbv_bags.bag_io import EXIT_OK, EXIT_UNREADABLE_BAG, BagError, check_bag
 from leapnbv_bringup.graph import CAMERA_TOPICS, FINAL_OUTPUT_TOPIC, OUTPUT_TOPICS
 
 COLOUR_TOPIC = CAMERA_TOPICS["image"]
@@ -58,12 +63,33 @@ def read_bag_messages(path: str, topics: Optional[Set[str]] = None) -> Iterator[
         yield BagMessage(topic, msgtype, log_time, bytes(cdr))
 
 
+def load_camera_frames(bag_path: str) -> List[CameraFrame]:
+    """Check a bag (leapnbv_bags.bag_io.check_bag) and read it into camera frames, before any graph starts.
+
+    Raises:
+        BagError: the bag is unreadable (missing metadata.yaml, truncated, corrupt, ...) or holds no
+            colour frame; one line naming the path and what is wrong.
+    """
+    check_bag(bag_path)
+    try:
+        frames = group_camera_frames(list(read_bag_messages(bag_path)))
+    except struct.error as error:  # a colour image too short to hold a header
+        raise BagError(f"{bag_path}: a message on {COLOUR_TOPIC} is too short for a header: {error}") from None
+    if not frames:
+        raise BagError(f"{bag_path}: no colour frames on {COLOUR_TOPIC}")
+    return frames
+
+
 def group_camera_frames(messages: List[BagMessage]) -> List[CameraFrame]:
     """Group messages into camera frames by the header stamp of the colour image.
 
     Every message with a header whose stamp equals a colour image's stamp joins that frame;
     other messages (no header, or a stamp of no colour image) join the frame current at
-    their log time, so nothing is left out.
+    their log time, so nothing is left out. Within a frame the camera infos go first (calibration
+    before the images, as a driver and the simulator publish them), the rest in the bag's order: the
+    order of messages with one log time is the reader's (rosbags' seeking reader and a sequential
+    read of a bag without its MCAP summary differ), and must not decide whether a node has its
+    camera_info when the frame's first image arrives.
     """
     colour_stamps = {header_stamp_ns(m.cdr) for m in messages if m.topic == COLOUR_TOPIC}
     frames: Dict[int, CameraFrame] = {}
@@ -83,6 +109,8 @@ def group_camera_frames(messages: List[BagMessage]) -> List[CameraFrame]:
         else:
             frame = current
         frame.messages.append(message)
+    for frame in frames.values():
+        frame.messages.sort(key=lambda m: 0 if m.msgtype.endswith("/CameraInfo") else 1)  # stable
     return sorted(frames.values(), key=lambda f: f.log_time_ns)
 
 
@@ -90,7 +118,9 @@ class BagReplayer:
     """Publishes a bag's camera frames into the graph from an rclpy node."""
 
     def __init__(self, node, bag_path: str, rate: Optional[float] = 1.0, frame_timeout_s: float = 10.0,
-                 publish_clock: bool = True, wait_topic: str = FINAL_OUTPUT_TOPIC) -> None:
+                 publish_clock: bool = True, wait_topic: str = FINAL_OUTPUT_TOPIC,
+                 frames: Optional[List[CameraFrame]] = None) -> None:
+        """Publishers for every topic of the bag's frames (``frames`` when already read: load_camera_frames)."""
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from rosgraph_msgs.msg import Clock
 
@@ -99,9 +129,7 @@ class BagReplayer:
         self.node = node
         self.rate = rate
         self.frame_timeout_s = frame_timeout_s
-        self.frames = group_camera_frames(list(read_bag_messages(bag_path)))
-        if not self.frames:
-            raise ValueError(f"{bag_path}: no colour frames on {COLOUR_TOPIC}")
+        self.frames = frames if frames is not None else load_camera_frames(bag_path)
         self.publishers = {}
         for frame in self.frames:
             for m in frame.messages:
@@ -122,12 +150,21 @@ class BagReplayer:
         self.completed.add(header_stamp_ns(cdr))
 
     def wait_for_subscribers(self, timeout_s: float = 10.0) -> None:
-        """Give DDS discovery time to match every publisher with the graph's subscriptions."""
+        """Give DDS discovery time to match every publisher with the graph's subscriptions.
+
+        A camera topic has several subscribers (depth: raster and ground): each publisher waits
+        until it is matched with every subscription the graph cache knows on its topic, so that the
+        first frame reaches all of them, not only the first one matched.
+        """
         import rclpy
+
+        def matched(topic: str, publisher) -> bool:
+            known = len(self.node.get_subscriptions_info_by_topic(topic))
+            return known > 0 and publisher.get_subscription_count() >= known
 
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if all(p.get_subscription_count() > 0 for t, p in self.publishers.items() if t.startswith("/camera/")):
+            if all(matched(t, p) for t, p in self.publishers.items() if t.startswith("/camera/")):
                 break
             rclpy.spin_once(self.node, timeout_sec=0.05)
         # Let the subscriptions' matching settle on both sides before the first frame.
@@ -228,6 +265,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--frame-timeout", type=float, default=10.0)
     parser.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     args = parser.parse_args(argv)
+    try:
+        frames = load_camera_frames(args.bag)  # before ROS starts: an unreadable bag ends here
+    except BagError as error:
+        print(f"[replay] unreadable bag: {error}", file=sys.stderr)
+        return EXIT_UNREADABLE_BAG
 
     import rclpy
     from rclpy.node import Node
@@ -236,7 +278,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     node = Node("leapnbv_replay")
     try:
         replayer = BagReplayer(node, args.bag, rate=None if args.keep_up else args.rate,
-                               frame_timeout_s=args.frame_timeout, publish_clock=not args.no_clock)
+                               frame_timeout_s=args.frame_timeout, publish_clock=not args.no_clock, frames=frames)
         count, missing = replayer.run()
         print(f"[replay] published {count} frames from {args.bag}"
               + (f"; no final output for {len(missing)}" if args.keep_up and missing else ""))
@@ -245,7 +287,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

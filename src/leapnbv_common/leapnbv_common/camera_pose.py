@@ -19,14 +19,21 @@ from typing import Callable, Dict, Optional
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 
+from leapnbv_common.contracts import (
+    QUATERNION_TOLERANCE,
+    ContractError,
+    DuplicateStampGuard,
+    check_camera_pose,
+    refused,
+)
 from leapnbv_common.conversions import ConversionError, pose_to_numpy, stamp_to_ns
 from leapnbv_common.diagnostics import rejects_bad_input
 from leapnbv_common.qos import stage_input_qos
 from leapnbv_common.stamp_cache import StampCache
 from leapnbv_common.topics import CAMERA_POSE
 
-# | |q| - 1 | of an accepted orientation: a pose whose quaternion is not unit is refused, not normalized.
-QUATERNION_TOLERANCE = 1e-3
+__all__ = ["QUATERNION_TOLERANCE", "StampedCameraPose", "camera_pose_from_msg", "TopicCameraPoseSource",
+           "CAMERA_POSE_SOURCES", "create_camera_pose_source"]
 
 
 @dataclass(frozen=True)
@@ -40,18 +47,20 @@ class StampedCameraPose:
 
 
 def camera_pose_from_msg(msg: PoseStamped) -> StampedCameraPose:
-    """A checked StampedCameraPose from a PoseStamped.
+    """A checked StampedCameraPose from a PoseStamped (the contract every node applies to a camera pose).
 
     Raises:
-        ConversionError: a non-finite position or a quaternion that is not unit length.
+        ConversionError: a quaternion that is not unit length (or NaN: it is refused, never
+            normalized), a non-finite position, or a camera not above the floor of the
+            floor-aligned fixed frame (z <= 0): contracts.check_camera_pose.
     """
     q = msg.pose.orientation
-    norm = float(np.linalg.norm([q.x, q.y, q.z, q.w]))
-    if not abs(norm - 1.0) <= QUATERNION_TOLERANCE:  # NaN fails too
-        raise ConversionError(f"camera pose orientation is not a unit quaternion (|q| = {norm:.4f})")
+    p = msg.pose.position
+    try:
+        check_camera_pose([q.x, q.y, q.z, q.w], [p.x, p.y, p.z])
+    except ContractError as error:
+        raise ConversionError(str(error)) from None
     rotation, position = pose_to_numpy(msg.pose)
-    if not np.all(np.isfinite(position)):
-        raise ConversionError("camera pose position is not finite")
     return StampedCameraPose(stamp_to_ns(msg.header.stamp), str(msg.header.frame_id), rotation, position)
 
 
@@ -59,8 +68,9 @@ class TopicCameraPoseSource:
     """Camera poses from a PoseStamped topic, remembered by stamp (the newest ``capacity``).
 
     Args:
-        node: The node; it must have a ``diagnostics`` (StageDiagnostics): a malformed pose is
-            counted there as ``bad_camera_pose`` and dropped.
+        node: The node; it must have a ``diagnostics`` (StageDiagnostics): a pose that breaks the
+            contract (camera_pose_from_msg) is counted there as ``bad_camera_pose`` and dropped, a
+            second, different pose of a stamp already here as ``duplicate_stamp``.
         capacity: How many poses are remembered.
         on_pose: Called with each accepted pose as it arrives (a node waiting for a frame's pose).
         topic: The relative topic name (remapped by the launch file / runner).
@@ -72,11 +82,14 @@ class TopicCameraPoseSource:
         self.get_logger = node.get_logger  # rejects_bad_input logs through it
         self.poses: StampCache = StampCache(max(1, int(capacity)))
         self.on_pose = on_pose
+        self.stamps = DuplicateStampGuard()
         node.create_subscription(PoseStamped, topic, self._on_message, stage_input_qos(max(10, int(capacity))))
 
     @rejects_bad_input("bad_camera_pose")
     def _on_message(self, msg: PoseStamped) -> None:
         pose = camera_pose_from_msg(msg)
+        if refused(self.diagnostics, "bad_camera_pose", self.stamps.check, "camera_pose", msg):
+            return  # another pose with the stamp of one already here: the first one stays
         self.poses.put(pose.stamp_ns, pose)
         if self.on_pose is not None:
             self.on_pose(pose)

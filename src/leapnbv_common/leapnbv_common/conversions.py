@@ -15,11 +15,28 @@ from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from leapnbv_msgs.msg import GroundPlane, HumanMesh, PersonDetection, SceneGroundTruth, TargetGeometry, ViewCandidates
+from leapnbv_common.contracts import (
+    FRAME_ID_MISMATCH,
+    ContractError,
+    check_boxes,
+    check_finite,
+    check_ground_plane,
+    check_intrinsics,
+)
+from leapnbv_msgs.msg import (
+    GroundPlane,
+    HumanMesh,
+    PersonDetection,
+    PersonDetections,
+    SceneGroundTruth,
+    TargetGeometry,
+    ViewCandidates,
+)
 
 
-class ConversionError(ValueError):
-    """A message cannot be turned into the array it should hold; the text says what is wrong."""
+class ConversionError(ContractError):
+    """A message cannot be turned into the array it should hold, or breaks its contract
+    (:mod:`leapnbv_common.contracts`); the text says what is wrong."""
 
 
 # encoding -> (numpy dtype, channels)
@@ -104,6 +121,27 @@ def depth_to_metres(msg: Image) -> np.ndarray:
     raise ConversionError(f"depth image expected (16UC1 or 32FC1), got {msg.encoding!r}")
 
 
+DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
+COLOUR_ENCODINGS = ("rgb8", "bgr8", "mono8", "8UC1")
+
+
+def check_image(msg: Image, encodings: Sequence[str], what: str) -> Tuple[int, int]:
+    """Check an Image's encoding, step and payload without converting it (a view); returns (width, height).
+
+    Raises:
+        ConversionError: an encoding not in ``encodings`` or a malformed image (see image_to_numpy).
+    """
+    if msg.encoding not in encodings:
+        raise ConversionError(f"{what} image expected ({', '.join(encodings)}), got {msg.encoding!r}")
+    image_to_numpy(msg)
+    return int(msg.width), int(msg.height)
+
+
+def image_size(msg) -> Tuple[int, int]:
+    """(width, height) of an Image or CameraInfo."""
+    return int(msg.width), int(msg.height)
+
+
 def numpy_to_image(image: np.ndarray, encoding: str, header: Optional[Header] = None) -> Image:
     """Build an Image from an array (native byte order, is_bigendian = 0).
 
@@ -135,11 +173,14 @@ def camera_info_to_k(msg: CameraInfo) -> np.ndarray:
     """The 3x3 intrinsic matrix of a CameraInfo.
 
     Raises:
-        ConversionError: K is not a valid pinhole matrix (non-positive focal lengths).
+        ConversionError: K is not a valid pinhole matrix (non-finite, non-positive focal lengths), the
+            size is empty, or the principal point lies outside the image (contracts.check_intrinsics).
     """
     k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
-    if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0):
-        raise ConversionError(f"camera_info K is not a valid pinhole matrix: {k.ravel().tolist()}")
+    try:
+        check_intrinsics(k, msg.width, msg.height)
+    except ContractError as error:
+        raise ConversionError(str(error)) from None
     return k
 
 
@@ -251,6 +292,23 @@ def detection_to_box(det: PersonDetection) -> np.ndarray:
     return np.array([det.x_min, det.y_min, det.x_max, det.y_max, det.score], dtype=np.float32)
 
 
+def detections_to_boxes(msg: PersonDetections) -> np.ndarray:
+    """(N, 5) float32 [x_min, y_min, x_max, y_max, score] of a PersonDetections, checked.
+
+    Raises:
+        ConversionError: an empty image size, or a detection that is not finite, has a score outside
+            [0, 1], an empty or inverted box, or a box outside the image (contracts.check_boxes).
+    """
+    size = (int(msg.image_width), int(msg.image_height))
+    if size[0] <= 0 or size[1] <= 0:
+        raise ConversionError(f"PersonDetections image size {size[0]}x{size[1]} is empty")
+    boxes = np.array([detection_to_box(d) for d in msg.detections], np.float32).reshape(-1, 5)
+    try:
+        return check_boxes(boxes, size)
+    except ContractError as error:
+        raise ConversionError(str(error)) from None
+
+
 @dataclass
 class HumanMeshArrays:
     """The arrays of a HumanMesh message.
@@ -294,6 +352,15 @@ def _read_float32_fields(msg, sizes) -> dict:
     return {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size) for name, size in sizes.items()}
 
 
+def _check_finite_fields(what: str, fields: dict) -> None:
+    """ConversionError naming the first field of ``fields`` (name -> array) with a NaN or inf."""
+    for name, values in fields.items():
+        try:
+            check_finite(f"{what} {name}", values)
+        except ContractError as error:
+            raise ConversionError(str(error)) from None
+
+
 def _write_float32_fields(msg, values, sizes) -> None:
     """Set the fixed-size float fields of a message from an object with attributes of the same names."""
     for name, size in sizes.items():
@@ -323,7 +390,14 @@ def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
         raise ConversionError("HumanMesh vertices contain NaN or inf")
     if not (msg.fx > 0 and msg.fy > 0):
         raise ConversionError(f"HumanMesh virtual focal lengths must be positive, got {msg.fx}, {msg.fy}")
+    if not np.all(np.isfinite([msg.cx, msg.cy])):
+        raise ConversionError(f"HumanMesh virtual principal point is not finite: {msg.cx}, {msg.cy}")
+    if msg.image_width <= 0 or msg.image_height <= 0:
+        raise ConversionError(f"HumanMesh image size {msg.image_width}x{msg.image_height} is empty")
     params = _read_float32_fields(msg, _MESH_PARAM_SIZES)
+    _check_finite_fields("HumanMesh", params)
+    if not np.all(np.isfinite(detection_to_box(msg.detection))):
+        raise ConversionError("HumanMesh detection box is not finite")
     return HumanMeshArrays(
         vertices=vertices,
         faces=faces,
@@ -419,12 +493,25 @@ class GroundPlaneArrays:
     inlier_ratio: float = 0.0
 
 
+GROUND_PLANE_SOURCES = (GroundPlane.SOURCE_RANSAC, GroundPlane.SOURCE_CAMERA_POSE)
+
+
 def ground_plane_to_arrays(msg: GroundPlane) -> GroundPlaneArrays:
-    """GroundPlaneArrays from a GroundPlane message (no checks: see the message contracts)."""
-    return GroundPlaneArrays(
+    """GroundPlaneArrays from a GroundPlane message, checked.
+
+    Raises:
+        ConversionError: an unknown source or, for a valid plane, a non-finite or non-unit normal, a
+            normal pointing down, or the camera on or below the floor (contracts.check_ground_plane).
+    """
+    plane = GroundPlaneArrays(
         normal=np.array([msg.normal.x, msg.normal.y, msg.normal.z], dtype=np.float64),
         offset=float(msg.offset), valid=bool(msg.valid), source=int(msg.source),
         inlier_count=int(msg.inlier_count), inlier_ratio=float(msg.inlier_ratio))
+    try:
+        check_ground_plane(plane.normal, plane.offset, plane.valid, plane.source, GROUND_PLANE_SOURCES)
+    except ContractError as error:
+        raise ConversionError(str(error)) from None
+    return plane
 
 
 def arrays_to_ground_plane(plane: GroundPlaneArrays, header: Optional[Header] = None,
@@ -465,11 +552,32 @@ class TargetGeometryArrays:
 
 
 def target_geometry_to_arrays(msg: TargetGeometry) -> TargetGeometryArrays:
-    """TargetGeometryArrays from a TargetGeometry message.
+    """TargetGeometryArrays from a TargetGeometry message, checked.
 
     Raises:
-        ConversionError: a point cloud or the camera info is malformed.
+        ConversionError: a point cloud or the camera info is malformed, a value is not finite, a valid
+            target has no points or an inverted box, or the camera info names another frame
+            (reason frame_id_mismatch).
     """
+    if msg.camera_info.header.frame_id != msg.header.frame_id:
+        raise ConversionError(f"TargetGeometry is in frame {msg.header.frame_id!r} but its camera_info in "
+                              f"{msg.camera_info.header.frame_id!r}", FRAME_ID_MISMATCH)
+    target = _target_geometry_arrays(msg)
+    _check_finite_fields("TargetGeometry", {
+        "target_points": target.target_points, "background_points": target.background_points,
+        "centroid": target.centroid, "bbox_min": target.bbox_min, "bbox_max": target.bbox_max,
+        "depth_offset": target.depth_offset})
+    if not 0.0 <= target.visible_fraction <= 1.0:
+        raise ConversionError(f"TargetGeometry visible_fraction {target.visible_fraction} is outside [0, 1]")
+    if target.valid and target.target_points.shape[0] == 0:
+        raise ConversionError("TargetGeometry is marked valid but has no target points")
+    if target.valid and not np.all(target.bbox_min <= target.bbox_max):
+        raise ConversionError(f"TargetGeometry box is inverted: min {target.bbox_min.tolist()}, "
+                              f"max {target.bbox_max.tolist()}")
+    return target
+
+
+def _target_geometry_arrays(msg: TargetGeometry) -> TargetGeometryArrays:
     return TargetGeometryArrays(
         target_points=pointcloud2_to_xyz(msg.target_points),
         background_points=pointcloud2_to_xyz(msg.background_points),
@@ -605,10 +713,26 @@ class SceneGroundTruthArrays:
 
 
 def scene_ground_truth_to_arrays(msg: SceneGroundTruth) -> SceneGroundTruthArrays:
-    """SceneGroundTruthArrays from a SceneGroundTruth message."""
-    return SceneGroundTruthArrays(person_box=detection_to_box(msg.person_box),
-                                  occlusion_share=float(msg.occlusion_share), body_model_id=str(msg.body_model_id),
-                                  **_read_float32_fields(msg, _GROUND_TRUTH_PARAM_SIZES))
+    """SceneGroundTruthArrays from a SceneGroundTruth message, checked.
+
+    Raises:
+        ConversionError: a value is not finite, the occlusion share is outside [0, 1], or the person box
+            is inverted (x_max < x_min or y_max < y_min; an empty box means nobody is visible) or its
+            score is outside [0, 1].
+    """
+    params = _read_float32_fields(msg, _GROUND_TRUTH_PARAM_SIZES)
+    truth = SceneGroundTruthArrays(person_box=detection_to_box(msg.person_box),
+                                   occlusion_share=float(msg.occlusion_share), body_model_id=str(msg.body_model_id),
+                                   **params)
+    _check_finite_fields("SceneGroundTruth", {"person_box": truth.person_box,
+                                              "occlusion_share": truth.occlusion_share, **params})
+    if not 0.0 <= truth.occlusion_share <= 1.0:
+        raise ConversionError(f"SceneGroundTruth occlusion_share {truth.occlusion_share} is outside [0, 1]")
+    x0, y0, x1, y1, score = (float(v) for v in truth.person_box)
+    if x1 < x0 or y1 < y0 or not 0.0 <= score <= 1.0:
+        raise ConversionError(f"SceneGroundTruth person_box [{x0}, {y0}, {x1}, {y1}] with score {score} is inverted "
+                              "or its score is outside [0, 1] (an empty box means nobody is visible)")
+    return truth
 
 
 def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional[Header] = None) -> SceneGroundTruth:
@@ -619,6 +743,17 @@ def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional
         msg.header = header
     _write_float32_fields(msg, truth, _GROUND_TRUTH_PARAM_SIZES)
     return msg
+
+
+def obstacle_map_to_points(msg: PointCloud2) -> np.ndarray:
+    """(N, 3) float32 occupied-voxel centres of an obstacle map, checked: every point finite.
+
+    Raises:
+        ConversionError: a malformed cloud or a NaN / inf point (a map with one is corrupt: refused whole).
+    """
+    points = pointcloud2_to_xyz(msg)
+    _check_finite_fields("obstacle map", {"points": points})
+    return points
 
 
 def header_with_stamp(stamp_ns: int, frame_id: str) -> Header:

@@ -89,18 +89,88 @@ class NodeParams(Generic[P]):
         return SetParametersResult(successful=True)
 
 
-def run_node(make_node, args=None) -> None:
-    """Standard main(): init, make the node (a class or any factory), spin until Ctrl-C or shutdown, clean up."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+# Exit code of a node that refuses to start with the parameters it was given (a ParamsError, or
+# another ValueError from the node's constructor: an unknown camera-pose source, ...).
+EXIT_BAD_PARAMETERS = 2
+STOP_SIGNALS = ("SIGINT", "SIGTERM")
 
-    rclpy.init(args=args)
-    node = make_node()
+
+def run_node(make_node, args=None) -> None:
+    """Standard main(): init, make the node (a class or any factory), spin until SIGINT, SIGTERM or an
+    external shutdown, clean up, and return (exit code 0, no traceback).
+
+    rclpy's own signal handler is off: on SIGINT it shuts the context down under the callback that
+    is running, whose next publish then fails (a pybind ``RCLError`` traceback, exit 1; a planner
+    kernel's caller counting an ``internal_error``). Here SIGINT and SIGTERM only ask the spin loop
+    to stop: the running callback finishes, then the node is destroyed and rclpy shut down, in that
+    order. A signal while the node is still being built (an engine load, the numba warm-up) ends the
+    start at once; a second signal while stopping ends at once too.
+
+    A parameter value the node refuses (:class:`ParamsError`, rclpy's range or type check of a
+    declared parameter, or another ValueError raised while it is built) ends the process with one
+    line on stderr naming it and exit code EXIT_BAD_PARAMETERS (2), not a traceback.
+    """
+    import signal
+    import sys
+
+    import rclpy
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    state = {"signals": 0, "spinning": False}
+
+    def on_signal(signum, frame) -> None:
+        state["signals"] += 1
+        if not state["spinning"] or state["signals"] > 1:
+            raise KeyboardInterrupt  # not spinning yet (or asked twice): unwind now
+        # Spinning: the loop below sees the flag once the running callback returned.
+
+    previous = {}
+    for name in STOP_SIGNALS:
+        number = getattr(signal, name)
+        previous[number] = signal.signal(number, on_signal)
+    node = None
+    executor = None
+    exit_code = 0
     try:
-        rclpy.spin(node)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        node = make_node()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        state["spinning"] = True
+        while not state["signals"] and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)  # wakes at least every 0.1 s to see a signal
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (ValueError, ParameterException) as error:  # ParamsError, rclpy's range and type checks
+        if node is not None:
+            raise
+        print(f"[{_node_name(args, make_node)}] cannot start: {error}", file=sys.stderr, flush=True)
+        exit_code = EXIT_BAD_PARAMETERS
     finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        state["spinning"] = False
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=1.0)
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+        except KeyboardInterrupt:  # a second signal during the clean-up: it is done enough
+            pass
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    if exit_code:
+        sys.exit(exit_code)
+
+
+def _node_name(args, make_node) -> str:
+    """The node's name for a start-up error line: ``__node:=`` from the arguments, else the program's."""
+    import os
+    import sys
+
+    for arg in list(args or sys.argv):
+        if str(arg).startswith(("__node:=", "__name:=")):
+            return str(arg).split(":=", 1)[1]
+    program = os.path.splitext(os.path.basename(sys.argv[0] if sys.argv and sys.argv[0] else ""))[0]
+    return program if program and program != "-c" else getattr(make_node, "__name__", "node")

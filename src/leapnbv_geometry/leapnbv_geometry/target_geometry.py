@@ -158,6 +158,8 @@ def place_mesh_metric(
     virtual_K_params: Sequence[float],
     real_K: np.ndarray,
     cam_translation: np.ndarray,
+    virtual_image_size: Optional[Tuple[int, int]] = None,
+    real_image_size: Optional[Tuple[int, int]] = None,
 ) -> np.ndarray:
     """Move a mesh from the HMR virtual camera into the real camera frame (weak perspective).
 
@@ -175,18 +177,31 @@ def place_mesh_metric(
     unchanged (a ground-truth mesh already metric passes through). The depth is still only as
     good as HMR's t_z: :func:`compute_target_geometry` aligns it to the observed depth.
 
+    Both intrinsics must be in pixels of images of the same size (the depth aligned to colour):
+    with another size the two K differ although the mesh may already be metric, and the formula
+    would rescale it (a ground-truth mesh placed 1.4 m off). Given both sizes, a mismatch is refused.
+
     Args:
         vertices_virtual: (V, 3) vertices in the virtual camera frame (translation included).
         virtual_K_params: (fx, fy, cx, cy) of the virtual camera in full-image pixels.
         real_K: (3, 3) real camera matrix.
         cam_translation: (3,) the translation t already included in ``vertices_virtual``.
+        virtual_image_size: (width, height) of the image the virtual intrinsics are in (HumanMesh
+            image_width, image_height), or None.
+        real_image_size: (width, height) of the real camera's image (the depth frame), or None.
 
     Returns:
         (V, 3) float64 vertices in the real camera optical frame.
 
     Raises:
-        TargetGeometryError: on wrong shapes or a non-positive focal length.
+        TargetGeometryError: on wrong shapes, a non-positive focal length, or image sizes that differ.
     """
+    if virtual_image_size is not None and real_image_size is not None \
+            and tuple(int(v) for v in virtual_image_size) != tuple(int(v) for v in real_image_size):
+        raise TargetGeometryError(
+            f"place_mesh_metric: the mesh's image is {tuple(int(v) for v in virtual_image_size)} but the "
+            f"real camera's {tuple(int(v) for v in real_image_size)} (width, height): colour and depth must be "
+            "aligned to one size")
     vertices_virtual = np.asarray(vertices_virtual, dtype=np.float64)
     if vertices_virtual.ndim != 2 or vertices_virtual.shape[1] != 3:
         raise TargetGeometryError(

@@ -194,6 +194,19 @@ def test_place_mesh_metric_hand_computed_case():
         place_mesh_metric(body, (1.0, 1.0, 0.0, 0.0), real_K, np.zeros(2))
 
 
+def test_place_mesh_metric_refuses_images_of_different_sizes():
+    # A metric (ground-truth) mesh whose virtual K is the colour camera's, and a depth image of half
+    # the size with its own K: the formula would move the mesh to half its distance. Refused instead.
+    vertices = np.array([[0.0, 0.0, 3.0], [0.2, -0.5, 3.1]])
+    colour_k = (615.0, 615.0, 320.0, 240.0)
+    depth_k = np.array([[307.5, 0.0, 160.0], [0.0, 307.5, 120.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(TargetGeometryError, match=r"\(640, 480\) but the real camera's \(320, 240\)"):
+        place_mesh_metric(vertices, colour_k, depth_k, np.array([0.0, 0.0, 3.0]), (640, 480), (320, 240))
+    colour_matrix = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
+    same = place_mesh_metric(vertices, colour_k, colour_matrix, np.array([0.0, 0.0, 3.0]), (640, 480), (640, 480))
+    np.testing.assert_array_equal(same, vertices)
+
+
 def test_backproject_inverts_projection_and_skips_invalid():
     K = np.array([[500.0, 2.0, 310.0], [0.0, 480.0, 250.0], [0.0, 0.0, 1.0]])
     rng = np.random.default_rng(0)

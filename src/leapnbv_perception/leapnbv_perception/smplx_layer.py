@@ -18,6 +18,8 @@ expression = columns [300:310] (or [10:20] for a 20-column model).
 from __future__ import annotations
 
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from typing import Dict, Mapping, Optional, Tuple
 
@@ -64,6 +66,16 @@ _CONVERSION_HINT = (
 
 class SMPLXModelError(ValueError):
     """The body model file is not a usable SMPL-X .npz (format, keys or shapes)."""
+
+
+# What np.load and reading a member raise for a truncated, cut or corrupted .npz (a zip archive).
+_CORRUPT_ARCHIVE_ERRORS = (zipfile.BadZipFile, EOFError, zlib.error)
+
+
+def _corrupt_message(path: str, error: BaseException, key: str = "") -> str:
+    where = " (reading key '%s')" % key if key else ""
+    return "SMPL-X model '%s' is truncated or corrupt%s: %s: %s; copy the file again (%d bytes on disk)" % (
+        path, where, type(error).__name__, error, os.path.getsize(path))
 
 
 class BodyModelNotFoundError(FileNotFoundError):
@@ -378,7 +390,8 @@ class SMPLXModel:
 
         Raises:
             BodyModelNotFoundError: naming the path when it does not exist.
-            SMPLXModelError: for a .pkl file, a file needing pickle, missing keys or bad shapes.
+            SMPLXModelError: for a .pkl file, a file needing pickle, a truncated or corrupt archive
+                (BadZipFile, EOFError, a bad CRC: named with the path), missing keys or bad shapes.
         """
         path = os.fspath(path)
         if path.lower().endswith(".pkl"):
@@ -389,10 +402,19 @@ class SMPLXModel:
             raise BodyModelNotFoundError(
                 "SMPL-X model file not found: '%s' (absolute: '%s')" % (path, os.path.abspath(path))
             )
+        if os.path.getsize(path) == 0:
+            raise SMPLXModelError("SMPL-X model '%s' is empty (0 bytes); copy the file again" % path)
         try:
             archive = np.load(path, allow_pickle=False)
         except ValueError as error:
+            with open(path, "rb") as handle:
+                looks_pickled = handle.read(1) == b"\x80"  # a pickle's protocol opcode
+            if "pickle" not in str(error) or not looks_pickled:  # older numpy calls any unknown format a pickle
+                raise SMPLXModelError("'%s' is not a readable .npz (truncated or corrupt?): %s" % (path, error)) \
+                    from error
             raise SMPLXModelError("'%s' needs pickle to load (%s). %s" % (path, error, _CONVERSION_HINT)) from error
+        except _CORRUPT_ARCHIVE_ERRORS as error:
+            raise SMPLXModelError(_corrupt_message(path, error)) from error
         except OSError as error:
             raise SMPLXModelError("'%s' is not a readable .npz: %s" % (path, error)) from error
         if not hasattr(archive, "files"):
@@ -408,10 +430,14 @@ class SMPLXModel:
             for key in REQUIRED_KEYS:
                 try:
                     arrays[key] = archive[key]
-                except ValueError as error:  # object array: would need pickle
-                    raise SMPLXModelError(
+                except ValueError as error:
+                    if "pickle" not in str(error):  # a truncated or garbled array inside the archive
+                        raise SMPLXModelError(_corrupt_message(path, error, key)) from error
+                    raise SMPLXModelError(  # object array: would need pickle
                         "key '%s' in '%s' is stored as a pickled object (%s). %s" % (key, path, error, _CONVERSION_HINT)
                     ) from error
+                except _CORRUPT_ARCHIVE_ERRORS as error:
+                    raise SMPLXModelError(_corrupt_message(path, error, key)) from error
         return cls(arrays, source=path)
 
     @property

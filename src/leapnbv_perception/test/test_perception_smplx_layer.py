@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import pickle
+import zipfile
 from pathlib import Path
 from typing import Dict
 
@@ -164,6 +166,39 @@ def test_loader_rejects_bad_shape(tmp_path: Path, arrays: Dict[str, np.ndarray])
     np.savez(path, **changed)
     with pytest.raises(SMPLXModelError, match="weights"):
         SMPLXModel.load(str(path))
+
+
+@pytest.mark.parametrize("damage", ["empty", "cut_at_1_percent", "cut_at_half", "cut_before_the_end",
+                                    "flipped_byte", "garbled_member"])
+def test_loader_names_a_truncated_or_corrupt_file(tmp_path: Path, arrays: Dict[str, np.ndarray], damage: str) -> None:
+    path = tmp_path / "SMPLX_NEUTRAL.npz"
+    np.savez(path, **arrays)
+    data = bytearray(path.read_bytes())
+    if damage == "empty":
+        data = bytearray()  # np.load raises EOFError
+    elif damage.startswith("cut"):
+        fraction = {"cut_at_1_percent": 0.01, "cut_at_half": 0.5, "cut_before_the_end": 0.999}[damage]
+        data = data[: int(len(data) * fraction)]  # BadZipFile: no central directory
+    elif damage == "flipped_byte":
+        data[len(data) // 2] ^= 0xFF  # BadZipFile: bad CRC-32 of the member holding that byte
+    else:
+        # A member whose .npy header promises more rows than it holds (the zip's CRC is right): numpy
+        # raises ValueError, which is not a pickle problem.
+        with zipfile.ZipFile(path, "w") as archive:
+            for key, value in arrays.items():
+                buffer = io.BytesIO()
+                np.save(buffer, value)
+                payload = buffer.getvalue()
+                if key == "v_template":
+                    rows = value.shape[0]
+                    payload = payload.replace(b"'shape': (%d," % rows, b"'shape': (%d," % (rows + 9))
+                archive.writestr(key + ".npy", payload)
+        data = None
+    if data is not None:
+        path.write_bytes(bytes(data))
+    with pytest.raises(SMPLXModelError, match=str(path)) as raised:
+        SMPLXModel.load(str(path))
+    assert "pickle" not in str(raised.value)
 
 
 def test_expression_columns_of_full_layout(arrays: Dict[str, np.ndarray]) -> None:

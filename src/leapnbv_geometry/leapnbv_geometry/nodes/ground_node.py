@@ -24,11 +24,15 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_source
+from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, check_same_size, refused
 from leapnbv_common.conversions import (
+    DEPTH_ENCODINGS,
     GroundPlaneArrays,
     arrays_to_ground_plane,
     camera_info_to_k,
+    check_image,
     depth_to_metres,
+    image_size,
     image_to_numpy,
     stamp_to_ns,
 )
@@ -83,6 +87,7 @@ class GroundNode(Node):
         self.diagnostics = GroundDiagnostics(self)
         self.camera_info: Optional[CameraInfo] = None
         self.person_mask: Optional[Image] = None
+        self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
         self.publisher = self.create_publisher(GroundPlane, GROUND_PLANE, stage_output_qos())
         self.create_subscription(CameraInfo, "depth/camera_info", self.on_camera_info, camera_input_qos(1))
         self.create_subscription(Image, PERSON_MASK, self.on_mask, stage_input_qos(1))
@@ -120,15 +125,26 @@ class GroundNode(Node):
         if ready is not None:
             self.publish_plane(ready[0], ready[1])
 
+    @rejects_bad_input("bad_person_mask")
     def on_mask(self, msg: Image) -> None:
+        check_image(msg, ("mono8",), "person mask")
+        if self.camera_info is not None and refused(self.diagnostics, "bad_person_mask", check_same_frame,
+                                                    "person_mask", msg.header.frame_id, "depth camera_info",
+                                                    self.camera_info.header.frame_id):
+            return
         self.person_mask = msg
         self.masks_flowing = True
         if self.pending is not None and stamp_to_ns(msg.header.stamp) == self.previous_depth_stamp:
             depth, self.pending = self.pending[0], None
             self.fit(depth)
 
+    @rejects_bad_input("bad_depth")
     def on_depth(self, msg: Image) -> None:
         self.diagnostics.frame_in()
+        # The depth contract (a view, no conversion)
+        if refused(self.diagnostics, "bad_depth", check_image, msg, DEPTH_ENCODINGS, "depth") or \
+                refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
+            return
         if self.pending is not None:  # a newer frame: the waiting one is served now
             depth, self.pending = self.pending[0], None
             self.fit(depth)
@@ -167,10 +183,12 @@ class GroundNode(Node):
         if self.camera_info is None:
             raise ValueError("no depth camera_info received yet")
         p = self.params.value
+        if refused(self.diagnostics, "bad_depth", check_same_size, "depth", image_size(msg), "depth camera_info",
+                   image_size(self.camera_info)) or \
+                refused(self.diagnostics, "bad_depth", check_same_frame, "depth", msg.header.frame_id,
+                        "depth camera_info", self.camera_info.header.frame_id):
+            return
         depth = depth_to_metres(msg)
-        if depth.shape != (self.camera_info.height, self.camera_info.width):
-            raise ValueError(f"depth {depth.shape[1]}x{depth.shape[0]} does not match camera_info "
-                             f"{self.camera_info.width}x{self.camera_info.height}")
         points = ground_points_from_depth(depth, camera_info_to_k(self.camera_info),
                                           exclude_mask=self.exclusion_mask(msg, depth.shape), stride=p.stride,
                                           min_depth=p.min_depth, max_depth=p.max_depth)

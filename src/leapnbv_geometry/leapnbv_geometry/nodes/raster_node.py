@@ -12,14 +12,18 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
+from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, check_same_size, refused
 from leapnbv_common.conversions import (
+    DEPTH_ENCODINGS,
     TargetGeometryArrays,
     arrays_to_human_mesh,
     arrays_to_target_geometry,
     camera_info_to_k,
+    check_image,
     depth_to_metres,
     ground_plane_to_arrays,
     human_mesh_to_arrays,
+    image_size,
     numpy_to_image,
     stamp_to_ns,
 )
@@ -44,6 +48,7 @@ class RasterNode(Node):
         self.pending_meshes: StampCache = StampCache(5)  # meshes that came before their depth
         self.ground = CompanionWait(int(p.ground_wait_s * 1e9))
         self.camera_info: Optional[CameraInfo] = None
+        self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
         self.target_pub = self.create_publisher(TargetGeometry, TARGET_GEOMETRY, stage_output_qos())
         self.mask_pub = self.create_publisher(Image, PERSON_MASK, stage_output_qos())
         self.mesh_pub = self.create_publisher(HumanMesh, HUMAN_MESH_METRIC, stage_output_qos())
@@ -66,7 +71,12 @@ class RasterNode(Node):
         camera_info_to_k(msg)  # validate before keeping it
         self.camera_info = msg
 
+    @rejects_bad_input("bad_depth")
     def on_depth(self, msg: Image) -> None:
+        # The depth contract (a view, no conversion)
+        if refused(self.diagnostics, "bad_depth", check_image, msg, DEPTH_ENCODINGS, "depth") or \
+                refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
+            return
         stamp = stamp_to_ns(msg.header.stamp)
         self.depth_frames.put(stamp, msg)
         # A mesh that came first pairs with this depth under the same slop as the other order.
@@ -77,12 +87,21 @@ class RasterNode(Node):
 
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:
+        # The contract: unit normal pointing up toward the camera, camera above it
+        if refused(self.diagnostics, "bad_ground_plane", ground_plane_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
+            return
         ready = self.ground.add_companion(stamp_to_ns(msg.header.stamp), msg)
         if ready is not None:
             self.process(*ready[0], ready[1])
 
+    @rejects_bad_input("bad_human_mesh")
     def on_mesh(self, msg: HumanMesh) -> None:
         self.diagnostics.frame_in()
+        # The contract: a finite mesh with faces in range
+        if refused(self.diagnostics, "bad_human_mesh", human_mesh_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_human_mesh", self.stamps.check, "human_mesh", msg):
+            return
         stamp = stamp_to_ns(msg.header.stamp)
         match = self.depth_frames.find_nearest(stamp, int(self.params.value.slop_s * 1e9))
         if match is None:
@@ -114,12 +133,23 @@ class RasterNode(Node):
             raise ValueError("no depth camera_info received yet")
         p = self.params.value
         k = camera_info_to_k(self.camera_info)
+        # One frame: depth, its camera_info, the mesh (and the image it came from) and the floor agree.
+        info, frame = self.camera_info, depth_msg.header.frame_id
+        if refused(self.diagnostics, "bad_frame", check_same_size, "depth", image_size(depth_msg), "depth camera_info",
+                   image_size(info)) or \
+                refused(self.diagnostics, "bad_frame", check_same_frame, "depth", frame, "depth camera_info",
+                        info.header.frame_id) or \
+                refused(self.diagnostics, "bad_frame", check_same_size, "the mesh's image",
+                        (mesh_msg.image_width, mesh_msg.image_height), "depth", image_size(depth_msg)) or \
+                refused(self.diagnostics, "bad_frame", check_same_frame, "human_mesh", mesh_msg.header.frame_id,
+                        "depth", frame) or \
+                (ground is not None and refused(self.diagnostics, "bad_frame", check_same_frame, "ground_plane",
+                                                ground.header.frame_id, "depth", frame)):
+            return
         depth = depth_to_metres(depth_msg)
-        if depth.shape != (self.camera_info.height, self.camera_info.width):
-            raise ValueError(f"depth {depth.shape[1]}x{depth.shape[0]} does not match camera_info "
-                             f"{self.camera_info.width}x{self.camera_info.height}")
         mesh = human_mesh_to_arrays(mesh_msg)
-        vertices = place_mesh_metric(mesh.vertices, mesh.virtual_intrinsics, k, mesh.cam_translation)
+        vertices = place_mesh_metric(mesh.vertices, mesh.virtual_intrinsics, k, mesh.cam_translation,
+                                     mesh.image_size, (depth.shape[1], depth.shape[0]))
         plane = None
         if ground is not None:
             floor = ground_plane_to_arrays(ground)

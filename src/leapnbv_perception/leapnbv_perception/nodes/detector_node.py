@@ -12,7 +12,15 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
-from leapnbv_common.conversions import box_to_detection, image_to_rgb, scene_ground_truth_to_arrays, stamp_to_ns
+from leapnbv_common.contracts import DuplicateStampGuard, check_boxes, check_same_frame, refused
+from leapnbv_common.conversions import (
+    COLOUR_ENCODINGS,
+    box_to_detection,
+    check_image,
+    image_to_rgb,
+    scene_ground_truth_to_arrays,
+    stamp_to_ns,
+)
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
@@ -31,6 +39,7 @@ class DetectorNode(Node):
         self.diagnostics = StageDiagnostics(self, hardware_id=p.backend)
         self.publisher = self.create_publisher(PersonDetections, DETECTIONS, stage_output_qos())
         self.ground_truth = p.backend == "ground_truth"
+        self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
         if self.ground_truth:
             self.detector = None
             self.pairer = ExactStampPairer(capacity=10)
@@ -68,9 +77,11 @@ class DetectorNode(Node):
     def on_image(self, msg: Image) -> None:
         self.diagnostics.frame_in()
         started = time.perf_counter()
+        # The colour contract (a view, no copy), ground truth too
+        if refused(self.diagnostics, "bad_image", check_image, msg, COLOUR_ENCODINGS, "colour") or \
+                refused(self.diagnostics, "bad_image", self.stamps.check, "image", msg):
+            return
         if self.ground_truth:
-            if msg.width == 0 or msg.height == 0:
-                raise ValueError(f"empty image {msg.width}x{msg.height}")
             pair = self.pairer.add_first(stamp_to_ns(msg.header.stamp), msg)
             if pair is not None:
                 self.publish_ground_truth(*pair)
@@ -83,14 +94,24 @@ class DetectorNode(Node):
 
     @rejects_bad_input("bad_ground_truth")
     def on_ground_truth(self, msg: SceneGroundTruth) -> None:
+        # The contract: finite values, a box or none
+        if refused(self.diagnostics, "bad_ground_truth", scene_ground_truth_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_truth", self.stamps.check, "ground_truth", msg):
+            return
         pair = self.pairer.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self.publish_ground_truth(*pair)
 
     def publish_ground_truth(self, image: Image, truth: SceneGroundTruth) -> None:
         started = time.perf_counter()
+        if refused(self.diagnostics, "bad_ground_truth", check_same_frame, "image", image.header.frame_id,
+                   "ground truth", truth.header.frame_id):
+            return
         box = scene_ground_truth_to_arrays(truth).person_box  # all zero when no person is visible
         visible = box[2] > box[0] and box[3] > box[1]
+        if visible and refused(self.diagnostics, "bad_ground_truth", check_boxes, box, (image.width, image.height),
+                               "ground-truth person box"):
+            return
         boxes = np.array([[box[0], box[1], box[2], box[3], 1.0]], np.float32)
         self.publish(image, boxes if visible else np.zeros((0, 5), np.float32), started)
 

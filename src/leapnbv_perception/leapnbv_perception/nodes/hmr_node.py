@@ -16,11 +16,13 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
+from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, check_same_size, refused
 from leapnbv_common.conversions import (
     HumanMeshArrays,
     arrays_to_human_mesh,
     camera_info_to_k,
-    detection_to_box,
+    detections_to_boxes,
+    image_size,
     image_to_rgb,
     scene_ground_truth_to_arrays,
     stamp_to_ns,
@@ -46,6 +48,8 @@ class HmrNode(Node):
         self.ground_truth = p.backend == "ground_truth"
         self.previous_box: Optional[np.ndarray] = None
         self.camera_k: Optional[np.ndarray] = None
+        self.camera_info: Optional[CameraInfo] = None
+        self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
         self.engine = RetryingLoader(self, self.diagnostics, f"HMR engine {p.model_file_path!r} with body "
                                      f"model {p.body_model_path!r}", self.load_engine, p.model_retry_period_s)
         if self.ground_truth:
@@ -81,12 +85,19 @@ class HmrNode(Node):
     @rejects_bad_input("bad_camera_info")
     def on_camera_info(self, msg: CameraInfo) -> None:
         self.camera_k = camera_info_to_k(msg)
+        self.camera_info = msg
 
     def on_image(self, msg: Image) -> None:
+        if refused(self.diagnostics, "bad_image", self.stamps.check, "image", msg):
+            return
         self.images.put(stamp_to_ns(msg.header.stamp), msg)
 
     @rejects_bad_input("bad_ground_truth")
     def on_ground_truth(self, msg: SceneGroundTruth) -> None:
+        # The contract: finite values, a box or none
+        if refused(self.diagnostics, "bad_ground_truth", scene_ground_truth_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_truth", self.stamps.check, "ground_truth", msg):
+            return
         pair = self.pairer.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self.estimate(*pair)
@@ -94,6 +105,10 @@ class HmrNode(Node):
     @rejects_bad_input("bad_detections")
     def on_detections(self, msg: PersonDetections) -> None:
         self.diagnostics.frame_in()
+        # The contract: finite boxes in the image, scores in [0, 1]
+        if refused(self.diagnostics, "bad_detections", detections_to_boxes, msg) or \
+                refused(self.diagnostics, "bad_detections", self.stamps.check, "detections", msg):
+            return
         stamp = stamp_to_ns(msg.header.stamp)
         if self.ground_truth:
             pair = self.pairer.add_first(stamp, msg)
@@ -112,7 +127,17 @@ class HmrNode(Node):
         if self.engine.value is None:
             self.diagnostics.reject("engine_not_ready", self.diagnostics.engine_state)
             return
-        boxes = np.array([detection_to_box(d) for d in detections.detections], np.float32).reshape(-1, 5)
+        # The frame's other input (its colour image, or the camera_info the ground truth is placed with)
+        # names the same frame and has the size the detections were found in.
+        other = self.camera_info if self.ground_truth else source
+        if self.ground_truth and other is None:
+            raise ValueError("no camera_info received yet (ground-truth meshes use the real intrinsics)")
+        if refused(self.diagnostics, "bad_frame", check_same_frame, "detections", detections.header.frame_id,
+                   type(other).__name__, other.header.frame_id) or \
+                refused(self.diagnostics, "bad_frame", check_same_size, "the detections' image",
+                        (detections.image_width, detections.image_height), type(other).__name__, image_size(other)):
+            return
+        boxes = detections_to_boxes(detections)
         p = self.params.value
         previous = self.previous_box if p.track_previous_target else None
         index = select_target(boxes, previous, p.min_track_iou)

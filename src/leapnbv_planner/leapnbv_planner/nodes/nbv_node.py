@@ -26,11 +26,12 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from leapnbv_common import topics
 from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_source
+from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, refused
 from leapnbv_common.conversions import (
     arrays_to_view_candidates,
     ground_plane_to_arrays,
+    obstacle_map_to_points,
     point_msg,
-    pointcloud2_to_xyz,
     pose_msg,
     stamp_to_ns,
     target_geometry_to_arrays,
@@ -53,6 +54,7 @@ class NbvNode(Node):
         self.params: NodeParams = NodeParams(self, nbv_params_class(), self.on_params_change)
         p = self.params.value
         self.ground = CompanionWait(int(p.ground_wait_s * 1e9))
+        self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
         self.candidates_pub = self.create_publisher(ViewCandidates, topics.VIEW_CANDIDATES, stage_output_qos())
         self.goal_pub = self.create_publisher(PoseStamped, topics.NEXT_BEST_VIEW, latched_goal_qos())
         self.base_goal_pub = self.create_publisher(PoseStamped, topics.BASE_GOAL, latched_goal_qos())
@@ -87,7 +89,7 @@ class NbvNode(Node):
 
     @rejects_bad_input("bad_obstacle_map")
     def on_obstacle_map(self, msg: PointCloud2) -> None:
-        points = pointcloud2_to_xyz(msg)
+        points = obstacle_map_to_points(msg)  # a map with a NaN point is refused whole (the previous one stays)
         self.obstacle_map = voxel_map_from_centres(points, self.params.value.obstacle_map_resolution)
         self.obstacle_map_points = points
         self.obstacle_map_frame = msg.header.frame_id
@@ -109,12 +111,21 @@ class NbvNode(Node):
 
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:
+        # The contract: unit normal pointing up toward the camera, camera above it
+        if refused(self.diagnostics, "bad_ground_plane", ground_plane_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
+            return
         ready = self.ground.add_companion(stamp_to_ns(msg.header.stamp), msg)
         if ready is not None:
             self.plan(*ready)
 
+    @rejects_bad_input("bad_target")
     def on_target(self, msg: TargetGeometry) -> None:
         self.diagnostics.frame_in()
+        # The contract: finite points and box, its camera_info in its frame
+        if refused(self.diagnostics, "bad_target", target_geometry_to_arrays, msg) or \
+                refused(self.diagnostics, "bad_target", self.stamps.check, "target_geometry", msg):
+            return
         ready = self.ground.add_frame(stamp_to_ns(msg.header.stamp), msg, self.now_ns())
         if ready is not None:
             self.plan(*ready)
@@ -137,6 +148,9 @@ class NbvNode(Node):
             self.diagnostics.reject("empty_target", "no person points in this frame: no goal")
             return
         ground = self.usable_ground(target, ground)
+        if ground is not None and refused(self.diagnostics, "bad_target", check_same_frame, "target_geometry",
+                                          target.header.frame_id, "ground_plane", ground.header.frame_id):
+            return
         if ground is None:
             self.diagnostics.reject("no_ground_plane", "no valid ground plane for this frame: no goal published")
             return
