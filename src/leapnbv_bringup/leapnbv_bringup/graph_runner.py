@@ -13,7 +13,8 @@ restarted after an exponential back-off (0.1 s, 0.2 s, 0.4 s, ... capped at 8 s)
 the graph and exits 1, naming the node. A restart uses a standby process that has already
 imported the node's module and compiled its kernels (--no-warm-spares: a cold start), so the
 graph plans again within a few seconds. The runner publishes each node's state, pid, restart
-count and last exit on /diagnostics (status "/leapnbv/graph_runner").
+count and last exit on /diagnostics (status "/leapnbv/graph_runner"; with --nodes, followed by
+"/" and the nodes it runs).
 
 Shutdown: SIGINT or SIGTERM to the runner is forwarded to every node as SIGINT; a node still
 running after --stop-timeout seconds gets SIGTERM, then SIGKILL 3 s later. The runner prints
@@ -32,6 +33,7 @@ import collections
 import importlib
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -298,6 +300,12 @@ class GraphRunner:
         self._ready = False
         self._diag_subscription = None
         self._diag_node = None
+        names = [spec.name for spec in self.nodes]
+        partial = names != all_names
+        #: The runner's status name on /diagnostics (one host's share of the graph names its nodes).
+        self.status_name = RUNNER_STATUS_NAME + ("/" + "+".join(names) if partial else "")
+        #: The runner's own ROS node name (unique per share, when the graph is split over hosts).
+        self.probe_name = "leapnbv_graph_runner" + ("_" + "_".join(names) if partial else "")
 
     def __enter__(self) -> GraphRunner:
         self.start()
@@ -575,8 +583,8 @@ class GraphRunner:
             level = DiagnosticStatus.WARN
         limit = (f"{self.restart.max_restarts} per {self.restart.window_s:.0f} s" if self.restart else "off")
         values.append(("restart_limit", limit))
-        return DiagnosticStatus(level=level, name=RUNNER_STATUS_NAME, message="; ".join(problems)[:200] or "ok",
-                                hardware_id="graph_runner", values=[KeyValue(key=k, value=v) for k, v in values])
+        return DiagnosticStatus(level=level, name=self.status_name, message="; ".join(problems)[:200] or "ok",
+                                hardware_id=socket.gethostname(), values=[KeyValue(key=k, value=v) for k, v in values])
 
     # ------------------------------------------------------------------ shutdown
 
@@ -750,7 +758,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     probe = None
     try:
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-        probe = Node("leapnbv_graph_runner")
+        probe = Node(runner.probe_name)
         diagnostics = probe.create_publisher(DiagnosticArray, "/diagnostics", 10)
         runner.start()
         took = runner.wait_ready(probe, args.ready_timeout)
