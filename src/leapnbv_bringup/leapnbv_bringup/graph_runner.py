@@ -169,23 +169,25 @@ def node_command(spec: NodeSpec, params_file: str, overrides: Dict[str, str]) ->
     return cmd
 
 
-def spare_command(spec: NodeSpec, params_file: str, overrides: Dict[str, str]) -> List[str]:
+def spare_command(spec: NodeSpec, params_file: str, overrides: Dict[str, str], ready_fd: int = -1) -> List[str]:
     """The command line of a node's standby process (see run_spare)."""
     ros_args = node_command(spec, params_file, overrides)[3:]
-    return [sys.executable, "-m", "leapnbv_bringup.graph_runner", "--spare", spec.module, *spec.warm_up,
-            "--", *ros_args]
+    return [sys.executable, "-m", "leapnbv_bringup.graph_runner", "--spare", str(ready_fd), spec.module,
+            *spec.warm_up, "--", *ros_args]
 
 
 def run_spare(argv: List[str]) -> int:
-    """A standby node process: ``MODULE [WARM_UP_FUNCTION ...] -- ROS_ARGS``.
+    """A standby node process: ``READY_FD MODULE [WARM_UP_FUNCTION ...] -- ROS_ARGS``.
 
-    Imports the node's module and calls its warm-up functions, then waits for one line on
-    stdin: "go" makes it the node (``MODULE.main()`` with the ROS arguments, the same signal
-    handling as ``python -m MODULE``); end of file or anything else exits 0.
+    Imports the node's module and calls its warm-up functions, writes one byte to READY_FD (a
+    pipe to the runner; -1: none) and then waits for one line on stdin: "go" makes it the node
+    (``MODULE.main()`` with the ROS arguments, the same signal handling as ``python -m MODULE``);
+    end of file or anything else exits 0.
     """
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # a spare ends quietly on any signal
     separator = argv.index("--")
-    module_name, warm_ups, ros_args = argv[0], argv[1:separator], argv[separator + 1:]
+    ready_fd, module_name = int(argv[0]), argv[1]
+    warm_ups, ros_args = argv[2:separator], argv[separator + 1:]
     module = importlib.import_module(module_name)
     for dotted in warm_ups:
         owner, _, function = dotted.rpartition(".")
@@ -193,6 +195,12 @@ def run_spare(argv: List[str]) -> int:
             getattr(importlib.import_module(owner), function)()
         except Exception as exc:  # noqa: BLE001 - warming up is an optimisation; the node does it again
             print(f"[spare] warm-up {dotted} failed: {type(exc).__name__}: {exc}", flush=True)
+    if ready_fd >= 0:
+        try:
+            os.write(ready_fd, b"1")
+            os.close(ready_fd)
+        except OSError:
+            return 0  # the runner is stopping (it closed the pipe)
     line = sys.stdin.readline()
     if line.strip() != "go":
         return 0
@@ -242,6 +250,8 @@ class _NodeState:
     restart_at: Optional[float] = None  # a restart is pending
     failed: Optional[str] = None  # gave up: why
     spare: Optional[subprocess.Popen] = None
+    spare_ready_fd: Optional[int] = None  # read end of the spare's "warmed up" pipe, until it said so
+    spare_warm: bool = False
     spare_due: Optional[float] = None
     died_at: Optional[float] = None
     restarted_at: Optional[float] = None  # last restart, until it serves again
@@ -324,12 +334,12 @@ class GraphRunner:
         self.events.append(stamped)
         self.on_event(stamped)
 
-    def _popen(self, name: str, cmd: List[str], stdin=None) -> subprocess.Popen:
+    def _popen(self, name: str, cmd: List[str], stdin=None, pass_fds=()) -> subprocess.Popen:
         out = self._logs.get(name)
         return subprocess.Popen(
             cmd, env=self.env, stdin=stdin, stdout=out, stderr=subprocess.STDOUT if out else None,
             start_new_session=True,  # Ctrl-C in a terminal reaches the runner, which stops them in order
-            preexec_fn=_die_with_parent)
+            preexec_fn=_die_with_parent, pass_fds=pass_fds)
 
     def _command(self, spec: NodeSpec) -> List[str]:
         return node_command(spec, self.params_file, self.overrides.get(spec.name, {}))
@@ -352,6 +362,7 @@ class GraphRunner:
         name = state.spec.name
         proc = None
         spare, state.spare = state.spare, None
+        self._drop_spare_pipe(state)
         if spare is not None and spare.poll() is None:
             try:
                 spare.stdin.write(b"go\n")
@@ -370,8 +381,46 @@ class GraphRunner:
 
     def _start_spare(self, state: _NodeState) -> None:
         state.spare_due = None
-        cmd = spare_command(state.spec, self.params_file, self.overrides.get(state.spec.name, {}))
-        state.spare = self._popen(state.spec.name, cmd, stdin=subprocess.PIPE)
+        read_fd, write_fd = os.pipe()
+        os.set_blocking(read_fd, False)
+        cmd = spare_command(state.spec, self.params_file, self.overrides.get(state.spec.name, {}), write_fd)
+        try:
+            state.spare = self._popen(state.spec.name, cmd, stdin=subprocess.PIPE, pass_fds=(write_fd,))
+        finally:
+            os.close(write_fd)
+        state.spare_ready_fd, state.spare_warm = read_fd, False
+
+    @staticmethod
+    def _drop_spare_pipe(state: _NodeState) -> None:
+        if state.spare_ready_fd is not None:
+            os.close(state.spare_ready_fd)
+            state.spare_ready_fd = None
+        state.spare_warm = False
+
+    def _check_spare(self, state: _NodeState) -> None:
+        """Notice a spare that finished warming up, or one that died (restarts then start cold)."""
+        if state.spare is None:
+            return
+        if state.spare_ready_fd is not None:
+            try:
+                said = os.read(state.spare_ready_fd, 1)
+            except BlockingIOError:
+                said = None
+            if said:
+                state.spare_warm = True
+                os.close(state.spare_ready_fd)
+                state.spare_ready_fd = None
+        code = state.spare.poll()
+        if code is not None:
+            self._event(f"standby process of {state.spec.name} exited ({describe_exit(code)}); "
+                        f"its next restart starts cold")
+            state.spare = None
+            self._drop_spare_pipe(state)
+
+    def spares_ready(self) -> Dict[str, bool]:
+        """{node: a warmed-up standby process is waiting} (restart policy with warm_spares)."""
+        with self._lock:
+            return {name: state.spare is not None and state.spare_warm for name, state in self._states.items()}
 
     def _supervise(self) -> None:
         """The supervisor thread: restarts, spares; lives until stop() has ended every child."""
@@ -400,6 +449,7 @@ class GraphRunner:
             return
         if state.spare_due is not None and now >= state.spare_due:
             self._start_spare(state)
+        self._check_spare(state)
         code = state.process.poll() if state.process is not None else None
         if code is None:
             return
@@ -575,7 +625,10 @@ class GraphRunner:
                 recent = self.restart.recent(state.deaths, now) if self.restart else len(state.deaths)
                 if recent and run_state == "running":
                     problems.append(f"{name} restarted {recent}x recently")
+                spare = "ready" if state.spare is not None and state.spare_warm else (
+                    "warming" if state.spare is not None else "none")
                 values += [(f"{name}.state", run_state), (f"{name}.pid", str(proc.pid if proc else 0)),
+                           (f"{name}.standby", spare),
                            (f"{name}.restarts", str(state.restarts)),
                            (f"{name}.last_exit", describe_exit(state.last_exit) if state.last_exit is not None else ""),
                            (f"{name}.up_s", f"{now - state.started_at:.1f}" if run_state == "running" else "0")]
@@ -607,14 +660,18 @@ class GraphRunner:
         """
         self._stopping.set()
         with self._lock:
-            spares = [s.spare for s in self._states.values() if s.spare is not None]
+            spares = [(s.spare, s.spare_warm) for s in self._states.values() if s.spare is not None]
             for state in self._states.values():
                 state.spare = None
-        for spare in spares:  # end of file on stdin: a spare exits 0
+                self._drop_spare_pipe(state)
+        for spare, warm in spares:  # a waiting spare exits 0 at the end of its stdin
             try:
                 spare.stdin.close()
             except OSError:
                 pass
+            if not warm and spare.poll() is None:
+                spare.terminate()  # still importing: SIGTERM ends it quietly (default action)
+        spares = [spare for spare, _ in spares]
         procs = dict(self.processes)
         for proc in procs.values():
             if proc.poll() is None:
