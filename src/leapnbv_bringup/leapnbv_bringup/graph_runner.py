@@ -705,8 +705,8 @@ class GraphRunner:
 
     @property
     def stopped_cleanly(self) -> bool:
-        """Every node exited 0 on the last stop() without escalation."""
-        return bool(self.stop_report) and all(report == "exit 0" for report in self.stop_report.values())
+        """Every node exited 0 on the last stop() without escalation (true when none had started)."""
+        return all(report == "exit 0" for report in self.stop_report.values())
 
 
 def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
