@@ -12,7 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*")),
-        ("share/" + package_name + "/launch", glob("launch/*")),
+        ("share/" + package_name + "/launch", glob("launch/*.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -21,6 +21,7 @@ setup(
     entry_points={
         "console_scripts": [
             "power_node = leapnbv_bringup.nodes.power_node:main",
+            "graph_monitor = leapnbv_bringup.graph_monitor:main",
         ],
     },
 )

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 from leapnbv_common.power_monitor import power_node_wanted
 from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch file and tools
@@ -26,12 +26,18 @@ from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch f
 
 @dataclass(frozen=True)
 class NodeSpec:
-    """One node of the graph: the package and executable, and the remaps of its inputs."""
+    """One node of the graph: the package and executable, and the remaps of its inputs.
+
+    ``warm_up`` names functions (``module.function``) that compile what the node compiles at
+    start-up; the graph runner's standby process calls them ahead, so a restart does not pay
+    for them (the node calls them again, which is then instant).
+    """
 
     name: str
     package: str
     module: str
     remaps: Dict[str, str] = field(default_factory=dict)
+    warm_up: Tuple[str, ...] = ()
 
     @property
     def executable(self) -> str:
@@ -49,18 +55,30 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
         NodeSpec("hmr_node", "leapnbv_perception", "leapnbv_perception.nodes.hmr_node",
                  {"image": cam["image"], "camera_info": cam["camera_info"], **gt}),
         NodeSpec("raster_node", "leapnbv_geometry", "leapnbv_geometry.nodes.raster_node",
-                 {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"]}),
+                 {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"]},
+                 warm_up=("leapnbv_geometry.raster.warm_up",)),
         NodeSpec("ground_node", "leapnbv_geometry", "leapnbv_geometry.nodes.ground_node",
                  {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"],
                   CAMERA_POSE: cam[CAMERA_POSE]}),
         NodeSpec("nbv_node", "leapnbv_planner", "leapnbv_planner.nodes.nbv_node",
-                 {CAMERA_POSE: cam[CAMERA_POSE], OBSTACLE_MAP: cam[OBSTACLE_MAP]}),
+                 {CAMERA_POSE: cam[CAMERA_POSE], OBSTACLE_MAP: cam[OBSTACLE_MAP]},
+                 warm_up=("leapnbv_planner.scoring.warm_up_scoring",
+                          "leapnbv_planner.obstacle_map.warm_up_obstacle_map")),
         # energy per frame on /diagnostics, where the board has power rails ($LEAPNBV_POWER_NODE=1/0 forces)
         *([NodeSpec("power_node", "leapnbv_bringup", "leapnbv_bringup.nodes.power_node")]
           if power_node_wanted() else []),
     ]
 
 
+def node_names() -> List[str]:
+    """The names of the graph's nodes, in start order."""
+    return [spec.name for spec in graph_nodes()]
+
+
+# The graph monitor: not a stage; it watches the stages' /diagnostics and reports each node's
+# starts (restarts) and silence on /diagnostics. The launch file runs it next to the five nodes
+# (the graph runner reports its own restarts, so it does not need it).
+MONITOR_NODE = NodeSpec("graph_monitor", "leapnbv_bringup", "leapnbv_bringup.graph_monitor")
 
 
 def default_params_file() -> str:

@@ -1,0 +1,154 @@
+"""Supervision by the graph runner's command line: readiness means engines loaded, SIGINT/SIGTERM
+stop every node with exit 0, a node that keeps dying ends the runner with exit 1, the runner's
+status on /diagnostics; and the restart policy itself."""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from typing import List, Tuple
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from node_harness import Probe, diag_value  # noqa: E402
+
+from leapnbv_bringup.graph import node_names  # noqa: E402
+from leapnbv_bringup.graph_runner import RUNNER_STATUS_NAME, RestartPolicy  # noqa: E402
+from leapnbv_stand_ins.files import ensure_stand_in_body_model  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+def runner_cli(log_dir, *args: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "leapnbv_bringup.graph_runner", "--log-dir", str(log_dir), *args]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+
+def read_until(proc: subprocess.Popen, pattern: str, timeout_s: float) -> Tuple[bool, str]:
+    """Lines of the runner's output until one matches (or it exits, or the time is up)."""
+    import selectors
+
+    out = []
+    selector = selectors.DefaultSelector()
+    selector.register(proc.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not selector.select(timeout=0.2):
+            if proc.poll() is not None:
+                break
+            continue
+        line = proc.stdout.readline()
+        if not line:
+            break
+        out.append(line)
+        if re.search(pattern, line):
+            return True, "".join(out)
+    return False, "".join(out)
+
+
+def ground_truth_args() -> List[str]:
+    return ["--perception", "ground_truth", "--body-model", ensure_stand_in_body_model("small")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
+def test_signal_to_runner_ends_every_node_with_exit_0_and_no_traceback(tmp_path, stop_signal):
+    proc = runner_cli(tmp_path, *ground_truth_args())
+    try:
+        ready, out = read_until(proc, r"\[graph\] ready in", 90.0)
+        assert ready, out
+        if stop_signal == signal.SIGTERM:
+            # The runner reports each node on /diagnostics; kill one by the pid it reports, see it come back.
+            probe = Probe("runner_status_probe")
+            try:
+                assert probe.spin_until(lambda: probe.status_where(RUNNER_STATUS_NAME, lambda s: True), 15.0)
+                status = probe.status_where(RUNNER_STATUS_NAME, lambda s: True)
+                pid = int(diag_value(status, "nbv_node.pid"))
+                assert diag_value(status, "nbv_node.restarts") == "0"
+                assert diag_value(status, "nbv_node.state") == "running"
+                os.kill(pid, signal.SIGKILL)
+                back = probe.spin_until(lambda: probe.status_where(
+                    RUNNER_STATUS_NAME, lambda s: diag_value(s, "nbv_node.restarts") == "1"
+                    and diag_value(s, "nbv_node.state") == "running"), 20.0)
+                assert back, probe.statuses.get(RUNNER_STATUS_NAME, [])[-1:]
+                status = probe.status_where(RUNNER_STATUS_NAME, lambda s: diag_value(s, "nbv_node.restarts") == "1")
+                assert diag_value(status, "nbv_node.last_exit") == "killed by SIGKILL"
+                assert int(diag_value(status, "nbv_node.pid")) != pid
+                assert status.level == status.WARN and "nbv_node restarted" in status.message
+            finally:
+                probe.close()
+            served, more = read_until(proc, r"nbv_node serving again", 20.0)
+            out += more
+            assert served, out
+        proc.send_signal(stop_signal)
+        rest, _ = proc.communicate(timeout=40)
+        out += rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, out
+    assert f"[graph] {stop_signal.name}: stopping the nodes" in out
+    stopped = re.search(r"\[graph\] stopped: (.*)", out).group(1)
+    assert stopped == ", ".join(f"{n}: exit 0" for n in node_names()), out
+    for log in tmp_path.glob("*.log"):
+        text = log.read_text(errors="replace")
+        assert "Traceback" not in text and "internal_error" not in text, f"{log.name}:\n{text[-3000:]}"
+
+
+@pytest.mark.slow
+def test_readiness_names_nodes_whose_engine_did_not_load(tmp_path):
+    # onnxruntime with the YAML's model paths (not on this machine): both perception engines are in ERROR.
+    missing = tmp_path / "no_such_model.onnx"
+    proc = runner_cli(tmp_path, "--perception", "onnxruntime", "--detector-model", str(missing),
+                      "--hmr-model", str(missing), "--body-model", ensure_stand_in_body_model("small"),
+                      "--ready-timeout", "20")
+    try:
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, out
+    assert "[graph] ready" not in out
+    line = next(ln for ln in out.splitlines() if "graph not ready after 20 s" in ln)
+    assert re.search(r"detector_node: engine not ready: detector model .*no_such_model\.onnx.* not loaded", line), line
+    assert re.search(r"hmr_node: engine not ready: .*not loaded", line), line
+    for name in ("raster_node", "ground_node", "nbv_node"):
+        assert f"{name}:" not in line, line  # they are ready: only the two are named
+    assert ", ".join(f"{n}: exit 0" for n in node_names()) in out
+
+
+@pytest.mark.slow
+def test_node_that_keeps_dying_is_reported_and_runner_exits_1(tmp_path):
+    # radius is range-checked: nbv_node refuses to start with it, every time.
+    proc = runner_cli(tmp_path, *ground_truth_args(), "--set", "nbv_node.radius=-1.0", "--max-restarts", "2",
+                      "--restart-backoff", "0.1", "--no-warm-spares", "--ready-timeout", "120")
+    try:
+        out, _ = proc.communicate(timeout=150)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, out
+    deaths = re.findall(r"nbv_node died \(exit 1\); restarting in ([0-9.]+) s", out)
+    assert [float(d) for d in deaths] == [0.1, 0.2], out  # exponential back-off
+    assert re.search(r"nbv_node died 3 times within 60 s \(last: exit 1\), more than --max-restarts 2; giving up",
+                     out), out
+    assert "radius" in (tmp_path / "nbv_node.log").read_text()
+
+
+def test_restart_policy_back_off_and_limit():
+    policy = RestartPolicy(max_restarts=4, window_s=10.0, backoff_s=0.5, backoff_max_s=3.0)
+    assert [policy.delay_s(k) for k in range(1, 6)] == [0.5, 1.0, 2.0, 3.0, 3.0]
+    assert not policy.gives_up(4) and policy.gives_up(5)
+    assert policy.recent([0.0, 5.0, 9.0, 12.0], now=14.0) == 3  # the death at 0 s left the window
+    assert RestartPolicy(window_s=0.0).recent([0.0, 1e6], now=2e6) == 2  # 0: the whole run
+    with pytest.raises(ValueError):
+        RestartPolicy(max_restarts=-1)

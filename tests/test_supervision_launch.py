@@ -1,0 +1,104 @@
+"""The robot's launch file: it compiles, its nodes, remaps and respawn come from leapnbv_bringup.graph.
+
+The `launch` / `launch_ros` packages are not on PyPI, so the launch file runs here against a
+small fake of the few classes it uses, which records each Node(...)'s keyword arguments.
+"""
+from __future__ import annotations
+
+import importlib.util
+import py_compile
+import sys
+import types
+
+import pytest
+
+from leapnbv_bringup.graph import MONITOR_NODE, NAMESPACE, default_params_file, graph_nodes, node_names
+
+LAUNCH_FILE = "src/leapnbv_bringup/launch/leapnbv.launch.py"
+
+
+class _Recorded:
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+
+
+class FakeLaunchConfiguration:
+    def __init__(self, name):
+        self.name = name
+
+    def perform(self, context):
+        return context.launch_configurations[self.name]
+
+
+def fake_launch_modules():
+    launch = types.ModuleType("launch")
+    launch.LaunchDescription = type("LaunchDescription", (_Recorded,), {})
+    actions = types.ModuleType("launch.actions")
+    for name in ("DeclareLaunchArgument", "OpaqueFunction", "SetEnvironmentVariable"):
+        setattr(actions, name, type(name, (_Recorded,), {}))
+    substitutions = types.ModuleType("launch.substitutions")
+    substitutions.LaunchConfiguration = FakeLaunchConfiguration
+    launch_ros = types.ModuleType("launch_ros")
+    ros_actions = types.ModuleType("launch_ros.actions")
+    ros_actions.Node = type("Node", (_Recorded,), {})
+    return {"launch": launch, "launch.actions": actions, "launch.substitutions": substitutions,
+            "launch_ros": launch_ros, "launch_ros.actions": ros_actions}
+
+
+@pytest.fixture
+def launch_description(repo_root, monkeypatch):
+    for name, module in fake_launch_modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    spec = importlib.util.spec_from_file_location("leapnbv_launch_under_test", repo_root / LAUNCH_FILE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.generate_launch_description()
+
+
+def run_launch(description, **arguments):
+    """Declared defaults + `arguments`, then the OpaqueFunction: the Node actions it returns."""
+    entities = description.args[0]
+    declared = {e.args[0]: e.kwargs["default_value"] for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
+    unknown = set(arguments) - set(declared)
+    assert not unknown, f"not launch arguments: {unknown}"
+    context = types.SimpleNamespace(launch_configurations={**declared, **arguments})
+    opaque = [e for e in entities if type(e).__name__ == "OpaqueFunction"]
+    assert len(opaque) == 1
+    return opaque[0].kwargs["function"](context)
+
+
+def test_launch_file_compiles(repo_root, tmp_path):
+    # cfile outside the source tree: a __pycache__ in launch/ would break setup.py's glob("launch/*").
+    py_compile.compile(str(repo_root / LAUNCH_FILE), cfile=str(tmp_path / "launch.pyc"), doraise=True)
+
+
+def test_launch_nodes_remaps_and_respawn_come_from_the_graph(launch_description):
+    nodes = run_launch(launch_description)
+    by_name = {n.kwargs["name"]: n.kwargs for n in nodes}
+    assert list(by_name) == node_names() + [MONITOR_NODE.name]
+    for spec in graph_nodes():
+        kwargs = by_name[spec.name]
+        assert (kwargs["package"], kwargs["executable"], kwargs["namespace"]) == (spec.package, spec.executable,
+                                                                                  NAMESPACE)
+        assert dict(kwargs["remappings"]) == spec.remaps
+        assert kwargs["parameters"] == [default_params_file()]
+        assert (kwargs["respawn"], kwargs["respawn_delay"], kwargs["respawn_max_retries"]) == (True, 1.0, 5)
+    monitor = by_name[MONITOR_NODE.name]
+    assert (monitor["package"], monitor["executable"]) == ("leapnbv_bringup", "graph_monitor")
+    assert monitor["parameters"] == [{"nodes": node_names()}]
+    env = [e for e in launch_description.args[0] if type(e).__name__ == "SetEnvironmentVariable"]
+    assert env[0].args[0] == "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+
+def test_launch_arguments_choose_respawn_topics_and_one_hosts_nodes(launch_description):
+    nodes = run_launch(launch_description, respawn="false", respawn_delay="2.5", respawn_max_retries="-1",
+                       nodes="raster_node,ground_node,nbv_node", depth_topic="/cam2/depth")
+    by_name = {n.kwargs["name"]: n.kwargs for n in nodes}
+    assert list(by_name) == ["raster_node", "ground_node", "nbv_node", "graph_monitor"]
+    assert dict(by_name["raster_node"]["remappings"])["depth"] == "/cam2/depth"
+    assert dict(by_name["ground_node"]["remappings"])["depth"] == "/cam2/depth"
+    assert all((k["respawn"], k["respawn_delay"], k["respawn_max_retries"]) == (False, 2.5, -1)
+               for k in by_name.values())
+    assert by_name["graph_monitor"]["parameters"] == [{"nodes": ["raster_node", "ground_node", "nbv_node"]}]
+    with pytest.raises(RuntimeError, match="unknown nodes"):
+        run_launch(launch_description, nodes="detector_node,nbv_nod")

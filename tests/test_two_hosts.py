@@ -1,0 +1,283 @@
+"""The graph split over two hosts (docs/TWO_HOSTS.md), as two network namespaces joined by a veth pair.
+
+Host A (namespace 1): the camera (the simulator, 5 FPS, driving to each goal) + detector_node +
+hmr_node. Host B (namespace 2): raster_node + ground_node + nbv_node. Colour stays on A; depth,
+camera infos, camera poses, the obstacle map and the meshes cross to B; goals cross back to A.
+Both use src/leapnbv_bringup/config/fastdds_two_hosts.xml and ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET,
+as the document says. The namespaces, the veth and every process are made here and removed in a
+finally; the test needs root (`ip netns`) and skips with the reason otherwise.
+
+This file is also the recording helper it runs inside each namespace:
+    python tests/test_two_hosts.py record {a|b} OUT.json
+(records until SIGINT, then writes OUT.json).
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from typing import Dict, List, Optional
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+# LEAPNBV_TWO_HOSTS_PROFILE: another profile to compare (e.g. fastdds_large_messages.xml, to see the loss).
+PROFILE = pathlib.Path(os.environ.get("LEAPNBV_TWO_HOSTS_PROFILE",
+                                      REPO / "src/leapnbv_bringup/config/fastdds_two_hosts.xml"))
+# LEAPNBV_TWO_HOSTS_A_NODES / _B_NODES: another split to measure (docs/TWO_HOSTS.md).
+HOST_A_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_A_NODES", "detector_node,hmr_node")
+HOST_B_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_B_NODES", "raster_node,ground_node,nbv_node")
+SIM_RATE_HZ = 5.0
+RECORD_S = 50.0  # seconds the camera runs
+DEPTH_FRAME_BYTES = 640 * 480 * 2
+
+
+# ----------------------------------------------------------------------------- the recorder (inside a namespace)
+
+
+def record(role: str, out_path: str) -> int:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import ExternalShutdownException
+
+    from leapnbv_common.conversions import stamp_to_ns
+    from leapnbv_common.qos import latched_goal_qos, stage_input_qos
+    from leapnbv_common.topics import GROUND_PLANE, GROUND_TRUTH_TOPIC, NAMESPACE, NEXT_BEST_VIEW_TOPIC, VIEW_CANDIDATES
+    from leapnbv_msgs.msg import GroundPlane, SceneGroundTruth, ViewCandidates
+
+    rclpy.init()
+    node = rclpy.create_node(f"two_hosts_recorder_{role}")
+    data: Dict[str, object] = {"frames": [], "goals": [], "planes": [], "candidates": [], "diagnostics": {}}
+    if role == "a":
+        # The simulator's ground truth: one per published frame, reliable, on this host.
+        node.create_subscription(SceneGroundTruth, GROUND_TRUTH_TOPIC,
+                                 lambda m: data["frames"].append(stamp_to_ns(m.header.stamp)), stage_input_qos(100))
+    else:
+        node.create_subscription(PoseStamped, NEXT_BEST_VIEW_TOPIC, lambda m: data["goals"].append(
+            [stamp_to_ns(m.header.stamp), time.time_ns(), m.header.frame_id]), latched_goal_qos())
+        node.create_subscription(GroundPlane, f"{NAMESPACE}/{GROUND_PLANE}",
+                                 lambda m: data["planes"].append(stamp_to_ns(m.header.stamp)), stage_input_qos(50))
+
+        def on_candidates(msg: ViewCandidates) -> None:
+            inputs = [[i.name, stamp_to_ns(i.stamp), int(i.relation)] for i in getattr(msg, "inputs", [])]
+            data["candidates"].append([stamp_to_ns(msg.header.stamp), msg.chosen_index, inputs])
+
+        node.create_subscription(ViewCandidates, f"{NAMESPACE}/{VIEW_CANDIDATES}", on_candidates, stage_input_qos(50))
+
+        def on_diagnostics(msg: DiagnosticArray) -> None:
+            for status in msg.status:
+                data["diagnostics"][status.name] = {kv.key: kv.value for kv in status.values}
+
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 50)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        with open(out_path + ".tmp", "w") as handle:
+            json.dump(data, handle)
+        os.replace(out_path + ".tmp", out_path)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+# ----------------------------------------------------------------------------- the test
+
+
+class Namespaces:
+    """Two network namespaces joined by a veth pair, 10.200.<n>.1/30 <-> .2/30; removed by close()."""
+
+    def __init__(self, tag: str, subnet: int) -> None:
+        self.a, self.b = f"lnbv{tag}a", f"lnbv{tag}b"
+        self.veth_a, self.veth_b = f"lnbv{tag}va", f"lnbv{tag}vb"
+        self.addr_a, self.addr_b = f"10.200.{subnet}.1", f"10.200.{subnet}.2"
+        self.made: List[str] = []
+
+    def setup(self, multicast: bool = True) -> None:
+        for ns in (self.a, self.b):
+            run(["ip", "netns", "add", ns])
+            self.made.append(ns)
+        run(["ip", "link", "add", self.veth_a, "netns", self.a, "type", "veth", "peer", "name", self.veth_b,
+             "netns", self.b])
+        for ns, dev, addr in ((self.a, self.veth_a, self.addr_a), (self.b, self.veth_b, self.addr_b)):
+            run(["ip", "-n", ns, "addr", "add", f"{addr}/30", "dev", dev])
+            run(["ip", "-n", ns, "link", "set", "lo", "up"])
+            run(["ip", "-n", ns, "link", "set", dev, "up"])
+            if multicast:  # DDS discovery multicast (239.255.0.1) leaves through the veth: the only way out
+                run(["ip", "-n", ns, "route", "add", "224.0.0.0/4", "dev", dev])
+
+    def rx_bytes(self, ns: str, dev: str) -> int:
+        out = run(["ip", "-n", ns, "-s", "-j", "link", "show", "dev", dev])
+        return int(json.loads(out)[0]["stats64"]["rx"]["bytes"])
+
+    def close(self) -> None:
+        for ns in reversed(self.made):  # the veth pair goes with its namespaces
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=30)
+        self.made.clear()
+
+
+def run(cmd: List[str]) -> str:
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
+    if result.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)}: {result.stderr.strip()}")
+    return result.stdout
+
+
+def netns_allowed() -> Optional[str]:
+    """None when this process may create network namespaces, else why not."""
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        return "needs root to create network namespaces (ip netns add)"
+    name = f"lnbvprobe{os.getpid() % 100000}"
+    result = subprocess.run(["ip", "netns", "add", name], capture_output=True, text=True)
+    if result.returncode != 0:
+        return f"ip netns add is not permitted here: {result.stderr.strip()}"
+    subprocess.run(["ip", "netns", "del", name], capture_output=True)
+    return None
+
+
+def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 20.0) -> None:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def wait_for_line(path: pathlib.Path, text: str, timeout_s: float, procs: List[subprocess.Popen]) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists() and text in path.read_text(errors="replace"):
+            return True
+        if any(p.poll() is not None for p in procs):
+            return False
+        time.sleep(0.2)
+    return False
+
+
+# "static_peers": no multicast route at all (a Wi-Fi that drops multicast); each host names the other in
+# ROS_STATIC_PEERS. LEAPNBV_TWO_HOSTS_DISCOVERY=static_peers runs that variant (the suite runs "subnet").
+DISCOVERY = os.environ.get("LEAPNBV_TWO_HOSTS_DISCOVERY", "subnet")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_graph_split_over_two_network_namespaces(tmp_path):
+    why_not = netns_allowed()
+    if why_not:
+        pytest.skip(why_not)
+    from leapnbv_stand_ins.files import ensure_stand_in_body_model
+
+    body = ensure_stand_in_body_model("small")
+    domain = os.environ.get("ROS_DOMAIN_ID", "0")
+    tag = uuid.uuid4().hex[:4]
+    hosts = Namespaces(tag, 200 + int(domain) % 50)
+    env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET",
+               FASTRTPS_DEFAULT_PROFILES_FILE=str(PROFILE), PYTHONUNBUFFERED="1")
+    env.pop("ROS_STATIC_PEERS", None)
+    peers = {hosts.a: hosts.addr_b, hosts.b: hosts.addr_a} if DISCOVERY == "static_peers" else {}
+    procs: Dict[str, subprocess.Popen] = {}
+    logs: List[object] = []
+
+    def start(name: str, ns: str, cmd: List[str]) -> subprocess.Popen:
+        log = open(tmp_path / f"{name}.log", "w")  # noqa: SIM115 - closed in the finally
+        logs.append(log)
+        ns_env = dict(env, ROS_STATIC_PEERS=peers[ns]) if peers else env
+        procs[name] = subprocess.Popen(["ip", "netns", "exec", ns, *cmd], env=ns_env, stdout=log,
+                                       stderr=subprocess.STDOUT, start_new_session=True, cwd=REPO)
+        return procs[name]
+
+    runner = [sys.executable, "-m", "leapnbv_bringup.graph_runner", "--perception", "ground_truth",
+              "--body-model", body, "--no-restart", "--ready-timeout", "120"]
+    try:
+        hosts.setup(multicast=not peers)
+        start("graph_a", hosts.a, [*runner, "--nodes", HOST_A_NODES, "--log-dir", str(tmp_path / "a")])
+        start("graph_b", hosts.b, [*runner, "--nodes", HOST_B_NODES, "--log-dir", str(tmp_path / "b")])
+        for name in ("graph_a", "graph_b"):
+            assert wait_for_line(tmp_path / f"{name}.log", "[graph] ready", 150.0, list(procs.values())), \
+                (tmp_path / f"{name}.log").read_text()
+        start("record_a", hosts.a, [sys.executable, __file__, "record", "a", str(tmp_path / "a.json")])
+        start("record_b", hosts.b, [sys.executable, __file__, "record", "b", str(tmp_path / "b.json")])
+        time.sleep(3.0)  # the recorders discover the graph before the first frame
+        rx_before = hosts.rx_bytes(hosts.b, hosts.veth_b)
+        start("camera", hosts.a, [sys.executable, "-m", "leapnbv_sim.nodes.simulator_node", "--ros-args",
+                                  "-p", f"rate_hz:={SIM_RATE_HZ}", "-p", "scene_seed:=3"])
+        # Bounded: the camera runs RECORD_S seconds (its start-up, a few seconds, included).
+        deadline = time.monotonic() + RECORD_S
+        while time.monotonic() < deadline:
+            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+            assert not dead, f"exited early: {dead}"
+            time.sleep(0.5)
+        stop(procs["camera"])
+        time.sleep(3.0)  # the last frames drain through the graph; the nodes' diagnostics tick
+        rx_bytes = hosts.rx_bytes(hosts.b, hosts.veth_b) - rx_before
+        stop(procs["record_a"])
+        stop(procs["record_b"])
+        codes = {name: None for name in ("graph_a", "graph_b")}
+        for name in codes:
+            stop(procs[name], signal.SIGTERM, 40.0)
+            codes[name] = procs[name].returncode
+    finally:
+        for proc in procs.values():
+            stop(proc, signal.SIGTERM, 20.0)
+        for log in logs:
+            log.close()
+        hosts.close()
+    a = json.loads((tmp_path / "a.json").read_text())
+    b = json.loads((tmp_path / "b.json").read_text())
+    frames = set(a["frames"])
+    goals = [g for g in b["goals"] if g[2]]  # an empty frame_id is an explicit "no goal"
+    planes = set(b["planes"])
+    diag = b["diagnostics"]
+    ground = diag.get("/leapnbv/ground_node", {})
+    nbv = diag.get("/leapnbv/nbv_node", {})
+    ground_in = int(ground.get("frames_in", 0))
+    lat = sorted((r - s) * 1e-9 for s, r, _ in goals)
+    summary = (f"A: {HOST_A_NODES}; B: {HOST_B_NODES}; discovery {DISCOVERY}: {len(frames)} frames published on A, "
+               f"{len(goals)} goals on B, "
+               f"ground_node received {ground_in} depth frames, {rx_bytes / 1e6:.1f} MB into B over the veth, "
+               f"goal latency p50 {lat[len(lat) // 2] if lat else float('nan'):.2f} s")
+    print(f"\n[two hosts] {summary}")
+    assert codes == {"graph_a": 0, "graph_b": 0}, codes
+    assert len(frames) >= 0.5 * SIM_RATE_HZ * RECORD_S, summary
+    assert len(goals) >= 0.3 * len(frames), summary
+    # Every goal is from a published frame: the recorder on A hears every frame (reliable) from the
+    # first it heard (the camera's first frames can go out before the recorder is matched).
+    assert not [g for g in goals if g[0] >= min(frames) and g[0] not in frames], summary
+    # Depth crossed the link (not shared memory) and was not lost: each depth subscriber on B
+    # (raster_node, ground_node) receives every depth frame over UDP.
+    depth_readers_on_b = len({"raster_node", "ground_node"} & set(HOST_B_NODES.split(",")))
+    assert rx_bytes >= depth_readers_on_b * 0.9 * len(frames) * DEPTH_FRAME_BYTES, summary
+    assert ground_in >= 0.9 * len(frames), summary
+    # One frame per goal. Where view candidates list their inputs (InputStamp, issue 12 deliverable 1),
+    # no SAME_FRAME input may carry another stamp and the floor is the frame's own or a CARRIED one.
+    with_inputs = [c for c in b["candidates"] if c[2]]
+    if with_inputs:
+        mixed = [c for c in with_inputs if any(rel == 0 and stamp != c[0] for _, stamp, rel in c[2])]
+        assert not mixed, f"view candidates with a SAME_FRAME input of another stamp: {mixed[:5]}"
+        floors = [c for c in with_inputs if c[1] >= 0 and not any(
+            name == "ground_plane" and (stamp == c[0] or rel == 1) for name, stamp, rel in c[2])]
+        assert not floors, f"goals whose floor is neither the frame's own nor carried: {floors[:5]}"
+    else:
+        # Without the inputs: the mixing nbv_node does today is its fallback to the latest floor of
+        # any stamp (counted as ground_plane_late), which shows as a goal whose frame has no floor.
+        late = int(nbv.get("rejected.ground_plane_late", "0"))
+        floorless = [g[0] for g in goals if g[0] not in planes]
+        if late or floorless:
+            pytest.xfail(f"{late} frames fell back to another frame's floor (nbv_node's ground_plane_late), "
+                         f"{len(floorless)} goals have no floor of their own frame: the known defect of issue 12 "
+                         "deliverable 1, fixed in parallel; " + summary)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "record":
+        sys.exit(record(sys.argv[2], sys.argv[3]))
+    sys.exit(f"usage: {sys.argv[0]} record {{a|b}} OUT.json")
