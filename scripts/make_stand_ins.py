@@ -16,7 +16,12 @@ import os
 import sys
 import time
 
-from leapnbv_stand_ins.files import ensure_contract_models, ensure_stand_in_body_model, stand_in_dir
+from leapnbv_stand_ins.files import (
+    ensure_contract_models,
+    ensure_stand_in_body_model,
+    ensure_stand_in_smplx_dense,
+    stand_in_dir,
+)
 
 
 def main() -> int:
@@ -26,6 +31,7 @@ def main() -> int:
     args = parser.parse_args()
     start = time.perf_counter()
     paths = [ensure_stand_in_body_model(resolution, args.folder, args.force) for resolution in ("small", "full")]
+    paths.append(ensure_stand_in_smplx_dense(args.folder, args.force))
     for hmr_input in ((512, 384), (256, 192)):
         paths.extend(ensure_contract_models(args.folder, args.force, hmr_input))
     for path in sorted(set(paths)):

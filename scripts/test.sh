@@ -10,6 +10,14 @@ log() { printf '[test] %s\n' "$*"; }
 
 bash scripts/setup.sh
 
+# The tools environment (torch for tools/leapnbv_model_tools; never the robot's .venv or image) is
+# several GB from PyPI, so it is set up only when asked; tests/test_model_tools.py runs the tools'
+# tests in it when it exists and skips with this hint when it does not.
+if [ "${LEAPNBV_TOOLS_ENV:-0}" = 1 ]; then
+  log "tools environment (LEAPNBV_TOOLS_ENV=1)"
+  bash tools/setup_tools_env.sh >/dev/null
+fi
+
 log "ruff"
 .venv/bin/ruff check src tests scripts
 

@@ -63,7 +63,11 @@ def graph(models, tmp_path_factory):
     procs = {
         f"{NS}/detector_node": harness.start_node("leapnbv_perception.nodes.detector_node",
                                                   str(logs / "detector.log"),
-                                                  params={**engine, "model_file_path": models["detector"]}),
+                                                  # multi_label: the contract detector's background anchors
+                                                  # score person ~0.2 but their best class is another one;
+                                                  # counted, they show the runtime threshold change below.
+                                                  params={**engine, "model_file_path": models["detector"],
+                                                          "multi_label": "true"}),
         f"{NS}/hmr_node": harness.start_node("leapnbv_perception.nodes.hmr_node", str(logs / "hmr.log"),
                                              params={**engine, "model_file_path": models["hmr"],
                                                      "body_model_path": models["body"]}),
@@ -132,11 +136,11 @@ def test_every_frame_gets_detections_and_mesh_with_its_header(graph):
         np.testing.assert_allclose(mesh.detection, box, atol=1e-4)  # the mesh names the box it came from
         assert mesh.image_size == (WIDTH, HEIGHT)
         assert mesh.model_id == "contract_smplerx.onnx"
-        # The crop is the detection box grown to 3:4 and scaled by box_scale 1.25 about its centre,
-        # and the virtual camera is the one of that crop.
+        # The crop is the detection box (SMPLer-X's pixel convention: x .. x + w - 1) grown to 3:4
+        # and scaled by box_scale 1.25 about its centre, and the virtual camera is the one of that crop.
         processed = mesh.processed_box
-        np.testing.assert_allclose(processed[:2] + processed[2:] / 2, (box[:2] + box[2:4]) / 2, atol=1e-3)
-        box_w, box_h = box[2] - box[0], box[3] - box[1]
+        np.testing.assert_allclose(processed[:2] + processed[2:] / 2, (box[:2] + box[2:4] - 1) / 2, atol=1e-3)
+        box_w, box_h = box[2] - box[0] - 1, box[3] - box[1] - 1
         np.testing.assert_allclose(processed[3], 1.25 * max(box_h, box_w * 4 / 3), rtol=1e-5)
         np.testing.assert_allclose(processed[2], processed[3] * 0.75, rtol=1e-5)
         np.testing.assert_allclose(mesh.virtual_intrinsics, virtual_intrinsics(processed), rtol=1e-5)
@@ -282,7 +286,8 @@ def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph):
 def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(graph):
     probe, pub = graph["probe"], graph["image_pub"]
     detector, hmr = f"{NS}/detector_node", f"{NS}/hmr_node"
-    # The contract detector scores the background ~0.2: below the default threshold, above 0.1.
+    # The contract detector scores the background ~0.2 as person (multi_label): below the default
+    # threshold, above 0.1.
     results = set_parameters(probe, detector, score_threshold=0.1, max_detections=3)
     assert all(r.successful for r in results), [r.reason for r in results]
     (crop,) = set_parameters(probe, hmr, box_scale=1.5)
@@ -296,8 +301,8 @@ def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(gr
         assert len(det.detections) == 3 and det.detections[0].score > 0.9 > det.detections[2].score > 0.1
         mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (6000, 0))[0])
         box = mesh.detection
-        np.testing.assert_allclose(mesh.processed_box[3], 1.5 * max(box[3] - box[1], (box[2] - box[0]) * 4 / 3),
-                                   rtol=1e-5)
+        np.testing.assert_allclose(mesh.processed_box[3],
+                                   1.5 * max(box[3] - box[1] - 1, (box[2] - box[0] - 1) * 4 / 3), rtol=1e-5)
     finally:
         results = set_parameters(probe, detector, score_threshold=0.25, max_detections=20)
         assert all(r.successful for r in results) and set_parameters(probe, hmr, box_scale=1.25)[0].successful

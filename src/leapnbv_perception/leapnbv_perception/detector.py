@@ -18,13 +18,16 @@ class PersonDetector:
 
     Args:
         backend: engine loaded from an export of the family (or its contract model).
-        score_threshold: minimum person score.
+        score_threshold: a person's score must be above it (strictly, as ultralytics).
         iou_threshold: NMS IoU threshold.
         max_detections: most boxes per frame.
         family: the detector family's name (``detector_family`` parameter).
+        multi_label: (yolov8) every anchor's person score counts, not only anchors whose best
+            class is a person (the reference decoding, the default).
 
     Raises:
-        ValueError: an unknown family (naming the known ones).
+        ValueError: an unknown family (naming the known ones), or multi_label for a family
+            without that option.
         ModelContractError: when the backend's model does not meet the family's contract
             (yolov8: `images` 1x3x640x640 -> `output0` 1x84x8400).
     """
@@ -36,8 +39,11 @@ class PersonDetector:
         iou_threshold: float = 0.5,
         max_detections: int = DEFAULT_MAX_DETECTIONS,
         family: str = DEFAULT_DETECTOR_FAMILY,
+        multi_label: bool = False,
     ) -> None:
         self.family = get_detector_family(family)
+        if multi_label:
+            self.family = self.family.with_options(multi_label=True)
         check_backend_contract(backend, self.family.contract)
         self.backend = backend
         self.score_threshold = float(score_threshold)

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
-from typing import Dict, Sequence, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -31,6 +32,58 @@ from leapnbv_perception.smplx_layer import NUM_BODY_JOINTS, NUM_HAND_JOINTS, SMP
 
 class HMROutputError(ValueError):
     """The HMR engine returned non-finite or wrongly sized values."""
+
+
+class ExportMetadataError(ValueError):
+    """The HMR model's export metadata disagrees with the node's parameters or its own input."""
+
+
+# Written by `leapnbv_model_tools export-hmr` (tools/): keys under this prefix in the ONNX metadata.
+EXPORT_METADATA_PREFIX = "leapnbv."
+
+
+def read_export_metadata(model_path: Optional[str]) -> Dict[str, str]:
+    """The export's ``leapnbv.*`` metadata of an ONNX file ({} for another or absent file, or without onnx).
+
+    Reads the model proto without external data (the weights stay on disk when stored outside).
+    """
+    if not model_path or not str(model_path).lower().endswith(".onnx") or not os.path.isfile(model_path):
+        return {}
+    try:
+        import onnx
+    except ImportError:  # the runtime without the onnx package: nothing to check against
+        return {}
+    proto = onnx.load(str(model_path), load_external_data=False)
+    return {entry.key: entry.value for entry in proto.metadata_props if entry.key.startswith(EXPORT_METADATA_PREFIX)}
+
+
+def check_export_metadata(metadata: Mapping[str, str], input_hw: Tuple[int, int], box_scale: float,
+                          unmirror_left_hand: bool, source: str = "the HMR model") -> None:
+    """Check an export's metadata against the parameters the tail will use.
+
+    No ``leapnbv.*`` metadata (a contract model, an export from elsewhere): nothing to check.
+
+    Raises:
+        ExportMetadataError: naming each disagreement (input size, un-mirror flag, box ratio).
+    """
+    if not metadata:
+        return
+    problems = []
+    size = metadata.get(EXPORT_METADATA_PREFIX + "input_size")
+    if size is not None and size != "%dx%d" % tuple(input_hw):
+        problems.append("metadata input_size %s but the graph's input is %dx%d" % ((size,) + tuple(input_hw)))
+    flag = metadata.get(EXPORT_METADATA_PREFIX + "unmirror_left_hand")
+    if flag is not None and (flag == "true") != bool(unmirror_left_hand):
+        problems.append("exported with unmirror_left_hand=%s but the parameter is %s"
+                        % (flag, str(bool(unmirror_left_hand)).lower()))
+    ratio = metadata.get(EXPORT_METADATA_PREFIX + "box_ratio")
+    if ratio is not None and abs(float(ratio) - float(box_scale)) > 1e-6:
+        problems.append("exported for box ratio %s but box_scale is %g" % (ratio, box_scale))
+    if problems:
+        raise ExportMetadataError(
+            "%s (%s, checkpoint sha256 %s) does not match the parameters: %s"
+            % (source, metadata.get(EXPORT_METADATA_PREFIX + "variant", "?"),
+               metadata.get(EXPORT_METADATA_PREFIX + "checkpoint_sha256", "?")[:12], "; ".join(problems)))
 
 
 @dataclass
@@ -82,6 +135,8 @@ class HumanMeshEstimator:
 
     Raises:
         ModelContractError: when the backend does not declare the contract's names/shapes.
+        ExportMetadataError: when the model is an export-hmr ONNX whose metadata (input size,
+            un-mirror flag, box ratio) disagrees with these arguments.
     """
 
     def __init__(
@@ -98,6 +153,10 @@ class HumanMeshEstimator:
         self.unmirror_left_hand = bool(unmirror_left_hand)
         input_shape = backend.input_specs[HMR_INPUT_NAME].shape
         self.input_hw: Tuple[int, int] = (int(input_shape[2]), int(input_shape[3]))
+        model_path = getattr(backend, "model_path", None)
+        self.export_metadata = read_export_metadata(model_path if isinstance(model_path, str) else None)
+        check_export_metadata(self.export_metadata, self.input_hw, self.box_scale, self.unmirror_left_hand,
+                              str(model_path))
 
     def _read_outputs(self, outputs: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
         """Flatten each named output to its per-item length and reject non-finite values."""

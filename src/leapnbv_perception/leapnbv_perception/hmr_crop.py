@@ -16,13 +16,42 @@ DEFAULT_BOX_SCALE = 1.25
 
 
 class InvalidBoxError(ValueError):
-    """A box has no area inside the image."""
+    """A box is not usable: no area inside the image, or at most one pixel wide or high."""
 
 
 def xyxy_to_xywh(box_xyxy: Sequence[float]) -> np.ndarray:
     """[x_min, y_min, x_max, y_max, ...] -> [x, y, w, h] float64."""
     x_min, y_min, x_max, y_max = (float(v) for v in box_xyxy[:4])
     return np.array([x_min, y_min, x_max - x_min, y_max - y_min], dtype=np.float64)
+
+
+def sanitize_box(box_xywh: Sequence[float], image_w: int, image_h: int) -> np.ndarray:
+    """A detection box made to lie on the image's pixel grid, as SMPLer-X's sanitize_bbox does.
+
+    The box [x, y, w, h] starts at (max(0, x), max(0, y)): a box starting outside the image is
+    shifted in, keeping its size, not cut. Its far corner is that start plus (w - 1, h - 1) (the
+    last pixel it covers, pixel-index convention), clipped at (W - 1, H - 1). The result is
+    [x1, y1, x2 - x1, y2 - y1].
+
+    Raises:
+        InvalidBoxError: when it is not finite, has w h <= 0, or spans no more than one pixel
+            along an axis (x2 <= x1 or y2 <= y1: a box of w <= 1 or h <= 1, or one that starts
+            at or past the image's last pixel).
+    """
+    x, y, w, h = (float(v) for v in box_xywh[:4])
+    if not all(np.isfinite([x, y, w, h])):
+        raise InvalidBoxError("box %s is not finite" % ([x, y, w, h],))
+    x1 = max(0.0, x)
+    y1 = max(0.0, y)
+    x2 = min(float(image_w) - 1.0, x1 + max(0.0, w - 1.0))
+    y2 = min(float(image_h) - 1.0, y1 + max(0.0, h - 1.0))
+    if not (w * h > 0.0 and x2 > x1 and y2 > y1):
+        raise InvalidBoxError(
+            "box [x=%g, y=%g, w=%g, h=%g] has no area inside the %dx%d image (SMPLer-X's sanitize_bbox: "
+            "start clamped to 0, end = start + size - 1 clipped at W - 1 / H - 1, more than one pixel each way)"
+            % (x, y, w, h, image_w, image_h)
+        )
+    return np.array([x1, y1, x2 - x1, y2 - y1], dtype=np.float64)
 
 
 def process_box(
@@ -32,11 +61,12 @@ def process_box(
     aspect: float = DEFAULT_ASPECT,
     scale: float = DEFAULT_BOX_SCALE,
 ) -> np.ndarray:
-    """Turn a detection box into the crop box SMPLer-X expects.
+    """Turn a detection box into the crop box SMPLer-X expects (its process_bbox).
 
-    Steps: clip the box to the image [0, W] x [0, H]; grow its short side about the centre
-    until w / h = aspect; scale w and h by `scale` about the centre. The result may extend
-    beyond the image (the crop pads with black there).
+    Steps: `sanitize_box` (SMPLer-X's pixel convention: w - 1 / h - 1, clip at W - 1 / H - 1,
+    shift a box that starts outside, reject boxes of at most one pixel); grow the short side
+    about the centre until w / h = aspect; scale w and h by `scale` about the centre. The result
+    may extend beyond the image (the crop pads with black there).
 
     Args:
         box_xywh: [x, y, w, h] in source pixels.
@@ -49,21 +79,9 @@ def process_box(
         (4,) float64 [x, y, w, h] with w / h == aspect.
 
     Raises:
-        InvalidBoxError: when the box has no area inside the image or is not finite.
+        InvalidBoxError: see `sanitize_box`.
     """
-    x, y, w, h = (float(v) for v in box_xywh[:4])
-    if not all(np.isfinite([x, y, w, h])):
-        raise InvalidBoxError("box %s is not finite" % ([x, y, w, h],))
-    x_min = min(max(x, 0.0), float(image_w))
-    y_min = min(max(y, 0.0), float(image_h))
-    x_max = min(max(x + w, 0.0), float(image_w))
-    y_max = min(max(y + h, 0.0), float(image_h))
-    width = x_max - x_min
-    height = y_max - y_min
-    if width <= 0.0 or height <= 0.0:
-        raise InvalidBoxError(
-            "box [x=%g, y=%g, w=%g, h=%g] has no area inside the %dx%d image" % (x, y, w, h, image_w, image_h)
-        )
+    x_min, y_min, width, height = sanitize_box(box_xywh, image_w, image_h)
     center_x = x_min + 0.5 * width
     center_y = y_min + 0.5 * height
     if width > aspect * height:

@@ -47,9 +47,12 @@ class DetectorParams(EngineParams):
     detector_family: str = param(DEFAULT_DETECTOR_FAMILY, "output layout of the exported detector: one of "
                                  + ", ".join(detector_family_names()) + " (leapnbv_perception.detector_families)",
                                  read_only=True)
-    score_threshold: float = param(0.25, "minimum person score", min=0.0, max=1.0)
+    score_threshold: float = param(0.25, "a person's score must be above this (strictly)", min=0.0, max=1.0)
     iou_threshold: float = param(0.5, "NMS IoU threshold (ultralytics uses 0.7; 0.5 suits people)", min=0.0, max=1.0)
     max_detections: int = param(20, "most person boxes per frame", min=1, max=1000)
+    multi_label: bool = param(False, "yolov8: a person is any anchor whose person score passes the threshold (false: "
+                              "only anchors whose best class is person, as the ultralytics predictor)",
+                              read_only=True)
 
     def check(self) -> None:
         if self.detector_family not in detector_family_names():

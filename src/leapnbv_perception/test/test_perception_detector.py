@@ -95,6 +95,50 @@ def test_decode_iou_threshold_and_max_detections() -> None:
     assert len(decode_person_boxes(output, transform, 640, 640, iou_threshold=0.6, max_detections=2)) == 2
 
 
+def test_decode_another_class_wins_is_no_person_unless_multi_label() -> None:
+    transform = LetterboxTransform(1.0, 0.0, 0.0)
+    output = make_output([(3, 200.0, 200.0, 100.0, 200.0, 0, 0.6), (9, 400.0, 200.0, 100.0, 200.0, 0, 0.5)])
+    output[0, 4 + 16, 3] = 0.9  # anchor 3 is a dog more than a person
+    boxes = decode_person_boxes(output, transform, 640, 640)
+    np.testing.assert_allclose(boxes, [[350.0, 100.0, 450.0, 300.0, 0.5]], atol=1e-4)
+    boxes = decode_person_boxes(output, transform, 640, 640, multi_label=True)
+    np.testing.assert_allclose(boxes[:, 4], [0.6, 0.5], atol=1e-6)
+    np.testing.assert_allclose(boxes[0, :4], [150.0, 100.0, 250.0, 300.0], atol=1e-4)
+
+
+@pytest.mark.parametrize("multi_label", [False, True])
+def test_decode_threshold_is_strict(multi_label: bool) -> None:
+    transform = LetterboxTransform(1.0, 0.0, 0.0)
+    output = make_output([(3, 200.0, 200.0, 100.0, 200.0, 0, 0.25), (9, 400.0, 200.0, 100.0, 200.0, 0, 0.2500001)])
+    assert output[0, 4, 3] == np.float32(0.25)
+    boxes = decode_person_boxes(output, transform, 640, 640, score_threshold=0.25, multi_label=multi_label)
+    assert boxes.shape == (1, 5) and boxes[0, 0] == pytest.approx(350.0)
+
+
+def test_letterbox_per_axis_gains_on_odd_size() -> None:
+    # 641 x 481: r = 640 / 641; the image becomes 640 x 480 (round(480.25)), so the real vertical
+    # factor is 480 / 481, not r.
+    tensor, transform = letterbox(np.full((481, 641, 3), 255, dtype=np.uint8))
+    assert (transform.pad_x, transform.pad_y) == (0.0, 80.0)
+    assert transform.gain_x == pytest.approx(640 / 641) and transform.gain_y == pytest.approx(480 / 481)
+    assert tensor[0, 0, 79, 320] != 1.0 and tensor[0, 0, 80, 320] == 1.0 and tensor[0, 0, 559, 320] == 1.0
+    assert tensor[0, 0, 560, 320] != 1.0
+    # A box from letterbox (100, 100) to (300, 540) goes back with each axis' own factor.
+    boxes = decode_person_boxes(make_output([(0, 200.0, 320.0, 200.0, 440.0, 0, 0.9)]), transform, 641, 481)
+    expected = [100 * 641 / 640, 20 * 481 / 480, 300 * 641 / 640, 460 * 481 / 480]
+    np.testing.assert_allclose(boxes[0, :4], expected, atol=1e-3)
+    single_gain_y2 = 460 / transform.scale
+    assert abs(single_gain_y2 - expected[3]) > 0.2  # the old single-gain mapping was off by this
+
+
+def test_detector_multi_label_needs_a_family_that_has_it() -> None:
+    with pytest.raises(ValueError, match="no options"):
+        detector_families.get_detector_family("yolov8").with_options(nms_free=True)
+    assert detector_families.get_detector_family("yolov8").with_options(multi_label=True).multi_label
+    with pytest.raises(ValueError, match="no options"):
+        HalfScaleBoxesFamily().with_options(multi_label=True)
+
+
 def test_decode_empty() -> None:
     boxes = decode_person_boxes(np.zeros((1, 84, 8400), np.float32), LetterboxTransform(1.0, 0.0, 0.0), 640, 480)
     assert boxes.shape == (0, 5)

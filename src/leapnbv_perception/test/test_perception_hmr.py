@@ -103,3 +103,38 @@ def test_non_finite_engine_output_is_rejected(paths: Dict[str, str], body: SMPLX
     estimator = HumanMeshEstimator(NaNBackend(create_backend("onnxruntime", paths["hmr"])), body)
     with pytest.raises(HMROutputError, match="betas"):
         estimator.estimate(scene(), [250.0, 100.0, 330.0, 400.0])
+
+
+def with_metadata(source: str, target: str, metadata: Dict[str, str]) -> str:
+    import onnx
+
+    proto = onnx.load(source)
+    for key, value in metadata.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(proto, target)
+    return target
+
+
+EXPORT_METADATA = {
+    "leapnbv.producer": "leapnbv_model_tools export-hmr", "leapnbv.variant": "smpler_x_s32",
+    "leapnbv.checkpoint_sha256": "ab" * 32, "leapnbv.input_size": "512x384",
+    "leapnbv.unmirror_left_hand": "true", "leapnbv.box_ratio": "1.25",
+}
+
+
+def test_export_metadata_round_trip_and_mismatch(paths: Dict[str, str], body: SMPLXModel, tmp_path) -> None:
+    from leapnbv_perception.hmr import ExportMetadataError, read_export_metadata
+
+    exported = with_metadata(paths["hmr"], str(tmp_path / "exported.onnx"), EXPORT_METADATA)
+    assert read_export_metadata(exported) == EXPORT_METADATA
+    assert read_export_metadata(paths["hmr"]) == {}  # a contract model carries none: nothing to check
+    estimator = HumanMeshEstimator(create_backend("onnxruntime", exported), body)
+    assert estimator.export_metadata["leapnbv.variant"] == "smpler_x_s32"
+    with pytest.raises(ExportMetadataError, match=r"box ratio 1.25 but box_scale is 1.2"):
+        HumanMeshEstimator(create_backend("onnxruntime", exported), body, box_scale=1.2)
+    with pytest.raises(ExportMetadataError, match="unmirror_left_hand=true but the parameter is false"):
+        HumanMeshEstimator(create_backend("onnxruntime", exported), body, unmirror_left_hand=False)
+    wrong_size = with_metadata(paths["hmr256"], str(tmp_path / "wrong_size.onnx"), EXPORT_METADATA)
+    with pytest.raises(ExportMetadataError, match="input_size 512x384 but the graph's input is 256x192"):
+        HumanMeshEstimator(create_backend("onnxruntime", wrong_size), body)

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Optional, Tuple
 
 STAND_IN_BODY_FILE = "stand_in_body_{resolution}.npz"
+STAND_IN_SMPLX_DENSE_FILE = "stand_in_smplx_dense.npz"  # the SMPL-X npz layout in every key
 CONTRACT_DETECTOR_FILE = "contract_yolov8.onnx"
 CONTRACT_HMR_FILES = {(512, 384): "contract_smplerx.onnx", (256, 192): "contract_smplerx_256x192.onnx"}
 
@@ -37,6 +38,17 @@ def ensure_stand_in_body_model(resolution: str = "small", folder: Optional[Path]
     if force or not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         write_stand_in_body_model(str(path), resolution)
+    return str(path)
+
+
+def ensure_stand_in_smplx_dense(folder: Optional[Path] = None, force: bool = False) -> str:
+    """Path of "stand_in_smplx_dense" (SMPL-X's npz layout in every key), generated if absent."""
+    from leapnbv_stand_ins.stand_in_smplx_dense import write_stand_in_smplx_dense
+
+    path = Path(folder or stand_in_dir()) / STAND_IN_SMPLX_DENSE_FILE
+    if force or not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_stand_in_smplx_dense(str(path))
     return str(path)
 
 

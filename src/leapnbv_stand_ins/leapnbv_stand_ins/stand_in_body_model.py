@@ -705,6 +705,12 @@ def build_stand_in_body_model(resolution: str = "small") -> Dict[str, np.ndarray
     Raises:
         ValueError: for an unknown resolution.
     """
+    return _build(resolution)[0]
+
+
+def _build(resolution: str) -> Tuple[Dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The arrays of `build_stand_in_body_model`, plus per vertex its bone-axis point (V, 3)
+    and part name (V,), which the dense SMPL-X stand-in builds on."""
     if resolution == "small":
         settings = _SMALL
     elif resolution == "full":
@@ -724,7 +730,7 @@ def build_stand_in_body_model(resolution: str = "small") -> Dict[str, np.ndarray
     hands_meanl, hands_meanr = _hand_means()
     kintree = np.stack([np.array(SMPLX_PARENTS, dtype=np.int64), np.arange(NUM_JOINTS, dtype=np.int64)])
     kintree[0, 0] = ROOT_PARENT_UINT32
-    return {
+    arrays = {
         "v_template": vertices.astype(np.float64),
         "shapedirs": _shape_directions(vertices, axis_points, parts),
         "posedirs": _pose_directions(weights, radial),
@@ -739,6 +745,7 @@ def build_stand_in_body_model(resolution: str = "small") -> Dict[str, np.ndarray
         "joint_names": np.array(JOINT_NAMES),
         "stand_in": np.array("stand-in body model (procedural humanoid), not SMPL-X; no accuracy claim"),
     }
+    return arrays, axis_points, parts
 
 
 def write_stand_in_body_model(path: str, resolution: str = "small") -> str:

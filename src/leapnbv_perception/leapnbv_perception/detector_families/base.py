@@ -29,6 +29,16 @@ class DetectorFamily(abc.ABC):
     name: str = ""
     contract: ModelContract
 
+    def with_options(self, **options: Any) -> DetectorFamily:
+        """This family with decoding options set (e.g. yolov8's ``multi_label``).
+
+        Raises:
+            ValueError: an option this family does not have.
+        """
+        if options:
+            raise ValueError(f"detector family {self.name!r} has no options {sorted(options)}")
+        return self
+
     @abc.abstractmethod
     def preprocess(self, rgb: np.ndarray) -> Tuple[Dict[str, np.ndarray], Any]:
         """The engine inputs for one image, and what :meth:`decode` needs to map boxes back.

@@ -1,5 +1,5 @@
 """The "yolov8" detector family: ultralytics YOLOv8 ONNX exports (COCO classes, person = class 0);
-docs/ALGORITHMS.md §1 lists where the decoding differs from the reference predictor.
+decoded as the ultralytics predictor does (docs/ALGORITHMS.md §1), multi-label as an option.
 
 Input ``images`` (1, 3, 640, 640) float32 RGB / 255, letterboxed (aspect kept, padded with 114,
 centred as ultralytics does); output ``output0`` (1, 84, 8400): cx, cy, w, h in letterbox pixels
@@ -9,7 +9,7 @@ and 80 sigmoid class scores per anchor, no objectness (see model_contracts.YOLOV
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Mapping, Tuple
+from typing import Any, Dict, Mapping, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -23,28 +23,38 @@ PERSON_CLASS = 0
 
 @dataclass(frozen=True)
 class LetterboxTransform:
-    """Maps source pixels to letterbox pixels: letterbox = source * scale + pad.
+    """Maps source pixels to letterbox pixels: letterbox = source * gain + pad, per axis.
 
     Attributes:
-        scale: r = min(size / h, size / w).
-        pad_x: left padding in letterbox pixels (may be fractional; the image is placed at
-            its rounded value, which is what the arithmetic here uses too).
+        scale: r = min(size / h, size / w), the resize factor asked for.
+        pad_x: left padding in letterbox pixels (an integer: where the image is placed).
         pad_y: top padding in letterbox pixels.
+        gain_x: the horizontal factor the image really got, round(w r) / w; None means r.
+        gain_y: the vertical factor, round(h r) / h; None means r. (On odd sizes the two differ
+            from r by up to half a letterbox pixel over the image; ultralytics maps boxes back
+            with these per-axis gains.)
     """
 
     scale: float
     pad_x: float
     pad_y: float
+    gain_x: Optional[float] = None
+    gain_y: Optional[float] = None
+
+    def gains(self) -> np.ndarray:
+        """(gain_x, gain_y)."""
+        return np.array([self.scale if self.gain_x is None else self.gain_x,
+                         self.scale if self.gain_y is None else self.gain_y], dtype=np.float64)
 
     def to_source(self, points_xy: np.ndarray) -> np.ndarray:
-        """Letterbox (..., 2) x, y -> source image x, y: (xy - pad) / r."""
+        """Letterbox (..., 2) x, y -> source image x, y: (xy - pad) / gain."""
         offset = np.array([self.pad_x, self.pad_y], dtype=np.float64)
-        return (np.asarray(points_xy, dtype=np.float64) - offset) / self.scale
+        return (np.asarray(points_xy, dtype=np.float64) - offset) / self.gains()
 
     def to_letterbox(self, points_xy: np.ndarray) -> np.ndarray:
         """Source (..., 2) x, y -> letterbox x, y."""
         offset = np.array([self.pad_x, self.pad_y], dtype=np.float64)
-        return np.asarray(points_xy, dtype=np.float64) * self.scale + offset
+        return np.asarray(points_xy, dtype=np.float64) * self.gains() + offset
 
 
 def letterbox(rgb: np.ndarray, size: int = YOLO_INPUT_SIZE) -> Tuple[np.ndarray, LetterboxTransform]:
@@ -79,7 +89,8 @@ def letterbox(rgb: np.ndarray, size: int = YOLO_INPUT_SIZE) -> Tuple[np.ndarray,
     canvas[top : top + new_h, left : left + new_w] = resized
     # HWC uint8 -> NCHW float32 / 255
     tensor = canvas.transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1.0 / 255.0)
-    return np.ascontiguousarray(tensor), LetterboxTransform(float(scale), float(left), float(top))
+    transform = LetterboxTransform(float(scale), float(left), float(top), new_w / width, new_h / height)
+    return np.ascontiguousarray(tensor), transform
 
 
 def decode_person_boxes(
@@ -90,17 +101,24 @@ def decode_person_boxes(
     score_threshold: float = 0.25,
     iou_threshold: float = 0.5,
     max_detections: int = DEFAULT_MAX_DETECTIONS,
+    multi_label: bool = False,
 ) -> np.ndarray:
-    """Decode YOLOv8 output into person boxes in source-image pixels.
+    """Decode YOLOv8 output into person boxes in source-image pixels (docs/ALGORITHMS.md §1).
+
+    As the ultralytics predictor with ``classes=[0]``: each anchor takes its best class and is a
+    person only when that class is 0 with a score strictly above ``score_threshold``. With
+    ``multi_label`` every anchor whose person score is above the threshold is a person, whatever
+    its other classes score (ultralytics' ``multi_label=True``).
 
     Args:
         output0: (1, 84, N) raw output: cx, cy, w, h (letterbox px) + 80 class scores.
-        transform: the letterbox used for this frame.
+        transform: the letterbox used for this frame (boxes go back with its per-axis gains).
         image_w: source image width (boxes are clipped to [0, image_w]).
         image_h: source image height.
-        score_threshold: minimum person score.
+        score_threshold: a person's score must be above this (strictly).
         iou_threshold: NMS IoU above which the lower-scored box is dropped.
         max_detections: most boxes returned.
+        multi_label: threshold the person score of every anchor instead of its best class.
 
     Returns:
         (K, 5) float32 [x_min, y_min, x_max, y_max, score], by descending score.
@@ -113,20 +131,25 @@ def decode_person_boxes(
         predictions = predictions[0]
     if predictions.ndim != 2 or predictions.shape[0] < 5:
         raise ValueError("output0 must be (1, 84, N), got %s" % (np.shape(output0),))
-    person_scores = predictions[4 + PERSON_CLASS]
-    candidates = np.nonzero(person_scores >= score_threshold)[0]
+    class_scores = predictions[4:]
+    person_scores = class_scores[PERSON_CLASS]
+    is_person = person_scores > score_threshold
+    if not multi_label:
+        # np.argmax takes the first of equal scores: a tie with another class stays a person.
+        is_person &= np.argmax(class_scores, axis=0) == PERSON_CLASS
+    candidates = np.nonzero(is_person)[0]
     if candidates.size == 0:
         return np.zeros((0, 5), dtype=np.float32)
     boxes_cxcywh = predictions[:4, candidates].T.astype(np.float64)
     scores = person_scores[candidates].astype(np.float64)
     half = boxes_cxcywh[:, 2:4] * 0.5
     boxes = np.concatenate([boxes_cxcywh[:, :2] - half, boxes_cxcywh[:, :2] + half], axis=1)
-    # NMS in letterbox pixels, as ultralytics does (the letterbox is a uniform scale + shift).
+    # NMS in letterbox pixels, as ultralytics does.
     keep = nms(boxes, scores, iou_threshold, max_detections)
     boxes = boxes[keep]
-    scale = transform.scale
-    boxes[:, [0, 2]] = (boxes[:, [0, 2]] - transform.pad_x) / scale
-    boxes[:, [1, 3]] = (boxes[:, [1, 3]] - transform.pad_y) / scale
+    gain_x, gain_y = transform.gains()
+    boxes[:, [0, 2]] = (boxes[:, [0, 2]] - transform.pad_x) / gain_x
+    boxes[:, [1, 3]] = (boxes[:, [1, 3]] - transform.pad_y) / gain_y
     boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0.0, float(image_w))
     boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0.0, float(image_h))
     result = np.concatenate([boxes, scores[keep, None]], axis=1).astype(np.float32)
@@ -134,11 +157,25 @@ def decode_person_boxes(
 
 
 class YoloV8Family(DetectorFamily):
-    """Letterbox in, class-0 boxes out (NMS in letterbox pixels, then back to source pixels)."""
+    """Letterbox in, class-0 boxes out (NMS in letterbox pixels, then back to source pixels).
+
+    Args:
+        multi_label: decode every anchor's person score instead of its best class (an option;
+            the default is the reference predictor's best-class decoding).
+    """
 
     name = "yolov8"
     contract = YOLOV8_CONTRACT
     input_size = YOLO_INPUT_SIZE
+
+    def __init__(self, multi_label: bool = False) -> None:
+        self.multi_label = bool(multi_label)
+
+    def with_options(self, **options: Any) -> YoloV8Family:
+        unknown = sorted(set(options) - {"multi_label"})
+        if unknown:
+            raise ValueError(f"detector family 'yolov8' has no options {unknown}; it has ['multi_label']")
+        return YoloV8Family(multi_label=options.get("multi_label", self.multi_label))
 
     def preprocess(self, rgb: np.ndarray) -> Tuple[Dict[str, np.ndarray], LetterboxTransform]:
         tensor, transform = letterbox(rgb, self.input_size)
@@ -147,7 +184,7 @@ class YoloV8Family(DetectorFamily):
     def decode(self, outputs: Mapping[str, np.ndarray], context: Any, image_w: int, image_h: int,
                score_threshold: float, iou_threshold: float, max_detections: int) -> np.ndarray:
         return decode_person_boxes(outputs[YOLO_OUTPUT_NAME], context, image_w, image_h, score_threshold,
-                                   iou_threshold, max_detections)
+                                   iou_threshold, max_detections, self.multi_label)
 
 
 FAMILY = YoloV8Family()

@@ -55,7 +55,7 @@ class DetectorNode(Node):
 
         p = self.params.value
         return PersonDetector(create_engine_backend(p), p.score_threshold, p.iou_threshold, p.max_detections,
-                              family=p.detector_family)
+                              family=p.detector_family, multi_label=p.multi_label)
 
     def on_params_change(self, params: DetectorParams, changed: Set[str]) -> None:
         """The thresholds apply from the next frame (the rest is read-only)."""

@@ -1,0 +1,40 @@
+"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests} ..."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Optional, Sequence
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    commands = ("export-hmr", "random-checkpoint", "manifests")
+    if not argv or argv[0] not in commands:
+        print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
+        return 2
+    command, rest = argv[0], argv[1:]
+    if command == "export-hmr":
+        from leapnbv_model_tools.export import main as export_main
+
+        return export_main(rest)
+    if command == "manifests":
+        from leapnbv_model_tools.checkpoint import write_manifests
+
+        for path in write_manifests():
+            print(path)
+        return 0
+    from leapnbv_model_tools.checkpoint import random_smplerx, save_official
+    from leapnbv_model_tools.smplerx import VARIANTS
+
+    parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools random-checkpoint")
+    parser.add_argument("--variant", required=True, choices=sorted(VARIANTS))
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(rest)
+    print(save_official(random_smplerx(args.variant, args.seed), args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,116 @@
+"""export-hmr: one ONNX graph (encoder + heads) with the engine contract's names and shapes,
+checked by onnx.checker, by the project's contract check and by onnxruntime against PyTorch,
+with metadata that hmr_node checks against its parameters (leapnbv_perception.hmr)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from leapnbv_model_tools.checkpoint import CheckpointError, load_smplerx, sha256_of
+from leapnbv_model_tools.smplerx import VARIANTS, SMPLerX
+
+OUTPUT_NAMES = ("root_pose", "body_pose", "lhand_pose", "rhand_pose", "jaw_pose", "betas", "expression", "cam_param")
+DEFAULT_OPSET = 16  # RoiAlign/GridSample-free graph; 17 only adds LayerNormalization, which is not used
+PARITY_TOLERANCE = 1e-4
+
+
+class _Exported(torch.nn.Module):
+    def __init__(self, model: SMPLerX) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, img: torch.Tensor):
+        outputs = self.model(img)
+        return tuple(outputs[name] for name in OUTPUT_NAMES)
+
+
+def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, int], box_ratio: float = 1.25,
+                    unmirror_left_hand: bool = True) -> Dict[str, str]:
+    """The metadata the export writes (leapnbv_perception.hmr.EXPORT_METADATA_KEYS reads it)."""
+    return {
+        "leapnbv.producer": "leapnbv_model_tools export-hmr",
+        "leapnbv.variant": f"smpler_x_{variant}",
+        "leapnbv.checkpoint_sha256": checkpoint_sha256,
+        "leapnbv.input_size": f"{input_hw[0]}x{input_hw[1]}",
+        "leapnbv.unmirror_left_hand": "true" if unmirror_left_hand else "false",
+        "leapnbv.box_ratio": repr(float(box_ratio)),
+    }
+
+
+def export_onnx(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
+                opset: int = DEFAULT_OPSET) -> str:
+    import onnx
+
+    example = torch.zeros(1, 3, *input_hw)
+    with torch.no_grad():
+        # The wrapper in eval mode too: the exporter restores the wrapper's mode on every submodule
+        # afterwards (a fresh wrapper is in training mode, which would leave BatchNorm on batch statistics).
+        torch.onnx.export(_Exported(model).eval(), (example,), path, input_names=["img"],
+                          output_names=list(OUTPUT_NAMES), opset_version=opset, dynamo=False)
+    model.eval()
+    proto = onnx.load(path)
+    del proto.metadata_props[:]
+    for key, value in metadata.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(proto, path)
+    onnx.checker.check_model(path)
+    return path
+
+
+def operator_types(path: str) -> Sequence[str]:
+    import onnx
+
+    return sorted({node.op_type for node in onnx.load(path, load_external_data=False).graph.node})
+
+
+def parity(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1) -> float:
+    """Largest |onnxruntime - PyTorch| over all outputs and crops (N, 3, H, W) float32."""
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = threads
+    session = onnxruntime.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for crop in crops:
+        batch = crop[None].astype(np.float32)
+        with torch.no_grad():
+            expected = model(torch.from_numpy(batch))
+        got = dict(zip(OUTPUT_NAMES, session.run(list(OUTPUT_NAMES), {"img": batch})))
+        for name in OUTPUT_NAMES:
+            worst = max(worst, float(np.abs(got[name] - expected[name].numpy()).max()))
+    return worst
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools export-hmr", description=__doc__)
+    parser.add_argument("--checkpoint", required=True, help="smpler_x_{s,b,l,h}32.pth.tar (official structure)")
+    parser.add_argument("--variant", required=True, choices=sorted(VARIANTS))
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--input", default="512x384", choices=["512x384", "256x192"])
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET)
+    parser.add_argument("--box-ratio", type=float, default=1.25)
+    parser.add_argument("--parity-crops", type=int, default=2, help="random crops compared with onnxruntime")
+    args = parser.parse_args(argv)
+    input_hw = tuple(int(v) for v in args.input.split("x"))
+    try:
+        model = load_smplerx(args.checkpoint, args.variant)
+    except CheckpointError as error:
+        print(f"export-hmr: {error}", file=sys.stderr)
+        return 2
+    metadata = export_metadata(args.variant, sha256_of(args.checkpoint), input_hw, args.box_ratio)
+    export_onnx(model, args.out, input_hw, metadata, args.opset)
+    from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
+    from leapnbv_perception.model_contracts import SMPLERX_CONTRACT, check_backend_contract
+
+    check_backend_contract(OnnxRuntimeBackend(args.out), SMPLERX_CONTRACT)
+    crops = np.random.default_rng(0).uniform(0.0, 1.0, size=(args.parity_crops, 3) + input_hw).astype(np.float32)
+    difference = parity(model, args.out, crops)
+    print(f"{args.out}: opset {args.opset}, operators {', '.join(operator_types(args.out))}")
+    print(f"parity onnxruntime vs PyTorch: max |diff| = {difference:.3g} (tolerance {PARITY_TOLERANCE})")
+    return 0 if difference <= PARITY_TOLERANCE else 1
