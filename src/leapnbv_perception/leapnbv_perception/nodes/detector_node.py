@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from typing import Optional, Set
+from typing import Dict, Optional, Set
 
 import numpy as np
 from rclpy.node import Node
@@ -56,7 +56,7 @@ class FramesInFlight:
     """
 
     def __init__(self) -> None:
-        self._admitted: OrderedDict[int, float] = OrderedDict()  # stamp -> admitted at (monotonic s)
+        self._admitted: Dict[int, float] = OrderedDict()  # stamp -> admitted at (monotonic s)
         self.planner_answered = False
         self.timed_out = 0
 
