@@ -256,7 +256,7 @@ class DuplicateStampGuard:
 
     def __init__(self, capacity: int = DUPLICATE_MEMORY) -> None:
         self.capacity = max(1, int(capacity))
-        self._seen: Dict[str, Dict[int, int]]  # OrderedDicts: oldest stamp first = {}
+        self._seen: Dict[str, Dict[int, int]] = {}  # per stream, an OrderedDict: oldest stamp first
         self.repeats = 0  # identical repeats let through
 
     def check(self, stream: str, message: Any) -> None:
