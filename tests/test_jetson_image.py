@@ -33,11 +33,12 @@ VENV_BIN = Path(sys.executable).parent
 # docker/jetson/requirements-*.txt, or "base image" (NVIDIA's l4t-jetpack).
 THIRD_PARTY = {
     "numpy": "numpy", "cv2": "opencv-python-headless", "numba": "numba", "yaml": "pyyaml", "trimesh": "trimesh",
-    "onnxruntime": "onnxruntime", "cuda": "cuda-python", "pycuda": "pycuda", "setuptools": "setuptools",
+    "onnxruntime": "onnxruntime", "onnx": "onnx", "cuda": "cuda-python", "pycuda": "pycuda", "setuptools": "setuptools",
     "tensorrt": "base image",
 }
 ROSDEP_KEYS = {"python3-numpy": "numpy", "python3-opencv": "opencv-python-headless", "python3-numba": "numba",
-               "python3-onnxruntime": "onnxruntime", "python3-yaml": "pyyaml"}
+               "python3-onnxruntime": "onnxruntime", "python3-onnx": "onnx",
+               "python3-yaml": "pyyaml"}
 # Used by robot packages but deliberately not in the image, with the reason (the README says so too).
 NOT_IN_IMAGE = {
     "rosbags": "leapnbv_bags' bag I/O (rosbags >= 0.10 needs Python >= 3.10): workstation tools; on the robot "
