@@ -137,9 +137,9 @@ def test_node_that_keeps_dying_is_reported_and_runner_exits_1(tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == 1, out
-    deaths = re.findall(r"nbv_node died \(exit 1\); restarting in ([0-9.]+) s", out)
+    deaths = re.findall(r"nbv_node died \(exit 2\); restarting in ([0-9.]+) s", out)
     assert [float(d) for d in deaths] == [0.1, 0.2], out  # exponential back-off
-    assert re.search(r"nbv_node died 3 times within 60 s \(last: exit 1\), more than --max-restarts 2; giving up",
+    assert re.search(r"nbv_node died 3 times within 60 s \(last: exit 2\), more than --max-restarts 2; giving up",
                      out), out
     assert "radius" in (tmp_path / "nbv_node.log").read_text()
 
