@@ -129,6 +129,7 @@ class BagReplayer:
         self.node = node
         self.rate = rate
         self.frame_timeout_s = frame_timeout_s
+        self.resent: List[int] = []  # stamps of frames sent a second time (keep-up mode)
         self.frames = frames if frames is not None else load_camera_frames(bag_path)
         self.publishers = {}
         for frame in self.frames:
@@ -196,9 +197,16 @@ class BagReplayer:
                     rclpy.spin_once(self.node, timeout_sec=max(0.0, min(0.01, due - time.monotonic())))
             self.publish_frame(frame)
             if self.rate is None:
-                deadline = time.monotonic() + self.frame_timeout_s
-                while frame.stamp_ns not in self.completed and time.monotonic() < deadline:
-                    rclpy.spin_once(self.node, timeout_sec=0.01)
+                # Camera topics are best effort: a frame whose messages were lost on the way is sent
+                # once more, unchanged, half-way through its wait (the nodes accept an identical resend).
+                for attempt in range(2):
+                    deadline = time.monotonic() + 0.5 * self.frame_timeout_s
+                    while frame.stamp_ns not in self.completed and time.monotonic() < deadline:
+                        rclpy.spin_once(self.node, timeout_sec=0.01)
+                    if frame.stamp_ns in self.completed or attempt == 1:
+                        break
+                    self.resent.append(frame.stamp_ns)
+                    self.publish_frame(frame)
                 if frame.stamp_ns not in self.completed:
                     timed_out.append(frame.stamp_ns)
         return len(self.frames), timed_out
