@@ -14,6 +14,7 @@ import array
 import collections
 import math
 import signal
+import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple
 
@@ -866,9 +867,19 @@ def test_startup_faults_are_reported_and_the_nodes_keep_serving(graph):
     # A frame reaching a node without its engine is counted, not fatal.
     image_pub = probe.node.create_publisher(Image, "/fault_model/image", stage_output_qos(5))
     assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 1, 10.0)
-    image_pub.publish(small_image("rgb8", next_header(g)))
-    assert probe.spin_until(lambda: probe.status_where(
-        "/fault_model/detector_node", lambda s: int(diag_value(s, "rejected.engine_not_ready")) >= 1), 10.0)
+    # Sent again every second: a message sent the moment the publisher sees the subscriber can be lost
+    # while the subscriber has not matched the publisher yet (discovery is two-sided; seen under load).
+    def rejected_once() -> bool:
+        if probe.status_where("/fault_model/detector_node",
+                              lambda s: int(diag_value(s, "rejected.engine_not_ready")) >= 1):
+            return True
+        if time.monotonic() >= resend_at[0]:
+            image_pub.publish(small_image("rgb8", next_header(g)))
+            resend_at[0] = time.monotonic() + 1.0
+        return False
+
+    resend_at = [0.0]
+    assert probe.spin_until(rejected_once, 20.0)
     # A parameter out of range at start: one line naming it, exit code 2, no traceback.
     refused = g["refused_start"]
     assert refused.wait(timeout=60) == 2

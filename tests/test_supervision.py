@@ -152,3 +152,36 @@ def test_restart_policy_back_off_and_limit():
     assert RestartPolicy(window_s=0.0).recent([0.0, 1e6], now=2e6) == 2  # 0: the whole run
     with pytest.raises(ValueError):
         RestartPolicy(max_restarts=-1)
+
+
+# A node stuck in C (here: a sleep with SIGINT and SIGTERM ignored), as run_node's own stack-dump
+# registration leaves it: the runner asks for its stacks, escalates, and says so.
+STUCK_NODE = """
+import faulthandler, signal, sys, time
+faulthandler.register(signal.SIGUSR1, all_threads=True)
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+print("stuck node up", flush=True)
+def wait_in_c_for_ever():
+    time.sleep(3600)
+wait_in_c_for_ever()
+"""
+
+
+def test_stop_dumps_the_stacks_of_a_node_that_does_not_exit_then_kills_it(tmp_path, monkeypatch):
+    from leapnbv_bringup.graph_runner import GraphRunner
+
+    runner = GraphRunner(log_dir=str(tmp_path), nodes=["raster_node"])
+    monkeypatch.setattr(runner, "_command", lambda spec: [sys.executable, "-c", STUCK_NODE])
+    runner.start()
+    log = tmp_path / "raster_node.log"
+    deadline = time.monotonic() + 20
+    while "stuck node up" not in log.read_text() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    codes = runner.stop(timeout_s=0.5)
+    assert codes == {"raster_node": -signal.SIGKILL}
+    assert runner.stop_report["raster_node"].startswith("killed by SIGKILL after SIGKILL (no exit 0 s after SIGINT"), \
+        runner.stop_report
+    assert not runner.stopped_cleanly
+    text = log.read_text()
+    assert "wait_in_c_for_ever" in text and "File " in text, text  # faulthandler's stack of the main thread

@@ -678,13 +678,17 @@ class GraphRunner:
                 proc.send_signal(signal.SIGINT)
         self._wait_all(procs, timeout_s)
         escalated: Dict[str, str] = {}
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGUSR1)  # its threads' stacks into its log, for the report
         for sig, grace in ((signal.SIGTERM, KILL_GRACE_S), (signal.SIGKILL, KILL_GRACE_S)):
             left = {name: p for name, p in procs.items() if p.poll() is None}
             if not left:
                 break
             for name, proc in left.items():
                 proc.send_signal(sig)
-                escalated[name] = f"after {sig.name} (no exit {timeout_s:.0f} s after SIGINT)"
+                escalated[name] = (f"after {sig.name} (no exit {timeout_s:.0f} s after SIGINT; "
+                                   f"its stacks are in its log)")
             self._wait_all(left, grace)
         for spare in spares:
             try:

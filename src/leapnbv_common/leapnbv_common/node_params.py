@@ -110,6 +110,7 @@ def run_node(make_node, args=None) -> None:
     declared parameter, or another ValueError raised while it is built) ends the process with one
     line on stderr naming it and exit code EXIT_BAD_PARAMETERS (2), not a traceback.
     """
+    import faulthandler
     import signal
     import sys
 
@@ -126,6 +127,9 @@ def run_node(make_node, args=None) -> None:
             raise KeyboardInterrupt  # not spinning yet (or asked twice): unwind now
         # Spinning: the loop below sees the flag once the running callback returned.
 
+    # SIGUSR1 writes every thread's Python stack to stderr (the node's log), even while the main thread
+    # is blocked in C: the graph runner sends it to a node that does not stop, before it escalates.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     previous = {}
     for name in STOP_SIGNALS:
         number = getattr(signal, name)
