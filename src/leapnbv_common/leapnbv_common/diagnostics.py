@@ -1,4 +1,5 @@
-"""Per-node health on /diagnostics: rate, latency, engine state, and why inputs were rejected."""
+"""Per-node health on /diagnostics: rate, latency, engine state, why inputs were rejected, and why
+frames were dropped."""
 from __future__ import annotations
 
 import collections
@@ -18,7 +19,17 @@ class StageDiagnostics:
     """Counts what a stage node did and publishes it on /diagnostics once a second.
 
     A node calls `frame_in()` per input, `frame_out(header_stamp, compute_ms)` per output,
-    `reject(reason, detail)` for an input it could not use, and `set_engine_state(state, ok)`.
+    `reject(reason, detail)` for an input it could not use, `drop(reason)` for an input it chose not
+    to use (latest-frame scheduling: a newer frame superseded it, it was older than a frame already
+    published, it fell out of a bounded cache unused), and `set_engine_state(state, ok)`.
+
+    Rejections (``rejected.<reason>``) mean something was wrong and turn the status to WARN for a
+    few seconds; drops (``dropped.<reason>``) are the normal cost of keeping up with the camera
+    and leave the status OK. `input_seen(name, info)` (from a subscription callback that takes the
+    message info) counts the messages of an input that the node never took (a newer one replaced
+    them in the subscription's queue while the node was busy, or best-effort transport lost them)
+    as ``dropped.<name>_not_taken``, from the publisher's sequence numbers, and keeps the input's
+    last transport time (publish to receive) as ``transport_ms.<name>``.
     """
 
     def __init__(self, node, hardware_id: str = "", period_s: float = 1.0) -> None:
@@ -29,6 +40,9 @@ class StageDiagnostics:
         self.frames_in = 0
         self.frames_out = 0
         self.rejected: Dict[str, int] = collections.Counter()
+        self.dropped: Dict[str, int] = collections.Counter()
+        self._last_sequence: Dict[str, int] = {}
+        self.transport_ms: Dict[str, float] = {}
         self.last_reject_detail = ""
         self._last_reject_time = -1e9
         self.last_latency_ms = float("nan")
@@ -58,6 +72,34 @@ class StageDiagnostics:
             f"rejected input ({reason}): {detail}", throttle_duration_sec=2.0
         )
 
+    def drop(self, reason: str, count: int = 1) -> None:
+        """Count an input not used by choice (no log, no WARN): ``dropped.<reason>``."""
+        if count > 0:
+            self.dropped[reason] += count
+
+    def drop_callback(self) -> Callable[[str, int], None]:
+        """An ``on_drop(reason, stamp_ns)`` for the stamp caches (leapnbv_common.stamp_cache)."""
+        return lambda reason, stamp_ns: self.drop(reason)
+
+    def input_seen(self, name: str, info) -> None:
+        """Account one message of input ``name`` from its rclpy MessageInfo (a dict; None is ignored).
+
+        A jump in the publisher's sequence number counts the messages in between as
+        ``dropped.<name>_not_taken``; a number that goes back (another publisher, or it restarted)
+        only resets the count.
+        """
+        if not info:
+            return
+        sequence = info.get("publication_sequence_number")
+        if sequence:
+            last = self._last_sequence.get(name)
+            if last is not None and sequence > last + 1:
+                self.dropped[name + "_not_taken"] += sequence - last - 1
+            self._last_sequence[name] = sequence
+        sent, received = info.get("source_timestamp"), info.get("received_timestamp")
+        if sent and received:
+            self.transport_ms[name] = (received - sent) * 1e-6
+
     def set_engine_state(self, state: str, ok: bool) -> None:
         self.engine_state = state
         self._engine_ok = ok
@@ -84,8 +126,11 @@ class StageDiagnostics:
             "engine_state": self.engine_state,
             "rejected_total": sum(self.rejected.values()),
             "last_rejection": self.last_reject_detail,
+            "dropped_total": sum(self.dropped.values()),
         }
         values.update({f"rejected.{k}": v for k, v in sorted(self.rejected.items())})
+        values.update({f"dropped.{k}": v for k, v in sorted(self.dropped.items())})
+        values.update({f"transport_ms.{k}": f"{v:.2f}" for k, v in sorted(self.transport_ms.items())})
         return DiagnosticStatus(
             level=level,
             name=self._name,
