@@ -527,6 +527,51 @@ def serialized_image_header(cdr: bytes) -> Tuple[Header, int, int]:
     return header, int(height), int(width)
 
 
+class SerializedImage:
+    """A CDR-serialized sensor_msgs/Image read in place: its header and fields, ``data`` a view into the
+    serialized bytes (no copy). It stands in for the Image wherever only those are read: check_image,
+    image_size, image_to_numpy, depth_to_metres, and the duplicate-stamp guard (whose fingerprint covers
+    the header and the whole serialized message).
+
+    Raises:
+        ConversionError: bytes that do not hold a whole Image.
+    """
+
+    def __init__(self, cdr: bytes) -> None:
+        self.cdr = cdr
+        try:
+            order = "<" if cdr[1] == 1 else ">"
+
+            def aligned(pos: int, size: int) -> int:  # CDR aligns from the start of the payload (byte 4)
+                return 4 + ((pos - 4 + size - 1) // size) * size
+
+            def string(pos: int) -> Tuple[str, int]:
+                (length,) = struct.unpack_from(order + "I", cdr, pos)
+                text = bytes(cdr[pos + 4:pos + 4 + max(0, length - 1)]).decode("utf-8")
+                return text, pos + 4 + length
+
+            sec, nanosec = struct.unpack_from(order + "iI", cdr, 4)
+            frame_id, pos = string(12)
+            pos = aligned(pos, 4)
+            self.height, self.width = struct.unpack_from(order + "II", cdr, pos)
+            self.encoding, pos = string(pos + 8)
+            self.is_bigendian = cdr[pos]
+            pos = aligned(pos + 1, 4)
+            self.step, length = struct.unpack_from(order + "II", cdr, pos)
+            pos += 8
+        except (struct.error, IndexError, UnicodeDecodeError) as exc:
+            raise ConversionError(f"serialized Image unreadable: {exc}") from None
+        if pos + length > len(cdr):
+            raise ConversionError(f"serialized Image holds {len(cdr) - pos} of its {length} data bytes")
+        self.data = memoryview(cdr)[pos:pos + length]
+        self.header = Header(frame_id=frame_id)
+        self.header.stamp.sec, self.header.stamp.nanosec = sec, nanosec
+
+    @staticmethod
+    def get_fields_and_field_types() -> dict:
+        return {"header": "std_msgs/Header", "cdr": "sequence<uint8>"}
+
+
 def input_stamps(msg) -> List[Tuple[str, int, int]]:
     """(name, stamp ns, relation) of every input a stage output lists (its ``inputs`` field), in order."""
     return [(str(i.name), stamp_to_ns(i.stamp), int(i.relation)) for i in msg.inputs]

@@ -20,6 +20,10 @@ from typing import Any, Callable, Optional
 
 from rclpy.callback_groups import CallbackGroup
 
+#: A node drains its pulled inputs at least this often (a slow timer), so that a bad message is counted
+#: on /diagnostics within this time even while no frame comes to start the work.
+HOUSEKEEPING_PERIOD_S = 0.25
+
 
 class _NeverReady(CallbackGroup):
     """A callback group whose entities the executor never waits for nor runs."""
