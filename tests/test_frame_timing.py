@@ -296,3 +296,24 @@ def test_a_burst_of_targets_is_served_newest_first_and_every_skipped_one_is_coun
     not_taken = len(stamps) - taken
     assert len(planned) + dropped == len(stamps), (planned, dropped, taken, not_taken)
     assert len(planned) < len(stamps)  # the node did not plan its way through the backlog
+
+
+def test_admission_holds_frames_while_one_is_in_flight_and_not_for_long_after_a_refusal():
+    from leapnbv_perception.nodes.detector_node import MIN_IN_FLIGHT_TIMEOUT_S, FramesInFlight
+
+    frames = FramesInFlight()
+    assert not frames.full(1, now_s=0.0, timeout_s=0.5)  # the planner never answered: no limit yet
+    frames.admit(1, now_s=0.0)
+    frames.done(1, now_s=0.1)  # answered after 0.1 s
+    frames.admit(2, now_s=1.0)
+    assert frames.full(1, now_s=1.05, timeout_s=0.5)  # one in flight: the next frame is dropped
+    frames.done(2, now_s=1.1)
+    assert not frames.full(1, now_s=1.1, timeout_s=0.5)
+    frames.admit(3, now_s=2.0)  # refused downstream: it never comes back
+    assert frames.full(1, now_s=2.15, timeout_s=0.5)
+    assert not frames.full(1, now_s=2.21, timeout_s=0.5)  # 2 x the 0.1 s answer time, not the 0.5 s bound
+    assert frames.timed_out == 1 and frames.timeout(0.5) >= MIN_IN_FLIGHT_TIMEOUT_S
+    frames.admit(4, now_s=3.0)
+    frames.admit(5, now_s=3.01)
+    frames.done(5, now_s=3.1)  # an answer for a newer frame completes the older ones too
+    assert len(frames) == 0

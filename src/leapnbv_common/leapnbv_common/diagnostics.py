@@ -50,6 +50,7 @@ class StageDiagnostics:
         self.engine_state = "ready"
         self._engine_ok = True
         self._out_times: Deque[float] = collections.deque(maxlen=50)
+        self._awaited_publishers: Dict[str, str] = {}  # input name -> resolved topic, until one is discovered
         self._timer = node.create_timer(period_s, self.publish)
 
     def frame_in(self) -> None:
@@ -100,6 +101,23 @@ class StageDiagnostics:
         if sent and received:
             self.transport_ms[name] = (received - sent) * 1e-6
 
+    def await_publishers(self, *inputs: str) -> None:
+        """Report ``engine_state`` "waiting for a publisher of <inputs>" (status OK) until each of these
+        stage inputs (relative topic names) has a publisher in the graph, then the state set by the node.
+
+        A graph runner that waits for every engine to be "ready" then sends the first frame only once
+        the stages are connected: a reliable, volatile stage output published before its subscriber
+        was discovered is lost, and with it the frame.
+        """
+        for name in inputs:
+            self._awaited_publishers[name] = self._node.resolve_topic_name(name)
+
+    def _still_awaited(self) -> list:
+        for name, topic in list(self._awaited_publishers.items()):
+            if self._node.count_publishers(topic) > 0:
+                del self._awaited_publishers[name]
+        return sorted(self._awaited_publishers)
+
     def set_engine_state(self, state: str, ok: bool) -> None:
         self.engine_state = state
         self._engine_ok = ok
@@ -111,6 +129,11 @@ class StageDiagnostics:
         return (len(self._out_times) - 1) / span if span > 0 else 0.0
 
     def status(self) -> DiagnosticStatus:
+        engine_state = self.engine_state
+        if self._engine_ok and engine_state == "ready" and self._awaited_publishers:
+            awaited = self._still_awaited()
+            if awaited:
+                engine_state = "waiting for a publisher of " + ", ".join(awaited)
         if not self._engine_ok:
             level, message = DiagnosticStatus.ERROR, self.engine_state
         elif time.monotonic() - self._last_reject_time < WARN_WINDOW_S:
@@ -123,7 +146,7 @@ class StageDiagnostics:
             "rate_hz": f"{self.rate_hz():.2f}",
             "last_latency_ms": f"{self.last_latency_ms:.2f}",
             "last_compute_ms": f"{self.last_compute_ms:.2f}",
-            "engine_state": self.engine_state,
+            "engine_state": engine_state,
             "rejected_total": sum(self.rejected.values()),
             "last_rejection": self.last_reject_detail,
             "dropped_total": sum(self.dropped.values()),

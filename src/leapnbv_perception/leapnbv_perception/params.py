@@ -58,11 +58,12 @@ class DetectorParams(EngineParams):
     # 1: measured on the 2-core machine at 30 FPS (scripts/bench_load.py), 2 in flight gave 10.4 goals/s at
     # p50 190 ms / p95 295 ms, 1 gave 9.3 goals/s at p50 100 ms / p95 149 ms: the stages share the cores.
     max_frames_in_flight: int = param(1, "camera frames admitted into the graph whose view candidates have not "
-                                      "come back yet: a frame that arrives while this many are in flight is "
-                                      "dropped before any work (dropped.graph_busy); 0 = no limit. Applies once "
-                                      "the planner has answered", min=0, max=100)
-    in_flight_timeout_s: float = param(0.5, "s: an admitted frame without view candidates after this long was "
-                                       "dropped downstream and stops counting as in flight", min=0.01, max=10.0)
+                                      "come back yet: while this many are in flight, the newest frame waits and "
+                                      "the older ones are dropped before any work (dropped.graph_busy); 0 = no "
+                                      "limit. Applies once the planner has answered", min=0, max=100)
+    in_flight_timeout_s: float = param(0.5, "s: an admitted frame without view candidates after twice the graph's "
+                                       "recent answer time, at most this long, was dropped downstream and stops "
+                                       "counting as in flight", min=0.01, max=10.0)
 
     def check(self) -> None:
         if self.detector_family not in detector_family_names():

@@ -123,6 +123,7 @@ class GroundNode(Node):
             self.depth_input = PulledInput.create(self, Image, "depth", self.on_depth,
                                                   camera_input_qos(p.depth_cache_size), raw=True)
             self.create_subscription(PersonDetections, DETECTIONS, self.on_detections, stage_input_qos(1))
+            self.diagnostics.await_publishers(DETECTIONS)  # ready once the detector is connected
         else:
             self.depth_input = None
             self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(1), raw=True)
@@ -221,6 +222,15 @@ class GroundNode(Node):
                 refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
             return
         stamp = stamp_to_ns(msg.header.stamp)
+        # Checked against its camera_info on arrival (not only when fitted): a depth frame that disagrees
+        # with its own calibration is refused whether or not the graph works on its frame.
+        info = self.camera_infos.get_exact(stamp)
+        if info is not None and (
+                refused(self.diagnostics, "bad_depth", check_same_size, "depth", image_size(msg), "depth camera_info",
+                        image_size(info)) or
+                refused(self.diagnostics, "bad_depth", check_same_frame, "depth", msg.header.frame_id,
+                        "depth camera_info", info.header.frame_id)):
+            return
         if self.previous_fit_stamp is not None and 0 < self.previous_fit_stamp - stamp < STAMP_RESTART_NS:
             self.diagnostics.drop("depth_older_than_published")
             return
@@ -326,10 +336,12 @@ class GroundNode(Node):
         self.depth_frames.drop_older_than(stamp, "depth_skipped")  # frames the graph did not work on
         camera_info, info_input = self.frame_camera_info(stamp)
         p = self.params.value
-        if refused(self.diagnostics, "bad_depth", check_same_size, "depth", image_size(msg), "depth camera_info",
-                   image_size(camera_info)) or \
+        # A camera_info of another stamp (calibration) is checked here; the frame's own was checked on arrival.
+        if info_input[2] == InputStamp.STATIC and (
+                refused(self.diagnostics, "bad_depth", check_same_size, "depth", image_size(msg), "depth camera_info",
+                        image_size(camera_info)) or
                 refused(self.diagnostics, "bad_depth", check_same_frame, "depth", msg.header.frame_id,
-                        "depth camera_info", camera_info.header.frame_id):
+                        "depth camera_info", camera_info.header.frame_id)):
             return
         depth = depth_to_metres(msg)
         exclude, mask_input = self.exclusion_mask(msg, depth.shape)
@@ -348,15 +360,21 @@ class GroundNode(Node):
         plane = GroundPlaneArrays(normal=result.normal, offset=result.offset, valid=result.valid,
                                   source=GroundPlane.SOURCE_RANSAC, inlier_count=result.inlier_count,
                                   inlier_ratio=result.inlier_ratio)
-        frame = FittedFrame(plane, msg.header, (time.perf_counter() - started) * 1e3, len(points), inputs)
+        # The plane carries the frame's stamp (the detections', i.e. the colour image's: what raster and nbv
+        # pair it by) and the depth frame's optical frame; its inputs name the depth frame's own stamp.
+        header = msg.header
+        if p.fit_detected_frames_only:
+            header.stamp.sec, header.stamp.nanosec = divmod(key_stamp, 1_000_000_000)
+        frame_stamp = stamp_to_ns(header.stamp)
+        frame = FittedFrame(plane, header, (time.perf_counter() - started) * 1e3, len(points), inputs)
         if result.valid or not p.use_camera_pose_fallback:
             self.publish_plane(frame, None)
             return
         # No floor in view: the floor of this frame's camera pose, once it is here (or the wait ran out).
         self.pull_poses()
-        ready = self.pose_floors.add_frame(stamp, frame, self.now_ns())
+        ready = self.pose_floors.add_frame(frame_stamp, frame, self.now_ns())
         if ready is None:
-            self.camera_pose.expect(stamp, msg.header.frame_id)
+            self.camera_pose.expect(frame_stamp, msg.header.frame_id)
             self.start_wait_timer()
         else:
             self.publish_plane(ready[0], ready[1])

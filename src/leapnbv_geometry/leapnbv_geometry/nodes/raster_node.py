@@ -67,7 +67,7 @@ class RasterNode(Node):
         self.pending_mesh: Optional[Tuple[int, HumanMesh, int]] = None  # (stamp, mesh, since ns): waits for depth
         self.last_published: Optional[int] = None
         self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
-        # Frames (mesh, depth, camera_info) wait here for the plane of their depth frame's stamp.
+        # Frames (mesh, depth, camera_info) wait here for the plane of their stamp.
         self.ground = CompanionWait(int(p.ground_wait_s * 1e9), capacity=p.depth_cache_size, frame_name="frame",
                                     companion_name="ground_plane", on_drop=drop)
         self.target_pub = self.create_publisher(TargetGeometry, TARGET_GEOMETRY, stage_output_qos())
@@ -84,6 +84,7 @@ class RasterNode(Node):
                                              camera_input_qos(p.depth_cache_size))
         self.create_subscription(HumanMesh, HUMAN_MESH, self.on_mesh, stage_input_qos(1))
         self.create_subscription(GroundPlane, GROUND_PLANE, self.on_ground, stage_input_qos(p.depth_cache_size))
+        self.diagnostics.await_publishers(HUMAN_MESH, GROUND_PLANE)  # ready once the stages before are connected
         # A bad depth frame or camera_info is counted within HOUSEKEEPING_PERIOD_S even while no mesh comes.
         self.create_timer(HOUSEKEEPING_PERIOD_S, self.pull_companions)
         self.wait_timer = self.create_timer(WAIT_CHECK_PERIOD_S, self.expire_waits)
@@ -174,10 +175,10 @@ class RasterNode(Node):
         self.pair_with_ground(msg, *match)
 
     def pair_with_ground(self, mesh: HumanMesh, depth_stamp: int, depth: SerializedImage) -> None:
-        """Wait for the plane fitted on this depth frame (ground_node stamps it with the depth's stamp)."""
+        """Wait for the plane of this frame (ground_node stamps it with the frame's stamp, the mesh's)."""
         self.depth_frames.pop(depth_stamp)
         camera_info = self.camera_infos.get_exact(depth_stamp)
-        ready = self.ground.add_frame(depth_stamp, (mesh, depth, camera_info), self.now_ns())
+        ready = self.ground.add_frame(stamp_to_ns(mesh.header.stamp), (mesh, depth, camera_info), self.now_ns())
         if ready is not None:
             self.process(*ready[0], ready[1])
         elif self.ground.waiting():

@@ -4,8 +4,9 @@ The detector is the graph's first stage, so it decides which camera frames the g
 (latest-frame scheduling, docs/ARCHITECTURE.md "Timing"): the image subscription keeps only the
 newest frame (depth 1), a frame older than one already published is dropped, and once the planner
 answers (``view_candidates``), at most ``max_frames_in_flight`` admitted frames are in the graph at
-a time: a frame that arrives while the graph is full is dropped before any stage spends work on
-it. Every drop is counted on /diagnostics (``dropped.<reason>``).
+a time: while the graph is full the newest frame waits and goes in the moment an answer comes, and
+the frames it replaces are dropped before any stage spends work on them. Every drop is counted on
+/diagnostics (``dropped.<reason>``).
 
 Parameters: :class:`leapnbv_perception.params.DetectorParams`. The thresholds and the admission
 settings change at runtime (``ros2 param set``); the backend, the model and the detector family
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from typing import Optional, Set
+from typing import Callable, Optional, Set, Tuple
 
 import numpy as np
 from rclpy.node import Node
@@ -44,6 +45,7 @@ from leapnbv_msgs.msg import PersonDetections, SceneGroundTruth, ViewCandidates
 from leapnbv_perception.nodes.engine_loading import RetryingLoader, create_engine_backend
 from leapnbv_perception.params import DetectorParams
 
+MIN_IN_FLIGHT_TIMEOUT_S = 0.05  # an admitted frame counts at least this long (see FramesInFlight)
 TRUTH_WAIT_S = 1.0  # ground truth: how long an image waits for the truth of its stamp (pulled every 20 ms)
 
 
@@ -51,21 +53,30 @@ class FramesInFlight:
     """The admitted frames whose final output (view candidates) has not come back, by stamp.
 
     A final output of stamp s completes every admitted frame stamped s or earlier (a stage never
-    publishes an older frame after a newer one); a frame that waits longer than the timeout was
-    dropped downstream (no person, no ground plane, ...) and stops counting.
+    publishes an older frame after a newer one). A frame refused downstream (no person, a bad
+    input, no ground plane) never comes back: it stops counting after twice the graph's recent
+    time to answer (an average of the admitted frames that came back), at most ``timeout_s``, so a
+    refused frame blocks the next one only briefly.
     """
 
     def __init__(self) -> None:
         self._admitted: OrderedDict[int, float] = OrderedDict()  # stamp -> admitted at (monotonic s)
         self.planner_answered = False
         self.timed_out = 0
+        self.answer_s: Optional[float] = None  # moving average of the time from admission to the answer
 
     def __len__(self) -> int:
         return len(self._admitted)
 
+    def timeout(self, timeout_s: float) -> float:
+        if self.answer_s is None:
+            return timeout_s
+        return min(timeout_s, max(MIN_IN_FLIGHT_TIMEOUT_S, 2.0 * self.answer_s))
+
     def expire(self, now_s: float, timeout_s: float) -> None:
+        limit = self.timeout(timeout_s)
         for stamp, since in list(self._admitted.items()):
-            if now_s - since >= timeout_s:
+            if now_s - since >= limit:
                 del self._admitted[stamp]
                 self.timed_out += 1
 
@@ -79,8 +90,12 @@ class FramesInFlight:
     def admit(self, stamp_ns: int, now_s: float) -> None:
         self._admitted[stamp_ns] = now_s
 
-    def done(self, stamp_ns: int) -> None:
+    def done(self, stamp_ns: int, now_s: float) -> None:
         self.planner_answered = True
+        answered = self._admitted.get(stamp_ns)
+        if answered is not None:
+            took = now_s - answered
+            self.answer_s = took if self.answer_s is None else 0.8 * self.answer_s + 0.2 * took
         for stamp in [s for s in self._admitted if s <= stamp_ns]:
             del self._admitted[stamp]
 
@@ -115,7 +130,11 @@ class DetectorNode(Node):
         # The newest frame only (depth 1): frames that came while the node was busy are counted as not taken.
         # Read in place from its serialized bytes (SerializedImage): it is checked, never deserialized.
         self.create_subscription(Image, "image", self.on_image, camera_input_qos(1), raw=True)
-        self.create_subscription(ViewCandidates, VIEW_CANDIDATES, self.on_final_output, stage_input_qos(5), raw=True)
+        # The planner's answers free the graph: the newest frame that waited for it goes in at once.
+        self.create_subscription(ViewCandidates, VIEW_CANDIDATES, self.on_final_output, stage_input_qos(10), raw=True)
+        self.waiting: Optional[Tuple[int, Callable[[], None]]] = None  # (stamp, work) of the newest frame held back
+        self.waiting_timer = self.create_timer(0.01, self.admit_waiting)
+        self.waiting_timer.cancel()  # runs only while a frame waits (for an in-flight frame to time out)
 
     def load_detector(self):
         from leapnbv_perception.detector import PersonDetector
@@ -134,10 +153,23 @@ class DetectorNode(Node):
 
     def on_final_output(self, cdr: bytes) -> None:
         """The planner finished a frame (view candidates of its stamp): it and older ones leave the graph."""
-        self.in_flight.done(serialized_header_stamp_ns(cdr))
+        self.in_flight.done(serialized_header_stamp_ns(cdr), time.monotonic())
+        self.admit_waiting()
 
-    def admit(self, stamp_ns: int) -> bool:
-        """Whether the graph takes this frame; a refused one is counted by reason."""
+    def admit_waiting(self) -> None:
+        """The frame held back goes in once the graph has room (an answer came, or a frame timed out)."""
+        if self.waiting is not None:
+            p = self.params.value
+            if not self.in_flight.full(p.max_frames_in_flight, time.monotonic(), p.in_flight_timeout_s):
+                (_, work), self.waiting = self.waiting, None
+                work()
+        if self.waiting is None:
+            self.waiting_timer.cancel()
+
+    def admit(self, stamp_ns: int, work: Callable[[], None]) -> bool:
+        """Whether the graph takes this frame now. A frame older than one published is dropped; while
+        the graph is full, the newest frame waits (``work`` runs it when there is room) and the one
+        it replaces is dropped; both counted by reason."""
         if self.last_published is not None and stamp_ns <= self.last_published:
             if self.last_published - stamp_ns >= STAMP_RESTART_NS:  # the stamps started over (a replay, a reset)
                 self.last_published = None
@@ -146,10 +178,19 @@ class DetectorNode(Node):
                 self.diagnostics.drop("duplicate_stamp" if stamp_ns == self.last_published else "older_than_published")
                 return False
         p = self.params.value
-        now = time.monotonic()
-        if self.in_flight.full(p.max_frames_in_flight, now, p.in_flight_timeout_s):
-            self.diagnostics.drop("graph_busy")
+        if self.in_flight.full(p.max_frames_in_flight, time.monotonic(), p.in_flight_timeout_s):
+            if self.waiting is not None:
+                if self.waiting[0] >= stamp_ns:
+                    self.diagnostics.drop("graph_busy")
+                    return False
+                self.diagnostics.drop("graph_busy")  # the frame that waited: this newer one takes its place
+            self.waiting = (stamp_ns, work)
+            if self.waiting_timer.is_canceled():
+                self.waiting_timer.reset()
             return False
+        if self.waiting is not None and self.waiting[0] <= stamp_ns:
+            self.waiting = None  # a newer frame goes in: the one that waited is superseded
+            self.diagnostics.drop("graph_busy")
         return True
 
     def publish(self, header: Header, width: int, height: int, boxes: np.ndarray, started: float) -> None:
@@ -188,8 +229,13 @@ class DetectorNode(Node):
         if self.detector.value is None:
             self.diagnostics.reject("engine_not_ready", self.diagnostics.engine_state)
             return
-        if not self.admit(stamp):
-            return
+        if self.admit(stamp, lambda: self.detect(image)):
+            self.detect(image, started)
+
+    @rejects_bad_input("bad_image")
+    def detect(self, image: SerializedImage, started: Optional[float] = None) -> None:
+        if started is None:
+            started = time.perf_counter()
         rgb = image_to_rgb(image)
         self.publish(image.header, image.width, image.height, self.detector.value.detect(rgb), started)
 
@@ -220,7 +266,7 @@ class DetectorNode(Node):
         if refused(self.diagnostics, "bad_ground_truth", check_same_frame, "image", image.header.frame_id,
                    "ground truth", truth.header.frame_id):
             return
-        if not self.admit(stamp):
+        if not self.admit(stamp, lambda: self.publish_ground_truth(image, truth)):
             return
         # The truth gives the box: the image's pixels are not read (only checked, in on_image).
         box = scene_ground_truth_to_arrays(truth).person_box  # all zero when no person is visible

@@ -88,6 +88,7 @@ class HmrNode(Node):
                                                   raw=True)]
         # The stream that starts the work: the newest message only.
         self.create_subscription(PersonDetections, DETECTIONS, self.on_detections, stage_input_qos(1))
+        self.diagnostics.await_publishers(DETECTIONS)  # ready once the detector is connected
         # A bad companion is counted within HOUSEKEEPING_PERIOD_S even while no detections come.
         self.create_timer(HOUSEKEEPING_PERIOD_S, self.pull_companions)
 

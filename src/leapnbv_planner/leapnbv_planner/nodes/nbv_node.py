@@ -5,9 +5,9 @@ for the frame's ground plane, calls it, and publishes. Its parameters are the fi
 :func:`leapnbv_planner.params.nbv_params_class` (defaults, ranges, read-only flags there); a runtime
 ``ros2 param set`` is validated and applies to the next plan.
 
-One frame, one set of inputs: a target is planned with the ground plane fitted on its own depth
-frame (the ``depth`` stamp the target lists in its inputs; its header stamp when it lists none),
-waited for at most ``ground_wait_s``. When that plane never comes (or is not valid), the newest
+One frame, one set of inputs: a target is planned with the ground plane of its own frame (same
+stamp: ground_node stamps a plane with its frame's, the colour image's, stamp), waited for at most
+``ground_wait_s``. When that plane never comes (or is not valid), the newest
 valid plane of an older frame (at most ``ground_max_age_s`` older) is carried into the frame by the
 camera-pose delta between the two stamps, when the camera pose of both is known; otherwise the
 frame is dropped (``rejected.ground_plane_late`` / ``rejected.no_ground_plane``). Never "the latest
@@ -51,7 +51,6 @@ from leapnbv_common.conversions import (
     GroundPlaneArrays,
     arrays_to_view_candidates,
     ground_plane_to_arrays,
-    input_stamps,
     obstacle_map_to_points,
     point_msg,
     pose_msg,
@@ -105,7 +104,7 @@ class NbvNode(Node):
         self.diagnostics = StageDiagnostics(self)
         self.params: NodeParams = NodeParams(self, nbv_params_class(), self.on_params_change)
         p = self.params.value
-        # Targets wait here for the plane of their depth frame's stamp (planes are cached by stamp).
+        # Targets wait here for the plane of their stamp (planes are cached by stamp).
         self.ground = CompanionWait(int(p.ground_wait_s * 1e9), capacity=PLANE_CACHE, frame_name="target",
                                     companion_name="ground_plane", on_drop=self.diagnostics.drop_callback())
         self.pose_wait: Optional[ReadyFrame] = None  # a frame with its floor, waiting for its camera pose
@@ -136,6 +135,8 @@ class NbvNode(Node):
             self.create_subscription(PointCloud2, topics.OBSTACLE_MAP, self.on_obstacle_map, latched_map_qos())
         self.create_subscription(TargetGeometry, topics.TARGET_GEOMETRY, self.on_target, stage_input_qos(1))
         self.create_subscription(GroundPlane, topics.GROUND_PLANE, self.on_ground, stage_input_qos(PLANE_CACHE))
+        # Ready once the stages before are connected.
+        self.diagnostics.await_publishers(topics.TARGET_GEOMETRY, topics.GROUND_PLANE)
         self.wait_timer = self.create_timer(WAIT_CHECK_PERIOD_S, self.expire_waits)
         self.wait_timer.cancel()  # runs only while a target waits: an idle node does not wake up
         # A bad camera pose is counted within HOUSEKEEPING_PERIOD_S even while no frame is planned.
@@ -195,14 +196,6 @@ class NbvNode(Node):
 
     # ------------------------------------------------------------------ pairing a target with its plane
 
-    @staticmethod
-    def plane_stamp_of(target: TargetGeometry) -> int:
-        """The stamp of the depth frame the target was computed from (the plane fitted on it has it)."""
-        for name, stamp, relation in input_stamps(target):
-            if name == "depth" and relation == InputStamp.SAME_FRAME:
-                return stamp
-        return stamp_to_ns(target.header.stamp)
-
     @rejects_bad_input("bad_ground_plane")
     def on_ground(self, msg: GroundPlane) -> None:
         # The contract: unit normal pointing up toward the camera, camera above it
@@ -230,7 +223,7 @@ class NbvNode(Node):
         if self.too_old(stamp):
             self.diagnostics.drop("too_old_to_plan")  # no goal could come of it: skip the work
             return
-        ready = self.ground.add_frame(self.plane_stamp_of(msg), msg, self.now_ns())
+        ready = self.ground.add_frame(stamp, msg, self.now_ns())
         if ready is not None:
             self.with_floor(*ready)
         elif self.ground.waiting():
@@ -258,8 +251,8 @@ class NbvNode(Node):
         """The newest valid plane of an older frame (at most ground_max_age_s older), moved into this
         frame by the camera-pose delta, and the inputs it stands for; None when there is none."""
         p = self.params.value
-        plane_stamp = self.plane_stamp_of(target)
         frame_stamp = stamp_to_ns(target.header.stamp)
+        plane_stamp = frame_stamp
         self.pull_poses()
         pose_to = self.camera_poses.pose_at(frame_stamp, target.header.frame_id)
         if pose_to is None or p.ground_max_age_s <= 0:
