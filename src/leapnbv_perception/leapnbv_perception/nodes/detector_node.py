@@ -46,6 +46,7 @@ from leapnbv_perception.nodes.engine_loading import RetryingLoader, create_engin
 from leapnbv_perception.params import DetectorParams
 
 MIN_IN_FLIGHT_TIMEOUT_S = 0.05  # an admitted frame counts at least this long (see FramesInFlight)
+WAITING_CHECK_PERIOD_S = 0.05  # how often a waiting frame checks whether an in-flight frame timed out
 TRUTH_WAIT_S = 1.0  # ground truth: how long an image waits for the truth of its stamp (pulled every 20 ms)
 
 
@@ -133,8 +134,10 @@ class DetectorNode(Node):
         # The planner's answers free the graph: the newest frame that waited for it goes in at once.
         self.create_subscription(ViewCandidates, VIEW_CANDIDATES, self.on_final_output, stage_input_qos(10), raw=True)
         self.waiting: Optional[Tuple[int, Callable[[], None]]] = None  # (stamp, work) of the newest frame held back
-        self.waiting_timer = self.create_timer(0.01, self.admit_waiting)
-        self.waiting_timer.cancel()  # runs only while a frame waits (for an in-flight frame to time out)
+        # An answer releases the waiting frame at once (on_final_output); this timer only catches an
+        # in-flight frame that timed out (refused downstream), and runs only while a frame waits.
+        self.waiting_timer = self.create_timer(WAITING_CHECK_PERIOD_S, self.admit_waiting)
+        self.waiting_timer.cancel()
 
     def load_detector(self):
         from leapnbv_perception.detector import PersonDetector
