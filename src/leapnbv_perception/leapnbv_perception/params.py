@@ -55,8 +55,9 @@ class DetectorParams(EngineParams):
                               read_only=True)
     # Latest-frame scheduling: the detector is the graph's first stage, so it is where a frame the graph
     # cannot finish is dropped before any stage works on it (docs/ARCHITECTURE.md, "Timing").
-    # 1: measured on the 2-core machine at 30 FPS (scripts/bench_load.py), 2 in flight gave 10.4 goals/s at
-    # p50 190 ms / p95 295 ms, 1 gave 9.3 goals/s at p50 100 ms / p95 149 ms: the stages share the cores.
+    # 1: measured on the 2-core machine at 30 FPS (scripts/bench_load.py, 40 s each, same load): 2 in flight
+    # gave 14.6 goals/s at p50 160 ms / p95 220 ms, 1 gave 11.8 goals/s at p50 112 ms / p95 152 ms (the stages
+    # share the cores: a second frame in flight slows the first).
     max_frames_in_flight: int = param(1, "camera frames admitted into the graph whose view candidates have not "
                                       "come back yet: while this many are in flight, the newest frame waits and "
                                       "the older ones are dropped before any work (dropped.graph_busy); 0 = no "

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from typing import Callable, Optional, Set, Tuple
+from typing import Callable, Dict, Optional, Set, Tuple
 
 import numpy as np
 from rclpy.node import Node
@@ -61,7 +61,7 @@ class FramesInFlight:
     """
 
     def __init__(self) -> None:
-        self._admitted: OrderedDict[int, float] = OrderedDict()  # stamp -> admitted at (monotonic s)
+        self._admitted: Dict[int, float] = OrderedDict()  # stamp -> admitted at (monotonic s), oldest first
         self.planner_answered = False
         self.timed_out = 0
         self.answer_s: Optional[float] = None  # moving average of the time from admission to the answer
