@@ -77,7 +77,9 @@ def graph(scene, tmp_path_factory):
     logs = tmp_path_factory.mktemp("geometry_logs")
     procs = {
         f"{NS}/raster_node": harness.start_node("leapnbv_geometry.nodes.raster_node", str(logs / "raster.log")),
-        f"{NS}/ground_node": harness.start_node("leapnbv_geometry.nodes.ground_node", str(logs / "ground.log")),
+        # Fed depth frames alone (no detector): every depth frame is fitted.
+        f"{NS}/ground_node": harness.start_node("leapnbv_geometry.nodes.ground_node", str(logs / "ground.log"),
+                                                params={"fit_detected_frames_only": "false"}),
     }
     with harness.running_graph("geometry_nodes_test", procs) as probe:
         g = {
@@ -227,6 +229,8 @@ def test_raster_pairs_within_the_slop_whichever_arrives_first(graph, scene):
     send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(400, 0)))
     probe.spin_for(0.1)
     graph["mesh_pub"].publish(mesh_message(frame, scene["faces"], make_header(400, 3_000_000)))
+    # (the mesh input keeps the newest message only: a second mesh sent at once would replace this one)
+    assert probe.spin_until(lambda: by_stamp(graph["targets"], (400, 3_000_000)), 5.0)
     # mesh first, depth 3 ms later
     graph["mesh_pub"].publish(mesh_message(frame, scene["faces"], make_header(401, 0)))
     probe.spin_for(0.1)

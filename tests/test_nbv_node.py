@@ -21,6 +21,7 @@ from leapnbv_bringup.graph import default_params_file  # noqa: E402
 from leapnbv_common.conversions import (  # noqa: E402
     arrays_to_view_candidates,
     ground_plane_to_arrays,
+    input_stamps,
     make_camera_info,
     point_msg,
     point_to_numpy,
@@ -87,7 +88,9 @@ def send_frame(graph: dict, header: Header) -> tuple:
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory):
     logs = tmp_path_factory.mktemp("nbv_logs")
-    procs = {f"{NS}/nbv_node": harness.start_node("leapnbv_planner.nodes.nbv_node", str(logs / "nbv.log"))}
+    # Stamps of 1970 (no clock to follow): no goal age limit here (tests/test_frame_timing.py tests it).
+    procs = {f"{NS}/nbv_node": harness.start_node("leapnbv_planner.nodes.nbv_node", str(logs / "nbv.log"),
+                                                  params={"max_goal_age_s": "0.0"})}
     with harness.running_graph("nbv_node_test", procs) as probe:
         g = {
             "probe": probe, "procs": procs,
@@ -297,7 +300,10 @@ def test_published_plan_is_plan_views_on_the_same_inputs(graph, planned):
     (views,) = by_stamp(graph["candidates"], key)
     plan = plan_views(target_geometry_to_arrays(planned["target"]), ground_plane_to_arrays(planned["plane"]),
                       deployed_params())
-    expected = arrays_to_view_candidates(plan.to_arrays(), views.header, views.compute_time_ms)
+    stamp_ns = key[0] * 1_000_000_000 + key[1]
+    assert input_stamps(views) == [("target_geometry", stamp_ns, 0), ("ground_plane", stamp_ns, 0)]  # one frame
+    expected = arrays_to_view_candidates(plan.to_arrays(), views.header, views.compute_time_ms,
+                                         inputs=[("target_geometry", stamp_ns), ("ground_plane", stamp_ns)])
     assert expected == views  # every field, float32 for float32
     (goal,) = by_stamp(graph["goals"], key)
     (base,) = by_stamp(graph["base_goals"], key)

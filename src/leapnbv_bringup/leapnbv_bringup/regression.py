@@ -297,6 +297,7 @@ def overrides_for_bag_run(args: argparse.Namespace):
     if perception != "ground_truth" and not body:
         raise ValueError("real models need --body-model SMPLX_NEUTRAL.npz")
     overrides = merge_overrides(perception_overrides(perception, args.detector_model, args.hmr_model, body),
+                                {"nbv_node": {"max_goal_age_s": "0.0"}},  # recorded stamps, not the clock's
                                 parse_set_arguments(args.set))
     return perception, overrides
 

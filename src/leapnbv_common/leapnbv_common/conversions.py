@@ -7,6 +7,7 @@ is filled from ``ndarray.tobytes()`` (or an ``array.array`` for typed sequences)
 from __future__ import annotations
 
 import array
+import struct
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
@@ -26,6 +27,7 @@ from leapnbv_common.contracts import (
 from leapnbv_msgs.msg import (
     GroundPlane,
     HumanMesh,
+    InputStamp,
     PersonDetection,
     PersonDetections,
     SceneGroundTruth,
@@ -410,9 +412,9 @@ def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
 
 
 def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
-                         compute_time_ms: float = 0.0) -> HumanMesh:
-    """A HumanMesh message from arrays (the inverse of human_mesh_to_arrays)."""
-    msg = HumanMesh()
+                         compute_time_ms: float = 0.0, inputs: Sequence[tuple] = ()) -> HumanMesh:
+    """A HumanMesh message from arrays (the inverse of human_mesh_to_arrays); ``inputs``: see input_stamp_msgs."""
+    msg = HumanMesh(inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
     msg.detection = box_to_detection(mesh.detection)
@@ -474,6 +476,107 @@ def pose_to_numpy(pose: Pose) -> Tuple[np.ndarray, np.ndarray]:
     return quaternion_to_rotation([q.x, q.y, q.z, q.w]), point_to_numpy(pose.position)
 
 
+# --------------------------------------------------------------------------- InputStamp
+
+
+def input_stamp_msgs(inputs: Sequence[tuple]) -> List[InputStamp]:
+    """The ``inputs`` field of a stage output: InputStamp messages from (name, stamp_ns[, relation]) tuples.
+
+    ``relation`` is an InputStamp constant (SAME_FRAME when left out).
+    """
+    out = []
+    for item in inputs:
+        name, stamp_ns = str(item[0]), int(item[1])
+        relation = int(item[2]) if len(item) > 2 else InputStamp.SAME_FRAME
+        msg = InputStamp(name=name, relation=relation)
+        msg.stamp.sec, msg.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        out.append(msg)
+    return out
+
+
+def serialized_header_stamp_ns(cdr: bytes) -> int:
+    """The header stamp of a CDR-serialized message that starts with a std_msgs/Header, without
+    deserializing it (a node that subscribes ``raw=True`` keeps frames it may never use as bytes).
+
+    Raises:
+        ConversionError: fewer than 12 bytes.
+    """
+    if len(cdr) < 12:
+        raise ConversionError(f"serialized message of {len(cdr)} bytes has no header")
+    sec, nanosec = struct.unpack_from("<iI" if cdr[1] == 1 else ">iI", cdr, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def serialized_image_header(cdr: bytes) -> Tuple[Header, int, int]:
+    """(header, height, width) of a CDR-serialized sensor_msgs/Image, without copying its pixels.
+
+    Raises:
+        ConversionError: the bytes are too short for an Image header.
+    """
+    try:
+        order = "<" if cdr[1] == 1 else ">"
+        sec, nanosec, length = struct.unpack_from(order + "iII", cdr, 4)
+        end = 16 + length  # the frame_id string, NUL included
+        frame_id = bytes(cdr[16:end - 1]).decode("utf-8") if length else ""
+        offset = 4 + ((end - 4 + 3) // 4) * 4  # CDR aligns the uint32s to 4 from the payload start
+        height, width = struct.unpack_from(order + "II", cdr, offset)
+    except (struct.error, IndexError, UnicodeDecodeError) as exc:
+        raise ConversionError(f"serialized Image header unreadable: {exc}") from None
+    header = Header(frame_id=frame_id)
+    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    return header, int(height), int(width)
+
+
+class SerializedImage:
+    """A CDR-serialized sensor_msgs/Image read in place: its header and fields, ``data`` a view into the
+    serialized bytes (no copy). It stands in for the Image wherever only those are read: check_image,
+    image_size, image_to_numpy, depth_to_metres, and the duplicate-stamp guard (whose fingerprint covers
+    the header and the whole serialized message).
+
+    Raises:
+        ConversionError: bytes that do not hold a whole Image.
+    """
+
+    def __init__(self, cdr: bytes) -> None:
+        self.cdr = cdr
+        try:
+            order = "<" if cdr[1] == 1 else ">"
+
+            def aligned(pos: int, size: int) -> int:  # CDR aligns from the start of the payload (byte 4)
+                return 4 + ((pos - 4 + size - 1) // size) * size
+
+            def string(pos: int) -> Tuple[str, int]:
+                (length,) = struct.unpack_from(order + "I", cdr, pos)
+                text = bytes(cdr[pos + 4:pos + 4 + max(0, length - 1)]).decode("utf-8")
+                return text, pos + 4 + length
+
+            sec, nanosec = struct.unpack_from(order + "iI", cdr, 4)
+            frame_id, pos = string(12)
+            pos = aligned(pos, 4)
+            self.height, self.width = struct.unpack_from(order + "II", cdr, pos)
+            self.encoding, pos = string(pos + 8)
+            self.is_bigendian = cdr[pos]
+            pos = aligned(pos + 1, 4)
+            self.step, length = struct.unpack_from(order + "II", cdr, pos)
+            pos += 8
+        except (struct.error, IndexError, UnicodeDecodeError) as exc:
+            raise ConversionError(f"serialized Image unreadable: {exc}") from None
+        if pos + length > len(cdr):
+            raise ConversionError(f"serialized Image holds {len(cdr) - pos} of its {length} data bytes")
+        self.data = memoryview(cdr)[pos:pos + length]
+        self.header = Header(frame_id=frame_id)
+        self.header.stamp.sec, self.header.stamp.nanosec = sec, nanosec
+
+    @staticmethod
+    def get_fields_and_field_types() -> dict:
+        return {"header": "std_msgs/Header", "cdr": "sequence<uint8>"}
+
+
+def input_stamps(msg) -> List[Tuple[str, int, int]]:
+    """(name, stamp ns, relation) of every input a stage output lists (its ``inputs`` field), in order."""
+    return [(str(i.name), stamp_to_ns(i.stamp), int(i.relation)) for i in msg.inputs]
+
+
 # --------------------------------------------------------------------------- GroundPlane
 
 
@@ -515,10 +618,11 @@ def ground_plane_to_arrays(msg: GroundPlane) -> GroundPlaneArrays:
 
 
 def arrays_to_ground_plane(plane: GroundPlaneArrays, header: Optional[Header] = None,
-                           compute_time_ms: float = 0.0) -> GroundPlane:
-    """A GroundPlane message (the inverse of ground_plane_to_arrays)."""
+                           compute_time_ms: float = 0.0, inputs: Sequence[tuple] = ()) -> GroundPlane:
+    """A GroundPlane message (the inverse of ground_plane_to_arrays); ``inputs``: see input_stamp_msgs."""
     msg = GroundPlane(offset=float(plane.offset), inlier_count=int(plane.inlier_count),
-                      inlier_ratio=float(plane.inlier_ratio), valid=bool(plane.valid), source=int(plane.source))
+                      inlier_ratio=float(plane.inlier_ratio), valid=bool(plane.valid), source=int(plane.source),
+                      inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
     msg.normal.x, msg.normal.y, msg.normal.z = (float(v) for v in np.asarray(plane.normal).reshape(3))
@@ -588,9 +692,10 @@ def _target_geometry_arrays(msg: TargetGeometry) -> TargetGeometryArrays:
 
 
 def arrays_to_target_geometry(target: TargetGeometryArrays, header: Optional[Header] = None,
-                              compute_time_ms: float = 0.0) -> TargetGeometry:
-    """A TargetGeometry message (the inverse of target_geometry_to_arrays); the camera info gets ``header``."""
-    msg = TargetGeometry()
+                              compute_time_ms: float = 0.0, inputs: Sequence[tuple] = ()) -> TargetGeometry:
+    """A TargetGeometry message (the inverse of target_geometry_to_arrays); the camera info gets ``header``;
+    ``inputs``: see input_stamp_msgs."""
+    msg = TargetGeometry(inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
     msg.target_points = xyz_to_pointcloud2(target.target_points, header)
@@ -671,10 +776,11 @@ def view_candidates_to_arrays(msg: ViewCandidates) -> ViewCandidatesArrays:
 
 
 def arrays_to_view_candidates(views: ViewCandidatesArrays, header: Optional[Header] = None,
-                              compute_time_ms: float = 0.0) -> ViewCandidates:
-    """A ViewCandidates message (the inverse of view_candidates_to_arrays)."""
+                              compute_time_ms: float = 0.0, inputs: Sequence[tuple] = ()) -> ViewCandidates:
+    """A ViewCandidates message (the inverse of view_candidates_to_arrays); ``inputs``: see input_stamp_msgs."""
     msg = ViewCandidates(chosen_index=int(views.chosen_index), includes_current_view=bool(views.includes_current_view),
-                         ring_center=point_msg(views.ring_center), ring_radius=float(views.ring_radius))
+                         ring_center=point_msg(views.ring_center), ring_radius=float(views.ring_radius),
+                         inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
     msg.poses = [pose_msg(r, p) for r, p in zip(views.rotations, views.positions)]

@@ -1,4 +1,5 @@
-"""Per-node health on /diagnostics: rate, latency, engine state, and why inputs were rejected."""
+"""Per-node health on /diagnostics: rate, latency, engine state, why inputs were rejected, and why
+frames were dropped."""
 from __future__ import annotations
 
 import collections
@@ -18,7 +19,17 @@ class StageDiagnostics:
     """Counts what a stage node did and publishes it on /diagnostics once a second.
 
     A node calls `frame_in()` per input, `frame_out(header_stamp, compute_ms)` per output,
-    `reject(reason, detail)` for an input it could not use, and `set_engine_state(state, ok)`.
+    `reject(reason, detail)` for an input it could not use, `drop(reason)` for an input it chose not
+    to use (latest-frame scheduling: a newer frame superseded it, it was older than a frame already
+    published, it fell out of a bounded cache unused), and `set_engine_state(state, ok)`.
+
+    Rejections (``rejected.<reason>``) mean something was wrong and turn the status to WARN for a
+    few seconds; drops (``dropped.<reason>``) are the normal cost of keeping up with the camera
+    and leave the status OK. `input_seen(name, info)` (from a subscription callback that takes the
+    message info) counts the messages of an input that the node never took (a newer one replaced
+    them in the subscription's queue while the node was busy, or best-effort transport lost them)
+    as ``dropped.<name>_not_taken``, from the publisher's sequence numbers, and keeps the input's
+    last transport time (publish to receive) as ``transport_ms.<name>``.
     """
 
     def __init__(self, node, hardware_id: str = "", period_s: float = 1.0) -> None:
@@ -29,6 +40,9 @@ class StageDiagnostics:
         self.frames_in = 0
         self.frames_out = 0
         self.rejected: Dict[str, int] = collections.Counter()
+        self.dropped: Dict[str, int] = collections.Counter()
+        self._last_sequence: Dict[str, int] = {}
+        self.transport_ms: Dict[str, float] = {}
         self.last_reject_detail = ""
         self._last_reject_time = -1e9
         self.last_latency_ms = float("nan")
@@ -36,6 +50,7 @@ class StageDiagnostics:
         self.engine_state = "ready"
         self._engine_ok = True
         self._out_times: Deque[float] = collections.deque(maxlen=50)
+        self._awaited_publishers: Dict[str, str] = {}  # input name -> resolved topic, until one is discovered
         self._timer = node.create_timer(period_s, self.publish)
 
     def frame_in(self) -> None:
@@ -58,6 +73,51 @@ class StageDiagnostics:
             f"rejected input ({reason}): {detail}", throttle_duration_sec=2.0
         )
 
+    def drop(self, reason: str, count: int = 1) -> None:
+        """Count an input not used by choice (no log, no WARN): ``dropped.<reason>``."""
+        if count > 0:
+            self.dropped[reason] += count
+
+    def drop_callback(self) -> Callable[[str, int], None]:
+        """An ``on_drop(reason, stamp_ns)`` for the stamp caches (leapnbv_common.stamp_cache)."""
+        return lambda reason, stamp_ns: self.drop(reason)
+
+    def input_seen(self, name: str, info) -> None:
+        """Account one message of input ``name`` from its rclpy MessageInfo (a dict; None is ignored).
+
+        A jump in the publisher's sequence number counts the messages in between as
+        ``dropped.<name>_not_taken``; a number that goes back (another publisher, or it restarted)
+        only resets the count.
+        """
+        if not info:
+            return
+        sequence = info.get("publication_sequence_number")
+        if sequence:
+            last = self._last_sequence.get(name)
+            if last is not None and sequence > last + 1:
+                self.dropped[name + "_not_taken"] += sequence - last - 1
+            self._last_sequence[name] = sequence
+        sent, received = info.get("source_timestamp"), info.get("received_timestamp")
+        if sent and received:
+            self.transport_ms[name] = (received - sent) * 1e-6
+
+    def await_publishers(self, *inputs: str) -> None:
+        """Report ``engine_state`` "waiting for a publisher of <inputs>" (status OK) until each of these
+        stage inputs (relative topic names) has a publisher in the graph, then the state set by the node.
+
+        A graph runner that waits for every engine to be "ready" then sends the first frame only once
+        the stages are connected: a reliable, volatile stage output published before its subscriber
+        was discovered is lost, and with it the frame.
+        """
+        for name in inputs:
+            self._awaited_publishers[name] = self._node.resolve_topic_name(name)
+
+    def _still_awaited(self) -> list:
+        for name, topic in list(self._awaited_publishers.items()):
+            if self._node.count_publishers(topic) > 0:
+                del self._awaited_publishers[name]
+        return sorted(self._awaited_publishers)
+
     def set_engine_state(self, state: str, ok: bool) -> None:
         self.engine_state = state
         self._engine_ok = ok
@@ -69,6 +129,11 @@ class StageDiagnostics:
         return (len(self._out_times) - 1) / span if span > 0 else 0.0
 
     def status(self) -> DiagnosticStatus:
+        engine_state = self.engine_state
+        if self._engine_ok and engine_state == "ready" and self._awaited_publishers:
+            awaited = self._still_awaited()
+            if awaited:
+                engine_state = "waiting for a publisher of " + ", ".join(awaited)
         if not self._engine_ok:
             level, message = DiagnosticStatus.ERROR, self.engine_state
         elif time.monotonic() - self._last_reject_time < WARN_WINDOW_S:
@@ -81,11 +146,14 @@ class StageDiagnostics:
             "rate_hz": f"{self.rate_hz():.2f}",
             "last_latency_ms": f"{self.last_latency_ms:.2f}",
             "last_compute_ms": f"{self.last_compute_ms:.2f}",
-            "engine_state": self.engine_state,
+            "engine_state": engine_state,
             "rejected_total": sum(self.rejected.values()),
             "last_rejection": self.last_reject_detail,
+            "dropped_total": sum(self.dropped.values()),
         }
         values.update({f"rejected.{k}": v for k, v in sorted(self.rejected.items())})
+        values.update({f"dropped.{k}": v for k, v in sorted(self.dropped.items())})
+        values.update({f"transport_ms.{k}": f"{v:.2f}" for k, v in sorted(self.transport_ms.items())})
         return DiagnosticStatus(
             level=level,
             name=self._name,

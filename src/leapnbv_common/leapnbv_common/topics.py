@@ -53,6 +53,7 @@ GROUND_PLANE = "ground_plane"
 VIEW_CANDIDATES = "view_candidates"
 NEXT_BEST_VIEW = "next_best_view"
 BASE_GOAL = "base_goal"
+GOAL_STATUS = "goal_status"  # leapnbv_msgs/GoalStatus, latched: whether next_best_view / base_goal may be acted on
 MARKERS = "markers"
 
 # Every output of the graph (absolute names), with its message type.

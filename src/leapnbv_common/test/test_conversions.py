@@ -237,3 +237,36 @@ def test_scene_ground_truth_round_trip():
     for name in ("person_box", "root_pose", "body_pose", "left_hand_pose", "betas", "expression", "translation"):
         np.testing.assert_allclose(getattr(back, name), np.asarray(getattr(truth, name), np.float32), err_msg=name)
     assert back.body_model_id == "stand_in_small" and back.occlusion_share == pytest.approx(0.4)
+
+
+def test_stage_outputs_carry_the_stamps_of_their_inputs():
+    from leapnbv_msgs.msg import InputStamp
+
+    inputs = [("human_mesh", 1_700_000_000_123_456_789), ("ground_plane", 1_699_999_999_900_000_000,
+                                                           InputStamp.CARRIED)]
+    header = cv.header_with_stamp(1_700_000_000_123_456_789, "cam")
+    plane = cv.GroundPlaneArrays(normal=np.array([0.0, -1.0, 0.0]), offset=1.2, valid=True)
+    messages = [cv.arrays_to_ground_plane(plane, header, inputs=inputs),
+                cv.arrays_to_view_candidates(cv.ViewCandidatesArrays(
+                    rotations=np.eye(3)[None], positions=np.zeros((1, 3)), term_names=["a"],
+                    term_weights=np.ones(1), term_scores=np.zeros((1, 1)), score=np.zeros(1),
+                    feasible=np.ones(1, bool), infeasible_reason=np.zeros(1, np.uint8), chosen_index=0,
+                    includes_current_view=True, ring_center=np.zeros(3), ring_radius=1.0), header, inputs=inputs)]
+    for msg in messages:
+        assert cv.input_stamps(msg) == [("human_mesh", 1_700_000_000_123_456_789, InputStamp.SAME_FRAME),
+                                        ("ground_plane", 1_699_999_999_900_000_000, InputStamp.CARRIED)]
+    assert cv.input_stamps(cv.arrays_to_ground_plane(plane, header)) == []  # none given: an empty list
+
+
+def test_serialized_header_and_image_size_are_read_without_deserializing():
+    from rclpy.serialization import serialize_message
+
+    for frame_id in ("", "c", "cam", "camera_color_optical_frame"):
+        header = cv.header_with_stamp(12_000_000_345, frame_id)
+        image = cv.numpy_to_image(np.zeros((48, 64, 3), np.uint8), "rgb8", header)
+        cdr = serialize_message(image)
+        assert cv.serialized_header_stamp_ns(cdr) == 12_000_000_345
+        header, height, width = cv.serialized_image_header(cdr)
+        assert (header.frame_id, header.stamp.sec, header.stamp.nanosec, height, width) == (frame_id, 12, 345, 48, 64)
+    with pytest.raises(cv.ConversionError):
+        cv.serialized_header_stamp_ns(b"\x00\x01\x00\x00")

@@ -262,6 +262,7 @@ class ClosedLoopEvaluator:
         if o.real_models and not (o.detector_model and o.hmr_model and o.body_model):
             raise EvaluationError("real perception needs --detector-model, --hmr-model and --body-model")
         map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
+        map_switch.append("nbv_node.max_goal_age_s=0.0")  # simulated stamps, not the clock's: no goal age limit
         return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body),
                                parse_set_arguments(map_switch + list(o.set_parameters)))
 

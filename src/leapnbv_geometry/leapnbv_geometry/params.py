@@ -30,8 +30,9 @@ class RasterParams:
                                 min=0.0, max=WAIT_MAX_S)
     depth_cache_size: int = param(15, "depth frames kept while their meshes are computed", min=1, max=1000,
                                   read_only=True)
-    ground_wait_s: float = param(1.0, "s: how long a frame waits for the ground plane of the same stamp, then uses "
-                                 "the latest", min=0.0, max=WAIT_MAX_S)
+    ground_wait_s: float = param(0.5, "s: how long a frame waits for the ground plane fitted on its depth frame; "
+                                 "then it is served without a plane (never with another frame's)", min=0.0,
+                                 max=WAIT_MAX_S)
     box_dilation_px: float = param(10.0, "px: the detection box is grown by this much before intersecting the "
                                    "silhouette", min=0.0, max=1000.0)
     depth_tolerance: float = param(0.15, "metres: mask pixels farther than this from the aligned mesh depth are "
@@ -73,10 +74,22 @@ class GroundParams:
     min_depth: float = param(0.1, "metres: nearer depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
     max_depth: float = param(10.0, "metres: farther depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
     seed: int = param(0, "RANSAC random seed (deterministic results for replay)", min=0, max=2**31 - 1)
-    mask_max_age_s: float = param(1.0, "s: the person mask is excluded only when it is at most this much older than "
+    # The previous frame's person mask is an exclusion hint of bounded age: it only removes floor candidates.
+    mask_max_age_s: float = param(0.5, "s: the person mask is excluded only when it is at most this much older than "
                                   "the depth", min=0.0, max=60.0)
-    mask_wait_s: float = param(0.3, "s: wait this long for the previous frame's person mask before fitting "
-                               "(0 = never)", min=0.0, max=WAIT_MAX_S)
+    mask_wait_s: float = param(0.0, "s: wait this long for the previous frame's person mask before fitting (0 = never, "
+                               "the default: fit at once with the newest mask; a replay one frame at a time has it "
+                               "anyway)", min=0.0, max=WAIT_MAX_S)
+    # Latest-frame scheduling: fit the frames the rest of the graph works on (the detector admits them).
+    fit_detected_frames_only: bool = param(True, "fit only the depth frames of camera frames the detector published "
+                                           "a person for (detections of the same stamp within slop_s): the frames "
+                                           "the graph works on; false: every depth frame", read_only=True)
+    slop_s: float = param(0.005, "s: largest stamp difference between detections and the depth frame fitted for "
+                          "them, and between a person mask and the frame it belongs to", min=0.0, max=1.0)
+    depth_wait_s: float = param(0.5, "s: how long detections wait for their depth frame before they are dropped "
+                                "and counted", min=0.0, max=WAIT_MAX_S)
+    depth_cache_size: int = param(15, "depth frames kept until their detections come", min=1, max=1000,
+                                  read_only=True)
     # Occluders can hide all the floor: then the floor z = 0 of the frame's camera pose keeps the planner going.
     use_camera_pose_fallback: bool = param(True, "when RANSAC finds no floor, publish the floor z = 0 of the camera "
                                            "pose (in a floor-aligned fixed frame) of the same stamp", read_only=True)

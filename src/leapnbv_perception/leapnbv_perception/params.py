@@ -53,6 +53,18 @@ class DetectorParams(EngineParams):
     multi_label: bool = param(False, "yolov8: a person is any anchor whose person score passes the threshold (false: "
                               "only anchors whose best class is person, as the ultralytics predictor)",
                               read_only=True)
+    # Latest-frame scheduling: the detector is the graph's first stage, so it is where a frame the graph
+    # cannot finish is dropped before any stage works on it (docs/ARCHITECTURE.md, "Timing").
+    # 1: measured on the 2-core machine at 30 FPS (scripts/bench_load.py, 40 s each, same load): 2 in flight
+    # gave 14.6 goals/s at p50 160 ms / p95 220 ms, 1 gave 11.8 goals/s at p50 112 ms / p95 152 ms (the stages
+    # share the cores: a second frame in flight slows the first).
+    max_frames_in_flight: int = param(1, "camera frames admitted into the graph whose view candidates have not "
+                                      "come back yet: while this many are in flight, the newest frame waits and "
+                                      "the older ones are dropped before any work (dropped.graph_busy); 0 = no "
+                                      "limit. Applies once the planner has answered", min=0, max=100)
+    in_flight_timeout_s: float = param(0.5, "s: an admitted frame without view candidates after twice the graph's "
+                                       "recent answer time, at most this long, was dropped downstream and stops "
+                                       "counting as in flight", min=0.01, max=10.0)
 
     def check(self) -> None:
         if self.detector_family not in detector_family_names():

@@ -9,7 +9,7 @@ made from the term registry (:mod:`leapnbv_planner.score_terms`): :func:`nbv_par
 :class:`PlannerParams` extended by one float field per registered term, default = the term's
 default weight. A new term module therefore brings its weight parameter with it.
 
-Read-only (set at start-up only): ``use_obstacle_map`` (decides the node's subscriptions),
+Read-only (set at start-up only): ``use_obstacle_map`` (decides whether the obstacle map is used),
 ``camera_pose_source`` and ``camera_pose_cache`` (make the camera-pose subscription and its
 cache). Every other parameter can be changed at runtime and applies to the next plan.
 """
@@ -50,9 +50,17 @@ class PlannerParams(CandidateRingParams):
     score_terms: List[str] = param(DEFAULT_SCORE_TERMS, "score terms summed into the score, in this order"
                                    " (registered in leapnbv_planner.score_terms; weight of each: weight_<name>)")
     delta_px: float = param(4.0, "pixels: neighbourhood of the background depth test in S_o", min=0.0, max=100.0)
-    ground_wait_s: float = param(1.0, "how long a frame waits for the ground plane of the same stamp, then uses"
-                                 " the latest", min=0.0, max=10.0)
-    ground_max_age_s: float = param(2.0, "a fallback ground plane older than this is not used", min=0.0, max=60.0)
+    ground_wait_s: float = param(0.5, "s: how long a frame waits for the ground plane of its depth frame; then an"
+                                 " older frame's plane carried by the camera-pose delta, or the frame is dropped"
+                                 " (never planned with another frame's plane as it is)", min=0.0, max=10.0)
+    ground_max_age_s: float = param(0.5, "s: the oldest plane (stamp difference) that may be carried into a frame"
+                                    " by the camera-pose delta when the frame's own plane did not come; 0 = never"
+                                    " carry", min=0.0, max=60.0)
+    max_goal_age_s: float = param(1.0, "s: next_best_view / base_goal are published only for a frame younger than"
+                                  " this (node clock at publish time), and a published goal that grows older is"
+                                  " replaced by 'no goal' (goal_status STALE); 0 = no limit (only for offline"
+                                  " runs whose stamps are not the clock's: regression, evaluation)",
+                                  min=0.0, max=60.0)
     use_obstacle_map: bool = param(True, "use the robot's obstacle map (obstacle_map + camera_pose topics) when"
                                    " they arrive", read_only=True)
     obstacle_map_resolution: float = param(0.1, "metres: voxel edge of the obstacle map (its points are voxel"
@@ -61,9 +69,13 @@ class PlannerParams(CandidateRingParams):
                                        " candidate", min=1, max=1_000_000)
     map_target_margin: float = param(0.1, "metres: the end of each line of sight, at the target, not checked in"
                                      " the map", min=0.0, max=2.0)
+    camera_pose_wait_s: float = param(0.1, "s: a frame planned with the obstacle map waits this long for its camera"
+                                      " pose (DDS does not order topics); then it is planned without the map",
+                                      min=0.0, max=10.0)
     camera_pose_source: str = param("topic", "where the camera pose of each frame comes from (a key of"
                                     " leapnbv_common.camera_pose.CAMERA_POSE_SOURCES)", read_only=True)
-    camera_pose_cache: int = param(30, "camera poses remembered by stamp, to find the pose of each planned frame",
+    camera_pose_cache: int = param(150, "camera poses remembered by stamp, to find the pose of each planned frame"
+                                   " (150: 5 s at 30 Hz, longer than any frame's way through the graph)",
                                    min=1, max=10_000, read_only=True)
 
     def check(self) -> None:

@@ -22,9 +22,13 @@ NODE_PARAMETER_NAMES = {
 ROBOT_VALUES = {
     "num_candidates": 16, "radius": 2.5, "include_current": True, "max_travel": 4.5, "robot_radius": 0.3,
     "floor_clearance": 0.05, "weight_visibility": 0.03, "weight_area": 0.14, "weight_occlusion": 0.83,
-    "delta_px": 4.0, "ground_wait_s": 1.0, "ground_max_age_s": 2.0, "use_obstacle_map": True,
-    "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 30,
+    "delta_px": 4.0, "ground_wait_s": 0.5, "ground_max_age_s": 0.5, "use_obstacle_map": True,
+    "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 150,
+    "max_goal_age_s": 1.0, "camera_pose_wait_s": 0.1,
 }
+# Changed for issue 12 (one frame per output, no stale goal): the frame's own plane is waited for 0.5 s, an older
+# plane is carried (by the camera-pose delta) from at most 0.5 s back, goals are at most 1 s old, and the pose
+# cache covers 5 s at 30 Hz.
 
 
 def test_defaults_are_the_robot_values_and_valid():
@@ -32,7 +36,7 @@ def test_defaults_are_the_robot_values_and_valid():
     validate_params(params)
     names = {spec.name for spec in param_specs(type(params))}
     assert NODE_PARAMETER_NAMES <= names
-    assert names - NODE_PARAMETER_NAMES == {"score_terms", "camera_pose_source"}
+    assert names - NODE_PARAMETER_NAMES == {"score_terms", "camera_pose_source", "max_goal_age_s", "camera_pose_wait_s"}
     for name, value in ROBOT_VALUES.items():
         assert getattr(params, name) == value, name
     assert params.score_terms == ["visibility", "area", "occlusion"] and params.camera_pose_source == "topic"

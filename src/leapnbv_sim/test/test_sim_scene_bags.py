@@ -167,14 +167,19 @@ def test_bag_writer_records_raw_cdr_of_a_custom_type(tmp_path: Path) -> None:
         valid=True,
         compute_time_ms=1.5,
         source=1,
+        inputs=[],  # the InputStamp list (issue 12): empty here
     )
     cdr = bytes(typestore.serialize_cdr(ground, "leapnbv_msgs/msg/GroundPlane"))
     text = (bag_io.find_leapnbv_msg_dir() / "GroundPlane.msg").read_text()
     path = tmp_path / "raw"
     # A fresh typestore that does not know the type: the .msg text registers it.
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    with BagWriter(path, typestore=get_typestore(Stores.ROS2_JAZZY)) as bag:
+    store = get_typestore(Stores.ROS2_JAZZY)
+    # GroundPlane lists its inputs (leapnbv_msgs/InputStamp): a dependency the fresh store must know first.
+    store.register(get_types_from_msg((bag_io.find_leapnbv_msg_dir() / "InputStamp.msg").read_text(),
+                                      "leapnbv_msgs/msg/InputStamp"))
+    with BagWriter(path, typestore=store) as bag:
         bag.add_topic("/leapnbv/ground_plane", "leapnbv_msgs/GroundPlane", msgdef=text)
         bag.write("/leapnbv/ground_plane", 123, cdr)
         bag.add_topic("/chatter", "std_msgs/msg/String", qos=bag_io.TRANSIENT_LOCAL_QOS)
