@@ -5,7 +5,9 @@ with metadata that hmr_node checks against its parameters (leapnbv_perception.hm
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import tempfile
 from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
@@ -42,25 +44,57 @@ def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, i
     }
 
 
+# Above this many bytes of weights the graph is written with its tensors in one external file,
+# ``<out>.data`` beside it: one protobuf message cannot exceed 2 GiB (smpler_x_h32 has 2.6 GB).
+EXTERNAL_DATA_ABOVE_BYTES = 1_800_000_000
+
+
+def weight_bytes(model: torch.nn.Module) -> int:
+    return sum(t.numel() * t.element_size() for t in list(model.parameters()) + list(model.buffers()))
+
+
 def export_onnx(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
                 opset: int = DEFAULT_OPSET) -> str:
+    """Write the ONNX graph to ``path`` (and ``path.data`` when the weights exceed
+    EXTERNAL_DATA_ABOVE_BYTES), checked by onnx.checker.
+
+    Everything is written and checked in a folder beside ``path`` first and then moved into place,
+    so a failed or interrupted export never replaces a good file.
+    """
     import onnx
 
+    final = os.path.abspath(path)
+    data_name = os.path.basename(final) + ".data"
+    external = weight_bytes(model) > EXTERNAL_DATA_ABOVE_BYTES
     example = torch.zeros(1, 3, *input_hw)
-    with torch.no_grad():
-        # The wrapper in eval mode too: the exporter restores the wrapper's mode on every submodule
-        # afterwards (a fresh wrapper is in training mode, which would leave BatchNorm on batch statistics).
-        torch.onnx.export(_Exported(model).eval(), (example,), path, input_names=["img"],
-                          output_names=list(OUTPUT_NAMES), opset_version=opset, dynamo=False)
-    model.eval()
-    proto = onnx.load(path)
-    del proto.metadata_props[:]
-    for key, value in metadata.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = key, value
-    onnx.save(proto, path)
-    onnx.checker.check_model(path)
-    return path
+    with tempfile.TemporaryDirectory(dir=os.path.dirname(final), prefix=".export-hmr-") as work:
+        raw = os.path.join(work, "traced.onnx")
+        with torch.no_grad():
+            # The wrapper in eval mode too: the exporter restores the wrapper's mode on every submodule
+            # afterwards (a fresh wrapper is in training mode, which would leave BatchNorm on batch statistics).
+            # A graph over 2 GiB is written by the exporter with its tensors in files beside `raw`.
+            torch.onnx.export(_Exported(model).eval(), (example,), raw, input_names=["img"],
+                              output_names=list(OUTPUT_NAMES), opset_version=opset, dynamo=False)
+        model.eval()
+        proto = onnx.load(raw)  # with any external tensors the exporter wrote
+        del proto.metadata_props[:]
+        for key, value in metadata.items():
+            entry = proto.metadata_props.add()
+            entry.key, entry.value = key, value
+        staged = os.path.join(work, os.path.basename(final))
+        if external:
+            onnx.save_model(proto, staged, save_as_external_data=True, all_tensors_to_one_file=True,
+                            location=data_name, size_threshold=1024)
+        else:
+            onnx.save(proto, staged)
+        del proto
+        onnx.checker.check_model(staged)  # by path: reads external data where there is some
+        if external:
+            os.replace(os.path.join(work, data_name), final + ".data")  # the data first: the graph names it
+        os.replace(staged, final)
+        if not external and os.path.exists(final + ".data"):
+            os.remove(final + ".data")  # left by an earlier export with external data at this path
+    return final
 
 
 def operator_types(path: str) -> Sequence[str]:

@@ -9,7 +9,7 @@ import re
 import sys
 import types
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 import onnx
@@ -294,6 +294,7 @@ def make_fake_tensorrt(memory: FakeMemory, tensor_api: bool, version: str = "10.
     trt.__version__ = version
     trt.builds = []
     trt.deserialized = []
+    trt.parsed_paths = []
     trt.layer_constraints = []  # per build: layer name -> (precision, {output: type})
 
     class Logger:
@@ -347,7 +348,8 @@ def make_fake_tensorrt(memory: FakeMemory, tensor_api: bool, version: str = "10.
             self.network = network
             self.num_errors = 0
 
-        def parse(self, data: bytes) -> bool:
+        def parse(self, data: bytes, path: Optional[str] = None) -> bool:
+            trt.parsed_paths.append(path)
             if not data.startswith(b"ONNX"):
                 return False
             self.network.layers = [FakeLayer(name, types_) for name, types_ in FAKE_LAYERS]
@@ -762,3 +764,40 @@ def test_errors_after_start_up_are_not_swallowed(monkeypatch: pytest.MonkeyPatch
     cudart.fail = "sync"
     with pytest.raises(BackendError, match=r"cudaStreamSynchronize failed: .*\(700\)"):
         memory.synchronize()
+
+
+def test_engine_cache_key_covers_weights_stored_outside_the_graph(tmp_path: Path) -> None:
+    # A graph with its weights in model.onnx.data (how a model over 2 GiB is exported): changing only
+    # the weights changes the key; the parser is given the path so that it finds them.
+    from onnx import helper, numpy_helper
+
+    from leapnbv_perception.backends.tensorrt_backend import external_data_digests
+
+    weight = numpy_helper.from_array(np.arange(4096, dtype=np.float32).reshape(64, 64), "w")
+    graph = helper.make_graph([helper.make_node("MatMul", ["x", "w"], ["y"])], "g",
+                              [helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1, 64])],
+                              [helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1, 64])], [weight])
+    path = tmp_path / "model.onnx"
+    onnx.save_model(helper.make_model(graph), str(path), save_as_external_data=True,
+                    all_tensors_to_one_file=True, location="model.onnx.data", size_threshold=0)
+    graph_bytes = path.read_bytes()
+    first = external_data_digests(str(path))
+    assert len(first) == 1 and first[0].startswith("model.onnx.data:")
+    data = bytearray((tmp_path / "model.onnx.data").read_bytes())
+    data[100] ^= 1
+    (tmp_path / "model.onnx.data").write_bytes(bytes(data))
+    second = external_data_digests(str(path))
+    assert path.read_bytes() == graph_bytes and second != first
+    assert (engine_cache_key(graph_bytes, "8.5.2", "Xavier", "fp16", external_digests=first)
+            != engine_cache_key(graph_bytes, "8.5.2", "Xavier", "fp16", external_digests=second))
+    assert engine_cache_key(graph_bytes, "8.5.2", "Xavier", "fp16", external_digests=()) == \
+        engine_cache_key(graph_bytes, "8.5.2", "Xavier", "fp16")
+    (tmp_path / "model.onnx.data").unlink()
+    with pytest.raises(ModelFileNotFoundError, match="model.onnx.data"):
+        external_data_digests(str(path))
+
+
+def test_tensorrt_parser_is_given_the_model_path(onnx_file: str, tmp_path: Path) -> None:
+    trt = make_fake_tensorrt(FakeMemory(), tensor_api=True)
+    TensorRTBackend(onnx_file, "fp32", str(tmp_path / "cache"), trt=trt, memory=FakeMemory())
+    assert trt.parsed_paths == [onnx_file]

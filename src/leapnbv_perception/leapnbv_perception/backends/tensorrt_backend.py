@@ -36,7 +36,7 @@ import json
 import logging
 import os
 from collections import OrderedDict
-from typing import Any, Dict, List, Mapping, Optional, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -62,8 +62,41 @@ WORKSPACE_BYTES = 1 << 30
 # ----------------------------------------------------------------------------------------
 
 
+def external_data_digests(onnx_path: str) -> List[str]:
+    """sha256 of each file the ONNX graph keeps tensors in (external data: a graph over 2 GiB keeps
+    its weights in ``<model>.onnx.data``), in the order the graph names them; [] when it has none.
+
+    The graph's own bytes do not change when only those files do, so the engine cache key needs them.
+    """
+    names = [os.path.basename(onnx_path) + ".data"] if os.path.isfile(onnx_path + ".data") else []
+    try:
+        import onnx
+
+        proto = onnx.load(onnx_path, load_external_data=False)
+    except Exception:  # noqa: BLE001 - no onnx, or a graph it cannot read (the parser reports that):
+        pass  # the project's export convention, <model>.onnx.data beside it
+    else:
+        names = []
+        for tensor in proto.graph.initializer:
+            if tensor.data_location == onnx.TensorProto.EXTERNAL:
+                location = next(entry.value for entry in tensor.external_data if entry.key == "location")
+                if location not in names:
+                    names.append(location)
+    digests = []
+    for name in names:
+        path = os.path.join(os.path.dirname(os.path.abspath(onnx_path)), name)
+        require_model_file(path)
+        digest = hashlib.sha256()
+        with open(path, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 22), b""):
+                digest.update(block)
+        digests.append(name + ":" + digest.hexdigest())
+    return digests
+
+
 def engine_cache_key(
-    onnx_bytes: bytes, trt_version: str, gpu_name: str, precision: str, plan_digest: str = ""
+    onnx_bytes: bytes, trt_version: str, gpu_name: str, precision: str, plan_digest: str = "",
+    external_digests: Sequence[str] = (),
 ) -> str:
     """Key of a built engine: it is valid only for this ONNX, TensorRT, GPU, precision and plan.
 
@@ -74,6 +107,8 @@ def engine_cache_key(
         precision: "fp32" or "fp16".
         plan_digest: `PrecisionPlan.digest` of the FP16 precision plan the engine is built
             with; "" for none (the key is then the same as without a plan).
+        external_digests: `external_data_digests` of the model (its weights stored outside the
+            graph); empty for none (the key is then the same as before).
 
     Returns:
         64 hex characters.
@@ -82,6 +117,7 @@ def engine_cache_key(
     parts = [onnx_digest, str(trt_version), str(gpu_name).strip(), normalize_precision(precision)]
     if plan_digest:
         parts.append("plan:" + plan_digest)
+    parts.extend("data:" + digest for digest in external_digests)
     return hashlib.sha256("|".join(parts).encode("utf-8")).hexdigest()
 
 
@@ -378,7 +414,9 @@ class TensorRTAdapter:
             flags = 1 << int(creation_flags.EXPLICIT_BATCH)
         network = builder.create_network(flags)
         parser = trt.OnnxParser(network, self.logger)
-        if not parser.parse(onnx_bytes):
+        # With the file's path the parser finds weights stored outside the graph (external data).
+        parsed = parser.parse(onnx_bytes, source) if source and os.path.isfile(source) else parser.parse(onnx_bytes)
+        if not parsed:
             errors = [str(parser.get_error(index)) for index in range(parser.num_errors)]
             raise BackendError("TensorRT could not parse '%s': %s" % (source, "; ".join(errors)))
         config = builder.create_builder_config()
@@ -553,7 +591,8 @@ def load_or_build_engine(
     if plan is not None and plan.model_sha256 and plan.model_sha256 != hashlib.sha256(onnx_bytes).hexdigest():
         LOGGER.warning("precision plan '%s' was made for another ONNX (model_sha256 %s...), not '%s'",
                        plan.path, plan.model_sha256[:12], onnx_path)
-    key = engine_cache_key(onnx_bytes, adapter.version, gpu_name, precision, plan.digest if plan else "")
+    key = engine_cache_key(onnx_bytes, adapter.version, gpu_name, precision, plan.digest if plan else "",
+                           external_data_digests(onnx_path))
     path = engine_cache_path(cache_dir, onnx_path, precision, key)
     if os.path.isfile(path):
         with open(path, "rb") as stream:
