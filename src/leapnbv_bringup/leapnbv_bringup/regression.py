@@ -364,7 +364,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     bag = os.path.normpath(args.bag)
     golden_npz, golden_json = golden_paths(bag)
-    golden_npz = args.golden or golden_npz
+    if args.golden:  # its summary beside it: X.golden.npz -> X.golden.json
+        golden_npz, golden_json = args.golden, os.path.splitext(args.golden)[0] + ".json"
     out_dir = args.out or os.path.join("out", "regression", os.path.basename(bag))
     try:
         frames = load_camera_frames(bag)  # open and check the bag before anything starts
