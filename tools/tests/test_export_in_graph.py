@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from leapnbv_model_tools.checkpoint import random_smplerx, save_official
 from leapnbv_model_tools.export import main as export_main
+
 from leapnbv_stand_ins.files import ensure_stand_in_smplx_dense
 
 ROOT = Path(__file__).resolve().parents[2]
