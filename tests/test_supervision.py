@@ -185,3 +185,19 @@ def test_stop_dumps_the_stacks_of_a_node_that_does_not_exit_then_kills_it(tmp_pa
     assert not runner.stopped_cleanly
     text = log.read_text()
     assert "wait_in_c_for_ever" in text and "File " in text, text  # faulthandler's stack of the main thread
+
+
+def test_standby_process_loads_the_type_support_of_every_imported_message_type():
+    # In a fresh interpreter (the test process has loaded many types already): what a standby does
+    # before it says it is warm, so that the node it becomes builds without loading them.
+    code = ("import leapnbv_msgs.msg as m, rcl_interfaces.srv as s\n"
+            "from leapnbv_bringup.graph_runner import warm_type_support\n"
+            "assert type(m.GoalStatus)._TYPE_SUPPORT is None\n"
+            "n = warm_type_support()\n"
+            "assert type(m.GoalStatus)._TYPE_SUPPORT is not None and type(m.HumanMesh)._TYPE_SUPPORT is not None\n"
+            "assert type(s.SetParameters)._TYPE_SUPPORT is not None\n"
+            "assert warm_type_support() == 0\n"
+            "print(n)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert int(result.stdout.split()[-1]) > 20

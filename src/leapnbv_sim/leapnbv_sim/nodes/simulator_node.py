@@ -268,8 +268,10 @@ class SimulatorNode(Node):
 
     @rejects_bad_input("bad_goal")
     def on_goal(self, msg: PoseStamped) -> None:
+        if not msg.header.frame_id:
+            return  # "no current goal" (the planner withdrew a stale one): the robot stays where it is
         stamp = stamp_to_ns(msg.header.stamp)
-        if msg.header.frame_id and msg.header.frame_id != self.frame_id:
+        if msg.header.frame_id != self.frame_id:
             raise ConversionError(f"goal in frame {msg.header.frame_id!r}, expected {self.frame_id!r}")
         observation = self.camera_pose_at(stamp)
         if observation is None:
