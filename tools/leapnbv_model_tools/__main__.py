@@ -1,4 +1,4 @@
-"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests} ..."""
+"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, random-yolov8, manifests} ..."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Optional, Sequence
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = ("export-hmr", "random-checkpoint", "manifests")
+    commands = ("export-hmr", "random-checkpoint", "random-yolov8", "manifests")
     if not argv or argv[0] not in commands:
         print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
         return 2
@@ -18,6 +18,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from leapnbv_model_tools.export import main as export_main
 
         return export_main(rest)
+    if command == "random-yolov8":
+        from leapnbv_model_tools.yolov8 import SCALES, export_yolov8, random_yolov8
+
+        parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools random-yolov8",
+                                         description="a YOLOv8 of the real architecture with random weights "
+                                                     "(a timing stand-in that detects nothing), as ONNX")
+        parser.add_argument("--scale", default="s", choices=sorted(SCALES))
+        parser.add_argument("--size", type=int, default=640, help="input side (a multiple of 32)")
+        parser.add_argument("--seed", type=int, default=0)
+        parser.add_argument("--out", required=True)
+        args = parser.parse_args(rest)
+        if args.size % 32:
+            print(f"random-yolov8: --size {args.size} is not a multiple of 32", file=sys.stderr)
+            return 2
+        print(export_yolov8(random_yolov8(args.scale, args.seed, args.size), args.out, args.size))
+        return 0
     if command == "manifests":
         from leapnbv_model_tools.checkpoint import write_manifests
 
