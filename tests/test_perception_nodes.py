@@ -24,6 +24,7 @@ pytestmark = [pytest.mark.ros]
 
 MISSING_NS = "/leapnbv_missing_model"
 GT_NS = "/leapnbv_gt"
+TIMED_NS = "/leapnbv_timed"
 FRAME_ID = "camera_color_optical_frame"
 WIDTH, HEIGHT = 640, 480
 MISSING_MODEL = "/nonexistent/leapnbv_models/yolov8_missing.onnx"
@@ -77,6 +78,11 @@ def graph(models, tmp_path_factory):
         f"{GT_NS}/detector_node": harness.start_node("leapnbv_perception.nodes.detector_node",
                                                      str(logs / "detector_gt.log"), namespace=GT_NS,
                                                      params={"backend": "ground_truth"}),
+        # A benchmark's timing stand-in: the contract detector runs on every frame, the truth's boxes go out.
+        f"{TIMED_NS}/detector_node": harness.start_node(
+            "leapnbv_perception.nodes.detector_node", str(logs / "detector_timed.log"), namespace=TIMED_NS,
+            params={"backend": "ground_truth", "timing_stand_in": "true", "model_file_path": models["detector"],
+                    "multi_label": "true"}),
     }
     with harness.running_graph("perception_nodes_test", procs) as probe:
         image_pub = probe.node.create_publisher(Image, f"{NS}/image", stage_output_qos(5))
@@ -85,7 +91,7 @@ def graph(models, tmp_path_factory):
         harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 2, 10.0)
         yield {"probe": probe, "procs": procs, "image_pub": image_pub, "detections": detections,
-               "meshes": meshes, "body": SMPLXModel.load(models["body"])}
+               "meshes": meshes, "body": SMPLXModel.load(models["body"]), "models": models}
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -233,11 +239,12 @@ def test_missing_model_file_keeps_the_detector_running_with_an_error(graph):
     assert MISSING_MODEL in read_log(proc)
 
 
-def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph):
+@pytest.mark.parametrize("namespace", [GT_NS, TIMED_NS])
+def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph, namespace):
     probe = graph["probe"]
-    image_pub = probe.node.create_publisher(Image, f"{GT_NS}/image", stage_output_qos(5))
-    truth_pub = probe.node.create_publisher(SceneGroundTruth, f"{GT_NS}/ground_truth", stage_output_qos(10))
-    detections = probe.collect(PersonDetections, f"{GT_NS}/detections")
+    image_pub = probe.node.create_publisher(Image, f"{namespace}/image", stage_output_qos(5))
+    truth_pub = probe.node.create_publisher(SceneGroundTruth, f"{namespace}/ground_truth", stage_output_qos(10))
+    detections = probe.collect(PersonDetections, f"{namespace}/detections")
     assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 1
                             and truth_pub.get_subscription_count() >= 1, 10.0)
     probe.spin_for(0.3)  # let the node's writer match our reader as well
@@ -278,6 +285,9 @@ def test_ground_truth_backend_pairs_image_and_truth_in_either_order(graph):
             np.testing.assert_allclose(detection_to_box(det.detections[0]), [*box, 1.0], atol=1e-5)
         else:
             assert len(det.detections) == 0
+    if namespace == TIMED_NS:  # the stand-in's network was loaded (and ran); its own boxes never went out
+        log = read_log(graph["procs"][f"{TIMED_NS}/detector_node"])
+        assert f"timing stand-in detector model '{graph['models']['detector']}' loaded" in log, log
 
 
 # ----------------------------------------------------------------------------- parameters at runtime

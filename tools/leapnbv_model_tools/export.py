@@ -89,6 +89,10 @@ def export_onnx(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: 
             onnx.save(proto, staged)
         del proto
         onnx.checker.check_model(staged)  # by path: reads external data where there is some
+        umask = os.umask(0)
+        os.umask(umask)
+        for written in (staged, os.path.join(work, data_name)) if external else (staged,):
+            os.chmod(written, 0o666 & ~umask)  # as any file the user writes (the writer may make it private)
         if external:
             os.replace(os.path.join(work, data_name), final + ".data")  # the data first: the graph names it
         os.replace(staged, final)

@@ -28,7 +28,8 @@ class RasterParams:
                           min=0.0, max=1.0)
     depth_wait_s: float = param(1.0, "s: how long a mesh waits for its depth frame before it is dropped and counted",
                                 min=0.0, max=WAIT_MAX_S)
-    depth_cache_size: int = param(15, "depth frames kept while their meshes are computed", min=1, max=1000,
+    depth_cache_size: int = param(45, "depth frames kept while their meshes are computed (45: 1.5 s of a 30 FPS "
+                                  "camera, what a CPU detector + HMR can take per frame)", min=1, max=1000,
                                   read_only=True)
     ground_wait_s: float = param(0.5, "s: how long a frame waits for the ground plane fitted on its depth frame; "
                                  "then it is served without a plane (never with another frame's)", min=0.0,
@@ -88,7 +89,8 @@ class GroundParams:
                           "them, and between a person mask and the frame it belongs to", min=0.0, max=1.0)
     depth_wait_s: float = param(0.5, "s: how long detections wait for their depth frame before they are dropped "
                                 "and counted", min=0.0, max=WAIT_MAX_S)
-    depth_cache_size: int = param(15, "depth frames kept until their detections come", min=1, max=1000,
+    depth_cache_size: int = param(45, "depth frames kept until their detections come (45: 1.5 s of a 30 FPS "
+                                  "camera, what a CPU detector can take per frame)", min=1, max=1000,
                                   read_only=True)
     # Occluders can hide all the floor: then the floor z = 0 of the frame's camera pose keeps the planner going.
     use_camera_pose_fallback: bool = param(True, "when RANSAC finds no floor, publish the floor z = 0 of the camera "

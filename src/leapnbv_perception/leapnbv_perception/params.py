@@ -66,7 +66,15 @@ class DetectorParams(EngineParams):
                                        "recent answer time, at most this long, was dropped downstream and stops "
                                        "counting as in flight", min=0.01, max=10.0)
 
+    timing_stand_in: bool = param(False, "benchmarks only, with backend ground_truth: also run the onnxruntime engine "
+                                  "of model_file_path on every admitted frame and discard its boxes (the truth's "
+                                  "are published), so that a whole-frame benchmark pays a real detector's cost "
+                                  "with a network that has no weights (scripts/bench_load.py)", read_only=True)
+
     def check(self) -> None:
+        if self.timing_stand_in and (self.backend != "ground_truth" or not self.model_file_path):
+            raise ValueError("timing_stand_in needs backend ground_truth and a model_file_path (the network whose "
+                             f"cost is paid); got backend {self.backend!r}, model_file_path {self.model_file_path!r}")
         if self.detector_family not in detector_family_names():
             raise ValueError(f"detector_family = {self.detector_family!r} is not one of {detector_family_names()}")
 
@@ -83,4 +91,7 @@ class HmrParams(EngineParams):
     unmirror_left_hand: bool = param(True, "un-mirror the left hand (SMPLer-X: true, SMPLest-X: false)")
     track_previous_target: bool = param(True, "follow the person who overlaps the last target, else the best score")
     min_track_iou: float = param(0.3, "overlap with the last target needed to keep following it", min=0.0, max=1.0)
-    cache_size: int = param(10, "images kept while waiting for their detections", min=1, max=1000, read_only=True)
+    # A detector on a CPU takes 0.3-0.6 s a frame (docs/ARCHITECTURE.md, "Timing"): with 10 images at
+    # 30 FPS, every frame's image was gone when its detections came (rejected.no_matching_image).
+    cache_size: int = param(45, "images kept while waiting for their detections (45: 1.5 s of a 30 FPS camera)",
+                            min=1, max=1000, read_only=True)

@@ -44,3 +44,14 @@ def test_hmr_runtime_settings() -> None:
     assert runtime == {"box_scale", "unmirror_left_hand", "track_previous_target", "min_track_iou"}
     with pytest.raises(ParamsError, match="box_scale = 0.5 is below its minimum 1.0"):
         replace_params(HmrParams(), {"box_scale": 0.5})
+
+
+def test_timing_stand_in_needs_the_ground_truth_backend_and_a_model() -> None:
+    timed = params_from_values(DetectorParams, {"backend": "ground_truth", "timing_stand_in": True,
+                                                "model_file_path": "/models/yolov8s_random.onnx"})
+    assert timed.timing_stand_in
+    for values, needle in [({"backend": "onnxruntime", "model_file_path": "/m.onnx"}, "backend 'onnxruntime'"),
+                           ({"backend": "ground_truth"}, "model_file_path ''")]:
+        with pytest.raises((ParamsError, ValueError), match="timing_stand_in needs backend ground_truth") as error:
+            params_from_values(DetectorParams, {**values, "timing_stand_in": True})
+        assert needle in str(error.value)

@@ -14,6 +14,7 @@ are set at start-up.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import OrderedDict
 from typing import Callable, Dict, Optional, Set, Tuple
@@ -125,6 +126,10 @@ class DetectorNode(Node):
             self.truth_timer.cancel()  # runs only while an image waits
             # A bad truth is counted within HOUSEKEEPING_PERIOD_S even while no image comes.
             self.create_timer(HOUSEKEEPING_PERIOD_S, self.truth_input.drain)
+            if p.timing_stand_in:  # a benchmark: the real network's cost, the truth's boxes
+                self.detector = RetryingLoader(self, self.diagnostics, "timing stand-in detector model "
+                                               + repr(p.model_file_path), self.load_timing_detector,
+                                               p.model_retry_period_s)
         else:
             self.detector = RetryingLoader(self, self.diagnostics, "detector model " + repr(p.model_file_path),
                                            self.load_detector, p.model_retry_period_s)
@@ -145,6 +150,14 @@ class DetectorNode(Node):
         p = self.params.value
         return PersonDetector(create_engine_backend(p), p.score_threshold, p.iou_threshold, p.max_detections,
                               family=p.detector_family, multi_label=p.multi_label)
+
+    def load_timing_detector(self):
+        """The timing stand-in's engine: onnxruntime, whatever the (ground_truth) backend says."""
+        from leapnbv_perception.detector import PersonDetector
+
+        p = self.params.value
+        return PersonDetector(create_engine_backend(dataclasses.replace(p, backend="onnxruntime")), p.score_threshold,
+                              p.iou_threshold, p.max_detections, family=p.detector_family, multi_label=p.multi_label)
 
     def on_params_change(self, params: DetectorParams, changed: Set[str]) -> None:
         """The thresholds and the admission settings apply from the next frame (the rest is read-only)."""
@@ -271,6 +284,11 @@ class DetectorNode(Node):
             return
         if not self.admit(stamp, lambda: self.publish_ground_truth(image, truth)):
             return
+        if self.detector is not None:  # timing stand-in: pay the network's cost, keep the truth's boxes
+            if self.detector.value is None:
+                self.diagnostics.reject("engine_not_ready", self.diagnostics.engine_state)
+                return
+            self.detector.value.detect(image_to_rgb(image))
         # The truth gives the box: the image's pixels are not read (only checked, in on_image).
         box = scene_ground_truth_to_arrays(truth).person_box  # all zero when no person is visible
         visible = box[2] > box[0] and box[3] > box[1]
