@@ -25,6 +25,7 @@ pytestmark = [pytest.mark.ros]
 MISSING_NS = "/leapnbv_missing_model"
 GT_NS = "/leapnbv_gt"
 TIMED_NS = "/leapnbv_timed"
+CARRY_NS = "/leapnbv_carry"
 FRAME_ID = "camera_color_optical_frame"
 WIDTH, HEIGHT = 640, 480
 MISSING_MODEL = "/nonexistent/leapnbv_models/yolov8_missing.onnx"
@@ -83,6 +84,10 @@ def graph(models, tmp_path_factory):
             "leapnbv_perception.nodes.detector_node", str(logs / "detector_timed.log"), namespace=TIMED_NS,
             params={"backend": "ground_truth", "timing_stand_in": "true", "model_file_path": models["detector"],
                     "multi_label": "true"}),
+        # Detect one frame in three; the others get the target's box carried by its mesh (ground-truth boxes).
+        f"{CARRY_NS}/detector_node": harness.start_node(
+            "leapnbv_perception.nodes.detector_node", str(logs / "detector_carry.log"), namespace=CARRY_NS,
+            params={"backend": "ground_truth", "detect_every_n_frames": "3", "carry_min_confidence": "0.5"}),
     }
     with harness.running_graph("perception_nodes_test", procs) as probe:
         image_pub = probe.node.create_publisher(Image, f"{NS}/image", stage_output_qos(5))
@@ -324,3 +329,68 @@ def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(gr
     assert not model.successful and "body_model_path" in model.reason
     for proc in graph["procs"].values():
         assert proc.poll() is None
+
+
+def test_detector_carries_the_target_box_between_detections(graph):
+    from geometry_msgs.msg import PoseStamped
+
+    from leapnbv_common.conversions import input_stamps, stamp_to_ns
+
+    probe = graph["probe"]
+    image_pub = probe.node.create_publisher(Image, f"{CARRY_NS}/image", stage_output_qos(5))
+    truth_pub = probe.node.create_publisher(SceneGroundTruth, f"{CARRY_NS}/ground_truth", stage_output_qos(10))
+    pose_pub = probe.node.create_publisher(PoseStamped, f"{CARRY_NS}/camera_pose", stage_output_qos(10))
+    mesh_pub = probe.node.create_publisher(HumanMesh, f"{CARRY_NS}/human_mesh_metric", stage_output_qos(1))
+    detections = probe.collect(PersonDetections, f"{CARRY_NS}/detections")
+    assert probe.spin_until(lambda: min(pub.get_subscription_count() for pub in
+                                        (image_pub, truth_pub, pose_pub, mesh_pub)) >= 1, 10.0)
+    probe.spin_for(0.3)
+    fx, cx, cy = 500.0, 320.0, 240.0
+    rng = np.random.default_rng(0)
+    person = rng.uniform([-0.25, -0.8, -0.15], [0.25, 0.8, 0.15], size=(500, 3)) + [0.0, 0.0, 3.0]
+
+    def projected_box(points: np.ndarray) -> list:
+        u, v = fx * points[:, 0] / points[:, 2] + cx, fx * points[:, 1] / points[:, 2] + cy
+        return [float(u.min()), float(v.min()), float(u.max()), float(v.max())]
+
+    def send_frame(k: int, shift_m: float, truth_box) -> Header:
+        header = make_header(6000, k * 33_000_000)  # a 30 FPS camera
+        pose = PoseStamped(header=Header(stamp=header.stamp, frame_id="map"))
+        pose.pose.position.x, pose.pose.position.z = shift_m, 1.2  # identity rotation: camera x = map x
+        pose.pose.orientation.w = 1.0
+        pose_pub.publish(pose)
+        truth = SceneGroundTruth(header=header, body_model_id="stand_in_small")
+        truth.person_box = PersonDetection(x_min=truth_box[0], y_min=truth_box[1], x_max=truth_box[2],
+                                           y_max=truth_box[3], score=1.0)
+        truth_pub.publish(truth)
+        probe.spin_for(0.1)
+        image_pub.publish(numpy_to_image(np.zeros((480, 640, 3), np.uint8), "rgb8", header))
+        assert probe.spin_until(lambda: by_stamp(detections, stamp_key(header)), 10.0), f"frame {k}"
+        return header
+
+    box_1 = projected_box(person)
+    first = send_frame(1, 0.0, box_1)  # detected (the truth's box)
+    mesh = HumanMesh(header=first, fx=fx, fy=fx, cx=cx, cy=cy, image_width=640, image_height=480)
+    mesh.detection = PersonDetection(x_min=box_1[0], y_min=box_1[1], x_max=box_1[2], y_max=box_1[3], score=0.9)
+    mesh.vertices = person.astype(np.float32).ravel().tolist()
+    mesh.faces = [0, 1, 2]
+    mesh_pub.publish(mesh)
+    probe.spin_for(0.3)
+    decoy = (5.0, 5.0, 50.0, 50.0)  # a truth box the carried frames must not show
+    frames = [send_frame(k, 0.1 * (k - 1), decoy) for k in (2, 3, 4)]
+    (det_1,) = by_stamp(detections, stamp_key(first))
+    np.testing.assert_allclose(detection_to_box(det_1.detections[0])[:4], box_1, atol=1e-3)
+    assert not det_1.inputs
+    for k, header in zip((2, 3), frames[:2]):  # carried: the camera moved 0.1 m right per frame
+        (det,) = by_stamp(detections, stamp_key(header))
+        expected = projected_box(person - [0.1 * (k - 1), 0.0, 0.0])
+        # within 1.5 px: one scale and shift for the whole body, while its depth (0.3 m) gives some parallax
+        np.testing.assert_allclose(detection_to_box(det.detections[0])[:4], expected, atol=1.5)
+        assert input_stamps(det) == [("human_mesh_metric", stamp_to_ns(first.stamp), 1),
+                                     ("camera_pose", stamp_to_ns(header.stamp), 0),
+                                     ("camera_pose", stamp_to_ns(first.stamp), 1)]
+    (det_4,) = by_stamp(detections, stamp_key(frames[2]))  # the third frame after a detection: detected
+    np.testing.assert_allclose(detection_to_box(det_4.detections[0])[:4], decoy, atol=1e-3)
+    assert not det_4.inputs
+    assert probe.spin_until(lambda: probe.status_where(
+        f"{CARRY_NS}/detector_node", lambda s: diag_value(s, "counted.boxes_carried") == "2") is not None, 5.0)

@@ -51,7 +51,7 @@ def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
     gt = {GROUND_TRUTH: GROUND_TRUTH_TOPIC}
     return [
         NodeSpec("detector_node", "leapnbv_perception", "leapnbv_perception.nodes.detector_node",
-                 {"image": cam["image"], **gt}),
+                 {"image": cam["image"], CAMERA_POSE: cam[CAMERA_POSE], **gt}),  # poses: detect_every_n_frames
         NodeSpec("hmr_node", "leapnbv_perception", "leapnbv_perception.nodes.hmr_node",
                  {"image": cam["image"], "camera_info": cam["camera_info"], **gt}),
         NodeSpec("raster_node", "leapnbv_geometry", "leapnbv_geometry.nodes.raster_node",

@@ -41,6 +41,7 @@ class StageDiagnostics:
         self.frames_out = 0
         self.rejected: Dict[str, int] = collections.Counter()
         self.dropped: Dict[str, int] = collections.Counter()
+        self.counted: Dict[str, int] = collections.Counter()  # other per-frame events (count)
         self._last_sequence: Dict[str, int] = {}
         self.transport_ms: Dict[str, float] = {}
         self.last_reject_detail = ""
@@ -77,6 +78,10 @@ class StageDiagnostics:
         """Count an input not used by choice (no log, no WARN): ``dropped.<reason>``."""
         if count > 0:
             self.dropped[reason] += count
+
+    def count(self, name: str, count: int = 1) -> None:
+        """Count a per-frame event that is neither a rejection nor a drop (``counted.<name>``)."""
+        self.counted[name] += count
 
     def drop_callback(self) -> Callable[[str, int], None]:
         """An ``on_drop(reason, stamp_ns)`` for the stamp caches (leapnbv_common.stamp_cache)."""
@@ -153,6 +158,7 @@ class StageDiagnostics:
         }
         values.update({f"rejected.{k}": v for k, v in sorted(self.rejected.items())})
         values.update({f"dropped.{k}": v for k, v in sorted(self.dropped.items())})
+        values.update({f"counted.{k}": v for k, v in sorted(self.counted.items())})
         values.update({f"transport_ms.{k}": f"{v:.2f}" for k, v in sorted(self.transport_ms.items())})
         return DiagnosticStatus(
             level=level,

@@ -66,6 +66,19 @@ class DetectorParams(EngineParams):
                                        "recent answer time, at most this long, was dropped downstream and stops "
                                        "counting as in flight", min=0.01, max=10.0)
 
+    # Detect less often (leapnbv_perception.box_tracking): between detections the target's box is carried
+    # by the image motion of its metric mesh (human_mesh_metric) and the camera poses. Off by default: the
+    # person's own motion is not compensated (docs/ALGORITHMS.md, "Detect less often").
+    detect_every_n_frames: int = param(1, "run the detector on one admitted frame in N and carry the target's box "
+                                       "into the others (1 = every frame). Needs camera poses (camera_pose topic): "
+                                       "a frame without its pose, or the pose of the mesh's frame, is detected",
+                                       min=1, max=30, read_only=True)
+    carry_min_confidence: float = param(0.8, "a carried box whose mesh is less than this share in the image (times "
+                                        "the share of the box inside) is detected instead", min=0.0, max=1.0)
+    camera_pose_source: str = param("topic", "with detect_every_n_frames > 1: where the camera poses come from (a "
+                                    "key of leapnbv_common.camera_pose.CAMERA_POSE_SOURCES)", read_only=True)
+    carry_max_age_s: float = param(0.5, "s: a mesh older than this (its frame before the current one) is not "
+                                   "carried", min=0.0, max=5.0)
     timing_stand_in: bool = param(False, "benchmarks only, with backend ground_truth: also run the onnxruntime engine "
                                   "of model_file_path on every admitted frame and discard its boxes (the truth's "
                                   "are published), so that a whole-frame benchmark pays a real detector's cost "

@@ -17,20 +17,24 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import OrderedDict
-from typing import Callable, Dict, Optional, Set, Tuple
+from typing import Callable, Dict, Optional, Sequence, Set, Tuple
 
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
+from leapnbv_common.camera_pose import create_camera_pose_source
 from leapnbv_common.contracts import DuplicateStampGuard, check_boxes, check_same_frame, refused
 from leapnbv_common.conversions import (
     COLOUR_ENCODINGS,
+    HumanMeshArrays,
     SerializedImage,
     box_to_detection,
     check_image,
+    human_mesh_to_arrays,
     image_to_rgb,
+    input_stamp_msgs,
     scene_ground_truth_to_arrays,
     serialized_header_stamp_ns,
     stamp_to_ns,
@@ -41,13 +45,15 @@ from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.pulled_input import HOUSEKEEPING_PERIOD_S, PulledInput
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import STAMP_RESTART_NS, ExactStampPairer
-from leapnbv_common.topics import DETECTIONS, GROUND_TRUTH, VIEW_CANDIDATES
-from leapnbv_msgs.msg import PersonDetections, SceneGroundTruth, ViewCandidates
+from leapnbv_common.topics import CAMERA_POSE, DETECTIONS, GROUND_TRUTH, HUMAN_MESH_METRIC, VIEW_CANDIDATES
+from leapnbv_msgs.msg import HumanMesh, InputStamp, PersonDetections, SceneGroundTruth, ViewCandidates
+from leapnbv_perception.box_tracking import DetectionSchedule, camera_motion, carry_box
 from leapnbv_perception.nodes.engine_loading import RetryingLoader, create_engine_backend
 from leapnbv_perception.params import DetectorParams
 
 MIN_IN_FLIGHT_TIMEOUT_S = 0.05  # an admitted frame counts at least this long (see FramesInFlight)
 WAITING_CHECK_PERIOD_S = 0.05  # how often a waiting frame checks whether an in-flight frame timed out
+CARRY_POSE_CACHE = 90  # camera poses remembered for carrying boxes (3 s at 30 FPS)
 TRUTH_WAIT_S = 1.0  # ground truth: how long an image waits for the truth of its stamp (pulled every 20 ms)
 
 
@@ -133,6 +139,15 @@ class DetectorNode(Node):
         else:
             self.detector = RetryingLoader(self, self.diagnostics, "detector model " + repr(p.model_file_path),
                                            self.load_detector, p.model_retry_period_s)
+        # Detect less often: the target's box carried by its mesh's image motion between detections.
+        self.schedule = DetectionSchedule(p.detect_every_n_frames, p.carry_min_confidence)
+        self.carrying = p.detect_every_n_frames > 1
+        self.last_mesh: Optional[Tuple[int, str, HumanMeshArrays]] = None  # (stamp, frame_id, arrays)
+        if self.carrying:
+            # Both pulled when a frame is decided: they do not wake the node.
+            self.mesh_input = PulledInput.create(self, HumanMesh, HUMAN_MESH_METRIC, self.on_mesh, stage_input_qos(1))
+            self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, CARRY_POSE_CACHE)
+            self.pose_input = PulledInput.adopt(self, self.camera_poses)
         # The newest frame only (depth 1): frames that came while the node was busy are counted as not taken.
         # Read in place from its serialized bytes (SerializedImage): it is checked, never deserialized.
         self.create_subscription(Image, "image", self.on_image, camera_input_qos(1), raw=True)
@@ -209,9 +224,50 @@ class DetectorNode(Node):
             self.diagnostics.drop("graph_busy")
         return True
 
-    def publish(self, header: Header, width: int, height: int, boxes: np.ndarray, started: float) -> None:
+    @rejects_bad_input("bad_human_mesh")
+    def on_mesh(self, msg: HumanMesh, info) -> None:
+        """The newest metric mesh of the target (raster_node), kept to carry its box into later frames."""
+        self.diagnostics.input_seen("human_mesh_metric", info)
+        stamp = stamp_to_ns(msg.header.stamp)
+        if self.last_mesh is None or stamp > self.last_mesh[0]:
+            self.last_mesh = (stamp, msg.header.frame_id, human_mesh_to_arrays(msg))
+
+    def carried_box(self, image: SerializedImage) -> Optional[Tuple[np.ndarray, list]]:
+        """(boxes (1, 5), inputs) when this frame's target box is carried instead of detected; None: detect.
+
+        Carried from the newest metric mesh of a frame at most carry_max_age_s older, by its image motion
+        and the camera poses of both frames, while the schedule allows and the carried box is trusted."""
+        if not self.carrying:
+            return None
+        self.mesh_input.drain()
+        if self.pose_input is not None:
+            self.pose_input.drain()
+        stamp = stamp_to_ns(image.header.stamp)
+        carried = None
+        if self.last_mesh is not None:
+            mesh_stamp, mesh_frame, mesh = self.last_mesh
+            fresh = 0 < stamp - mesh_stamp <= self.params.value.carry_max_age_s * 1e9
+            same_camera = mesh_frame == image.header.frame_id and tuple(mesh.image_size) == (image.width, image.height)
+            pose_a, pose_b = self.camera_poses.pose_at(mesh_stamp), self.camera_poses.pose_at(stamp)
+            if fresh and same_camera and pose_a is not None and pose_b is not None:
+                fx, fy, cx, cy = mesh.virtual_intrinsics  # the metric mesh carries the camera's intrinsics
+                K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+                motion = camera_motion((pose_a.rotation, pose_a.position), (pose_b.rotation, pose_b.position))
+                carried = carry_box(mesh.detection[:4], mesh.vertices, K, K, (image.width, image.height), motion)
+        if self.schedule.should_detect(carried):
+            self.schedule.record(True)
+            return None
+        self.schedule.record(False)
+        self.diagnostics.count("boxes_carried")
+        boxes = np.array([[*carried.box, mesh.detection[4]]], np.float32)
+        inputs = [(HUMAN_MESH_METRIC, mesh_stamp, InputStamp.CARRIED), (CAMERA_POSE, stamp, InputStamp.SAME_FRAME),
+                  (CAMERA_POSE, mesh_stamp, InputStamp.CARRIED)]
+        return boxes, inputs
+
+    def publish(self, header: Header, width: int, height: int, boxes: np.ndarray, started: float,
+                inputs: Sequence[tuple] = ()) -> None:
         stamp = stamp_to_ns(header.stamp)
-        out = PersonDetections(header=header, image_width=width, image_height=height)
+        out = PersonDetections(header=header, image_width=width, image_height=height, inputs=input_stamp_msgs(inputs))
         out.detections = [box_to_detection(b) for b in boxes]
         out.backend = self.params.value.backend
         out.compute_time_ms = (time.perf_counter() - started) * 1e3
@@ -252,6 +308,10 @@ class DetectorNode(Node):
     def detect(self, image: SerializedImage, started: Optional[float] = None) -> None:
         if started is None:
             started = time.perf_counter()
+        carried = self.carried_box(image)
+        if carried is not None:
+            self.publish(image.header, image.width, image.height, carried[0], started, carried[1])
+            return
         rgb = image_to_rgb(image)
         self.publish(image.header, image.width, image.height, self.detector.value.detect(rgb), started)
 
@@ -283,6 +343,10 @@ class DetectorNode(Node):
                    "ground truth", truth.header.frame_id):
             return
         if not self.admit(stamp, lambda: self.publish_ground_truth(image, truth)):
+            return
+        carried = self.carried_box(image)
+        if carried is not None:
+            self.publish(image.header, image.width, image.height, carried[0], started, carried[1])
             return
         if self.detector is not None:  # timing stand-in: pay the network's cost, keep the truth's boxes
             if self.detector.value is None:
