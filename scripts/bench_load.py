@@ -552,7 +552,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         "cpu_ms_per_goal": {name: round(1e3 * sum(cpu_after[name][k] - cpu_before[name][k] for k in cpu_after[name])
                                         / max(1, len(goals)), 1) for name in pids},
         "diagnostics": {name: {k: v for k, v in values.items()
-                               if k.startswith(("dropped", "rejected", "frames_", "transport_ms", "last_compute"))}
+                               if k.startswith(("dropped", "rejected", "counted", "frames_", "transport_ms",
+                                                "last_compute"))}
                         for name, values in sorted(monitor.diagnostics.items())},
     })
     if args.profile_s:
@@ -606,9 +607,10 @@ def print_report(r: Dict) -> None:
     for name, series in r["rss_mb"].items():
         picks = [series[int(i)] for i in np.linspace(0, len(series) - 1, min(6, len(series)))]
         print(f"  {name:14s} " + "  ".join(f"{t:5.0f}s {v:6.1f}" for t, v in picks))
-    print("drops and rejections by node:")
+    print("drops, rejections and other counts by node:")
     for name, values in r["diagnostics"].items():
-        counts = {k: v for k, v in values.items() if k.startswith(("dropped.", "rejected.")) and v not in ("0",)}
+        counts = {k: v for k, v in values.items()
+                  if k.startswith(("dropped.", "rejected.", "counted.")) and v not in ("0",)}
         print(f"  {name}: in {values.get('frames_in')}, out {values.get('frames_out')}; {counts}")
     if "profile_shares_percent" in r:
         print("py-spy samples by kind (% of each node's samples):")

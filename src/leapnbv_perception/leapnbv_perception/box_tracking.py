@@ -110,11 +110,14 @@ class DetectionSchedule:
     min_confidence: float = 0.8
     frames_since_detection: Optional[int] = None
 
+    def due(self) -> bool:
+        """Whether the next frame is one the detector runs on anyway (the first, or the N-th)."""
+        return (self.frames_since_detection is None or self.every_n <= 1
+                or self.frames_since_detection + 1 >= self.every_n)
+
     def should_detect(self, carried: Optional[CarriedBox]) -> bool:
         """Decide for the next frame, given the box carried into it (None: none could be)."""
-        due = (self.frames_since_detection is None or self.every_n <= 1
-               or self.frames_since_detection + 1 >= self.every_n)
-        return due or carried is None or carried.confidence < self.min_confidence
+        return self.due() or carried is None or carried.confidence < self.min_confidence
 
     def record(self, detected: bool) -> None:
         self.frames_since_detection = 0 if detected else (self.frames_since_detection or 0) + 1

@@ -10,11 +10,13 @@ from dataclasses import dataclass
 from typing import List
 
 from leapnbv_common.params import param
+from leapnbv_perception.backends.onnxruntime_backend import GRAPH_OPTIMIZATIONS
 from leapnbv_perception.detector_families import DEFAULT_DETECTOR_FAMILY, detector_family_names
 
 ENGINE_BACKENDS = ("onnxruntime", "tensorrt", "ground_truth")
 PRECISIONS = ("fp16", "fp32")
 THREADS_MAX = 256
+GRAPH_OPTIMIZATION_LEVELS = tuple(GRAPH_OPTIMIZATIONS)
 RETRY_PERIOD_MAX_S = 3600.0
 
 
@@ -34,6 +36,12 @@ class EngineParams:
                                  read_only=True)
     intra_op_threads: int = param(1, "onnxruntime intra-op threads (0 = its default)", min=0, max=THREADS_MAX,
                                   read_only=True)
+    graph_optimization: str = param("all", "onnxruntime graph optimization level", choices=GRAPH_OPTIMIZATION_LEVELS,
+                                    read_only=True)
+    parallel_execution: bool = param(False, "onnxruntime: run independent branches of the graph in parallel "
+                                     "(inter_op_threads) instead of operator after operator", read_only=True)
+    inter_op_threads: int = param(1, "onnxruntime inter-op threads for parallel_execution (0 = its default)", min=0,
+                                  max=THREADS_MAX, read_only=True)
     model_retry_period_s: float = param(5.0, "s: retry loading a missing or broken model this often (0 = never)",
                                         min=0.0, max=RETRY_PERIOD_MAX_S, read_only=True)
 

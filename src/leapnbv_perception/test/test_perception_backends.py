@@ -801,3 +801,23 @@ def test_tensorrt_parser_is_given_the_model_path(onnx_file: str, tmp_path: Path)
     trt = make_fake_tensorrt(FakeMemory(), tensor_api=True)
     TensorRTBackend(onnx_file, "fp32", str(tmp_path / "cache"), trt=trt, memory=FakeMemory())
     assert trt.parsed_paths == [onnx_file]
+
+
+def test_onnxruntime_session_settings_change_speed_not_results(models) -> None:
+    # Every graph optimization level, sequential or parallel execution: the same outputs.
+    from leapnbv_perception.backends.onnxruntime_backend import GRAPH_OPTIMIZATIONS, OnnxRuntimeBackend
+
+    path = models["hmr"]
+    reference = OnnxRuntimeBackend(path, intra_op_threads=1)
+    feed = {name: np.random.default_rng(0).uniform(0, 1, spec.shape).astype(spec.dtype)
+            for name, spec in reference.input_specs.items()}
+    expected = reference.run(feed)
+    for level in GRAPH_OPTIMIZATIONS:
+        for parallel in (False, True):
+            backend = create_backend("onnxruntime", path, intra_op_threads=1, graph_optimization=level,
+                                     parallel_execution=parallel, inter_op_threads=2)
+            got = backend.run(feed)
+            for name, value in expected.items():
+                np.testing.assert_allclose(got[name], value, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="graph_optimization 'fastest' is not one of"):
+        OnnxRuntimeBackend(path, graph_optimization="fastest")

@@ -28,7 +28,8 @@ def test_detector_thresholds_change_at_runtime_within_their_ranges() -> None:
     with pytest.raises(ParamsError, match="backend is read-only"):
         replace_params(params, {"backend": "tensorrt"})
     assert {spec.name for spec in param_specs(DetectorParams) if not spec.read_only} == {
-        "score_threshold", "iou_threshold", "max_detections", "max_frames_in_flight", "in_flight_timeout_s"}
+        "score_threshold", "iou_threshold", "max_detections", "max_frames_in_flight", "in_flight_timeout_s",
+        "carry_min_confidence", "carry_max_age_s"}
 
 
 def test_engine_choices() -> None:

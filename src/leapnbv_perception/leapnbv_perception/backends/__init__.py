@@ -24,6 +24,9 @@ def create_backend(
     engine_cache_dir: Optional[str] = None,
     intra_op_threads: int = 0,
     precision_plan_path: Optional[str] = None,
+    graph_optimization: str = "all",
+    parallel_execution: bool = False,
+    inter_op_threads: int = 1,
 ) -> EngineBackend:
     """Create the named backend for one ONNX model.
 
@@ -36,6 +39,8 @@ def create_backend(
         intra_op_threads: onnxruntime intra-op threads (0 = its default).
         precision_plan_path: TensorRT FP16 precision plan JSON (layers kept in FP32; see
             backends/precision_plan.py); None or "" for none. onnxruntime ignores it.
+        graph_optimization, parallel_execution, inter_op_threads: onnxruntime's session settings
+            (OnnxRuntimeBackend); TensorRT ignores them.
 
     Returns:
         A ready EngineBackend.
@@ -54,7 +59,9 @@ def create_backend(
         from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
 
         return OnnxRuntimeBackend(
-            model_path, providers=providers, intra_op_threads=intra_op_threads, precision=precision
+            model_path, providers=providers, intra_op_threads=intra_op_threads, precision=precision,
+            graph_optimization=graph_optimization, parallel_execution=parallel_execution,
+            inter_op_threads=inter_op_threads,
         )
     from leapnbv_perception.backends.tensorrt_backend import TensorRTBackend
 

@@ -27,6 +27,11 @@ _ORT_TYPES = {
 }
 
 
+# Parameter value -> onnxruntime.GraphOptimizationLevel member.
+GRAPH_OPTIMIZATIONS = {"disable": "ORT_DISABLE_ALL", "basic": "ORT_ENABLE_BASIC", "extended": "ORT_ENABLE_EXTENDED",
+                       "all": "ORT_ENABLE_ALL"}
+
+
 class OnnxRuntimeBackend(EngineBackend):
     """Runs an ONNX model with onnxruntime.
 
@@ -35,6 +40,10 @@ class OnnxRuntimeBackend(EngineBackend):
         providers: execution providers in priority order; default ["CPUExecutionProvider"].
         intra_op_threads: threads per operator (0 = onnxruntime's default).
         precision: reported precision; the model runs in the types it was exported with.
+        graph_optimization: onnxruntime's graph optimization level: one of GRAPH_OPTIMIZATIONS.
+        parallel_execution: run independent branches of the graph in parallel (inter_op_threads
+            threads) instead of one operator after the other.
+        inter_op_threads: threads for parallel execution (0 = onnxruntime's default).
 
     Raises:
         ModelFileNotFoundError: when model_path does not exist.
@@ -47,14 +56,22 @@ class OnnxRuntimeBackend(EngineBackend):
         providers: Optional[Sequence[str]] = None,
         intra_op_threads: int = 0,
         precision: str = "fp32",
+        graph_optimization: str = "all",
+        parallel_execution: bool = False,
+        inter_op_threads: int = 1,
     ) -> None:
         import onnxruntime
 
         self.model_path = require_model_file(model_path)
+        if graph_optimization not in GRAPH_OPTIMIZATIONS:
+            raise ValueError("graph_optimization '%s' is not one of %s" % (graph_optimization, GRAPH_OPTIMIZATIONS))
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = int(intra_op_threads)
-        options.inter_op_num_threads = 1
-        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.inter_op_num_threads = int(inter_op_threads)
+        options.execution_mode = (onnxruntime.ExecutionMode.ORT_PARALLEL if parallel_execution
+                                  else onnxruntime.ExecutionMode.ORT_SEQUENTIAL)
+        options.graph_optimization_level = getattr(onnxruntime.GraphOptimizationLevel,
+                                                   GRAPH_OPTIMIZATIONS[graph_optimization])
         self._providers = list(providers) if providers else ["CPUExecutionProvider"]
         try:
             self._session = onnxruntime.InferenceSession(

@@ -148,6 +148,8 @@ class DetectorNode(Node):
             self.mesh_input = PulledInput.create(self, HumanMesh, HUMAN_MESH_METRIC, self.on_mesh, stage_input_qos(1))
             self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, CARRY_POSE_CACHE)
             self.pose_input = PulledInput.adopt(self, self.camera_poses)
+            self.get_logger().info(f"detecting one admitted frame in {p.detect_every_n_frames}; the target's box is "
+                                   f"carried into the others (meshes up to {p.carry_max_age_s:g} s old)")
         # The newest frame only (depth 1): frames that came while the node was busy are counted as not taken.
         # Read in place from its serialized bytes (SerializedImage): it is checked, never deserialized.
         self.create_subscription(Image, "image", self.on_image, camera_input_qos(1), raw=True)
@@ -175,7 +177,9 @@ class DetectorNode(Node):
                               p.iou_threshold, p.max_detections, family=p.detector_family, multi_label=p.multi_label)
 
     def on_params_change(self, params: DetectorParams, changed: Set[str]) -> None:
-        """The thresholds and the admission settings apply from the next frame (the rest is read-only)."""
+        """The thresholds, the carrying limits and the admission settings apply from the next frame (the
+        rest is read-only)."""
+        self.schedule.min_confidence = params.carry_min_confidence
         detector = self.detector.value if self.detector is not None else None
         if detector is not None:
             detector.score_threshold = params.score_threshold
@@ -243,18 +247,25 @@ class DetectorNode(Node):
         if self.pose_input is not None:
             self.pose_input.drain()
         stamp = stamp_to_ns(image.header.stamp)
-        carried = None
+        carried, refused_because = None, "no_mesh"
         if self.last_mesh is not None:
             mesh_stamp, mesh_frame, mesh = self.last_mesh
-            fresh = 0 < stamp - mesh_stamp <= self.params.value.carry_max_age_s * 1e9
-            same_camera = mesh_frame == image.header.frame_id and tuple(mesh.image_size) == (image.width, image.height)
             pose_a, pose_b = self.camera_poses.pose_at(mesh_stamp), self.camera_poses.pose_at(stamp)
-            if fresh and same_camera and pose_a is not None and pose_b is not None:
+            if not 0 < stamp - mesh_stamp <= self.params.value.carry_max_age_s * 1e9:
+                refused_because = "mesh_too_old"
+            elif mesh_frame != image.header.frame_id or tuple(mesh.image_size) != (image.width, image.height):
+                refused_because = "mesh_of_another_camera"
+            elif pose_a is None or pose_b is None:
+                refused_because = "no_camera_pose"
+            else:
                 fx, fy, cx, cy = mesh.virtual_intrinsics  # the metric mesh carries the camera's intrinsics
                 K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
                 motion = camera_motion((pose_a.rotation, pose_a.position), (pose_b.rotation, pose_b.position))
                 carried = carry_box(mesh.detection[:4], mesh.vertices, K, K, (image.width, image.height), motion)
+                refused_because = "mesh_not_in_view" if carried is None else "low_confidence"
         if self.schedule.should_detect(carried):
+            if not self.schedule.due():  # a frame that could have been carried: say why it was not
+                self.diagnostics.count("detected_instead." + refused_because)
             self.schedule.record(True)
             return None
         self.schedule.record(False)

@@ -48,4 +48,6 @@ def create_engine_backend(params: EngineParams):
     return create_backend(params.backend, params.model_file_path, precision=params.precision,
                           providers=list(params.providers), engine_cache_dir=params.engine_cache_dir or None,
                           intra_op_threads=params.intra_op_threads,
-                          precision_plan_path=params.precision_plan_path or None)
+                          precision_plan_path=params.precision_plan_path or None,
+                          graph_optimization=params.graph_optimization, parallel_execution=params.parallel_execution,
+                          inter_op_threads=params.inter_op_threads)

@@ -1,0 +1,126 @@
+#!/usr/bin/env python3
+"""A whole frame with the real network architectures through the real graph on this CPU, in several
+onnxruntime configurations (a script, not a test: each configuration runs the graph for --duration s).
+
+The networks are the real architectures with random weights, built in the tools environment:
+
+    tools/run.sh python -m leapnbv_model_tools random-yolov8 --out yolov8s_random.onnx
+    tools/run.sh python -m leapnbv_model_tools random-checkpoint --variant s32 --out s32.pth.tar
+    tools/run.sh python -m leapnbv_model_tools export-hmr --checkpoint s32.pth.tar --variant s32 --out s32.onnx
+    scripts/env.sh python scripts/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx [--duration 60]
+
+A random-weight detector finds nobody, so the detector runs as a timing stand-in
+(``detector_node.timing_stand_in``): the network runs on every admitted frame and its boxes are
+discarded; the simulator's boxes go on. The HMR network's (random) mesh goes through the rest of
+the graph. The camera is scripts/bench_load.py's (640x480 RGB-D, moving between viewpoints) at
+--fps; the graph takes the newest frame it can finish. For each configuration: goals per second,
+end-to-end latency (goal received - frame stamp) p50 / p95, each engine's compute p50, the CPU
+time per goal of each node, and the machine's load before and after.
+
+Exit codes: 0 done; 2 a model file is missing; 3 a configuration's run failed (its bench_load exit code).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from typing import Dict, List, Tuple
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+# name -> parameter overrides (node.param=value) on top of the engines' own settings
+CONFIGURATIONS: Dict[str, List[str]] = {
+    "1 thread each": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1"],
+    "2 threads each": ["detector_node.intra_op_threads=2", "hmr_node.intra_op_threads=2"],
+    "1 thread each, basic graph optimization": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1",
+                                                "detector_node.graph_optimization=basic",
+                                                "hmr_node.graph_optimization=basic"],
+    "1 thread each, parallel execution (2 inter-op)": ["detector_node.intra_op_threads=1",
+                                                       "hmr_node.intra_op_threads=1",
+                                                       "detector_node.parallel_execution=true",
+                                                       "hmr_node.parallel_execution=true",
+                                                       "detector_node.inter_op_threads=2",
+                                                       "hmr_node.inter_op_threads=2"],
+    # The next frame is admitted once the previous one is planned: the mesh it carries a box from is
+    # one whole frame old, so the age limit must exceed the frame time. The random HMR network's mesh
+    # is no person (much of it outside the image): this timing run carries its box whatever the
+    # confidence (carry_min_confidence 0), to show the time a detection-free frame takes.
+    "1 thread each, detect every 3rd frame": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1",
+                                              "detector_node.detect_every_n_frames=3",
+                                              "detector_node.carry_max_age_s=3.0",
+                                              "detector_node.carry_min_confidence=0.0"],
+}
+
+
+def run_configuration(name: str, settings: List[str], args, out: str) -> Tuple[int, Dict]:
+    base = ["detector_node.timing_stand_in=true", f"detector_node.model_file_path={os.path.abspath(args.detector)}",
+            "hmr_node.backend=onnxruntime", f"hmr_node.model_file_path={os.path.abspath(args.hmr)}",
+            f"hmr_node.body_model_path={os.path.abspath(args.body_model)}",
+            # a whole frame takes longer than the ground-truth graph's 1 s goal age limit on this CPU
+            f"nbv_node.max_goal_age_s={args.max_goal_age_s}"]
+    cmd = [sys.executable, os.path.join(HERE, "bench_load.py"), "--duration", str(args.duration), "--fps",
+           str(args.fps), "--out", out, "--window-s", str(args.duration / 2)]
+    for item in base + settings:
+        cmd += ["--set", item]
+    print(f"[bench_frame] {name}: {' '.join(settings)}", flush=True)
+    result = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    with open(os.path.join(out, "bench_load.log"), "w") as log:
+        log.write(result.stdout)
+    path = os.path.join(out, "bench_load.json")
+    if result.returncode != 0 or not os.path.isfile(path):
+        return result.returncode or 1, {}
+    with open(path) as handle:
+        return 0, json.load(handle)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--detector", required=True, help="YOLOv8-architecture ONNX (random-yolov8)")
+    parser.add_argument("--hmr", required=True, help="exported SMPLer-X ONNX (export-hmr)")
+    parser.add_argument("--body-model", default=None, help="SMPL-X .npz (default: the dense stand-in)")
+    parser.add_argument("--duration", type=float, default=60.0)
+    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--max-goal-age-s", type=float, default=5.0)
+    parser.add_argument("--only", nargs="*", default=None, help="run only these configurations (names)")
+    parser.add_argument("--out", default="out/bench_frame")
+    args = parser.parse_args(argv)
+    if args.body_model is None:
+        from leapnbv_stand_ins.files import ensure_stand_in_smplx_dense
+
+        args.body_model = ensure_stand_in_smplx_dense()
+    for path in (args.detector, args.hmr, args.body_model):
+        if not os.path.isfile(path):
+            print(f"bench_frame: model file not found: {path}", file=sys.stderr)
+            return 2
+    rows = []
+    for index, (name, settings) in enumerate(CONFIGURATIONS.items()):
+        if args.only and name not in args.only:
+            continue
+        code, r = run_configuration(name, settings, args, os.path.join(args.out, f"config_{index}"))
+        if code:
+            print(f"bench_frame: '{name}' failed (bench_load exit {code}); log in {args.out}/config_{index}",
+                  file=sys.stderr)
+            return 3
+        stages = r["stage_breakdown"]
+        rows.append((name, r["goal_rate_hz"], r["latency_ms"]["whole_run"], stages["detections"]["compute_ms_p50"],
+                     stages["human_mesh"]["compute_ms_p50"], r["cpu_ms_per_goal"], r["uptime_before"],
+                     r["uptime_after"]))
+    print(f"\n== whole frame, real architectures (random weights), {args.fps:.0f} FPS camera, {args.duration:.0f} s "
+          f"per configuration, {os.cpu_count()} cores")
+    print("| configuration | goals/s | latency p50 / p95 ms | detector compute p50 ms | HMR compute p50 ms | "
+          "CPU ms per goal (det / hmr / raster / ground / nbv) | load before -> after |")
+    print("|---|---|---|---|---|---|---|")
+    for name, rate, latency, det, hmr, cpu, before, after in rows:
+        cpu_text = " / ".join(f"{cpu.get(n, float('nan')):.0f}" for n in
+                              ("detector_node", "hmr_node", "raster_node", "ground_node", "nbv_node"))
+        print(f"| {name} | {rate:.2f} | {latency['p50']:.0f} / {latency['p95']:.0f} | {det:.0f} | {hmr:.0f} | "
+              f"{cpu_text} | {before.split()[0]} -> {after.split()[0]} |")
+    print("paper (Jetson Xavier NX, TensorRT FP16): 276 ms per frame, HMR 12 ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
