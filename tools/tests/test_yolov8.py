@@ -40,3 +40,12 @@ def test_export_meets_the_detector_contract_and_matches_pytorch(tmp_path: Path) 
     spread = [np.abs(expected[0, 0, start] - stride / 2) for start, stride in zip(starts, (8, 16, 32))]
     assert np.all(np.asarray(spread) < 4 * np.asarray((8, 16, 32))), spread
     assert centres_x.shape == (8400,) and float(expected[0, 4:].max()) < 0.05
+
+
+def test_a_320_export_is_read_at_its_own_size(tmp_path: Path) -> None:
+    from leapnbv_perception.detector import PersonDetector
+
+    path = export_yolov8(random_yolov8("n", seed=2, image_size=320), str(tmp_path / "yolov8n_320.onnx"), 320)
+    detector = PersonDetector(OnnxRuntimeBackend(path))
+    assert detector.family.input_size == 320
+    assert dict(detector.backend.output_specs)["output0"].shape == (1, 84, 2100)

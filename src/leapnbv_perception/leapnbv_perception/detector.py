@@ -29,7 +29,7 @@ class PersonDetector:
         ValueError: an unknown family (naming the known ones), or multi_label for a family
             without that option.
         ModelContractError: when the backend's model does not meet the family's contract
-            (yolov8: `images` 1x3x640x640 -> `output0` 1x84x8400).
+            (yolov8: `images` 1x3xSxS -> `output0` 1x84xA; S = 640 -> A = 8400).
     """
 
     def __init__(
@@ -45,6 +45,7 @@ class PersonDetector:
         if multi_label:
             self.family = self.family.with_options(multi_label=True)
         check_backend_contract(backend, self.family.contract)
+        self.family = self.family.for_backend(backend)
         self.backend = backend
         self.score_threshold = float(score_threshold)
         self.iou_threshold = float(iou_threshold)

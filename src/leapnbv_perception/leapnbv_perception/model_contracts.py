@@ -71,17 +71,26 @@ class ModelContract:
 
 YOLO_INPUT_NAME = "images"
 YOLO_OUTPUT_NAME = "output0"
-YOLO_INPUT_SIZE = 640
+YOLO_INPUT_SIZE = 640  # the ultralytics export's default; the node reads the model's own (yolo_input_size)
 YOLO_NUM_CLASSES = 80
-YOLO_NUM_ANCHORS = 8400
+YOLO_NUM_ANCHORS = 8400  # at 640
+# Square letterbox sides a YOLOv8 export may have here (ultralytics `imgsz`, multiples of the largest stride).
+YOLO_INPUT_SIZES = (320, 384, 416, 480, 512, 576, 640, 768, 960, 1280)
+
+
+def yolo_anchor_count(size: int) -> int:
+    """Anchor points of a YOLOv8 head at strides 8, 16 and 32 for a size x size input (8,400 at 640)."""
+    return sum((size // stride) ** 2 for stride in (8, 16, 32))
+
 
 YOLOV8_CONTRACT = ModelContract(
     model_name="YOLOv8 detector (ultralytics ONNX export)",
-    inputs=(TensorContract(YOLO_INPUT_NAME, ((1, 3, 640, 640),), "RGB/255 NCHW letterboxed image"),),
+    inputs=(TensorContract(YOLO_INPUT_NAME, tuple((1, 3, s, s) for s in YOLO_INPUT_SIZES),
+                           "RGB/255 NCHW letterboxed image, square, a multiple of 32 (640 by default)"),),
     outputs=(
         TensorContract(
             YOLO_OUTPUT_NAME,
-            ((1, 4 + YOLO_NUM_CLASSES, YOLO_NUM_ANCHORS),),
+            tuple((1, 4 + YOLO_NUM_CLASSES, yolo_anchor_count(s)) for s in YOLO_INPUT_SIZES),
             "cx, cy, w, h (letterbox pixels) + 80 sigmoid class scores per anchor",
         ),
     ),

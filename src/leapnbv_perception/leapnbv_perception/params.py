@@ -50,8 +50,9 @@ class EngineParams:
 class DetectorParams(EngineParams):
     """detector_node: colour image -> PersonDetections."""
 
-    model_file_path: str = param("", "detector ONNX export (yolov8: input 'images' 1x3x640x640, output 'output0' "
-                                 "1x84x8400)", read_only=True)
+    model_file_path: str = param("", "detector ONNX export (yolov8: input 'images' 1x3xSxS, S = 640 or another "
+                                 "multiple of 32 the export was made at, e.g. 320 on a CPU; output 'output0' "
+                                 "1x84xA, 8400 anchors at 640)", read_only=True)
     detector_family: str = param(DEFAULT_DETECTOR_FAMILY, "output layout of the exported detector: one of "
                                  + ", ".join(detector_family_names()) + " (leapnbv_perception.detector_families)",
                                  read_only=True)

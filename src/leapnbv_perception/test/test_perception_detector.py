@@ -227,3 +227,39 @@ def test_yolov8_is_the_default_family() -> None:
     inputs, transform = family.preprocess(np.zeros((480, 640, 3), np.uint8))
     assert list(inputs) == ["images"] and inputs["images"].shape == (1, 3, 640, 640)
     assert (transform.scale, transform.pad_x, transform.pad_y) == (1.0, 0.0, 80.0)
+
+
+def test_the_letterbox_side_is_the_models_and_its_anchors_must_fit(tmp_path) -> None:
+    # A 320 export (a cheaper CPU detector): letterboxed to 320 and decoded with 2,100 anchors.
+    import onnx
+    from onnx import TensorProto, helper
+
+    from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
+    from leapnbv_perception.detector import PersonDetector
+    from leapnbv_perception.model_contracts import ModelContractError, yolo_anchor_count
+
+    assert yolo_anchor_count(640) == 8400 and yolo_anchor_count(320) == 2100 and yolo_anchor_count(480) == 4725
+
+    def model(size: int, anchors: int) -> str:
+        # output0 = a constant: one person box of 100 x 200 letterbox pixels centred in the input, score 0.9
+        values = np.zeros((1, 84, anchors), np.float32)
+        values[0, :4, 0] = [size / 2, size / 2, 100.0, 200.0]
+        values[0, 4, 0] = 0.9
+        const = helper.make_tensor("const", TensorProto.FLOAT, values.shape, values.ravel())
+        graph = helper.make_graph(
+            [helper.make_node("ReduceSum", ["images"], ["total"], keepdims=0),
+             helper.make_node("Mul", ["total", "zero"], ["nothing"]),
+             helper.make_node("Add", ["const", "nothing"], ["output0"])], "g",
+            [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, size, size])],
+            [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, 84, anchors])],
+            [const, helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0])])
+        path = str(tmp_path / f"yolo_{size}_{anchors}.onnx")
+        onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)]), path)
+        return path
+
+    detector = PersonDetector(OnnxRuntimeBackend(model(320, 2100)))
+    assert detector.family.input_size == 320
+    boxes = detector.detect(np.zeros((480, 640, 3), np.uint8))  # gain 0.5, padded 40 px top and bottom
+    np.testing.assert_allclose(boxes[0, :4], [220.0, 40.0, 420.0, 440.0], atol=1e-3)
+    with pytest.raises(ModelContractError, match="a 320x320 input has 2100 anchors, but 'output0' has 8400"):
+        PersonDetector(OnnxRuntimeBackend(model(320, 8400)))

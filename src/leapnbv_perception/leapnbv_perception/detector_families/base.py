@@ -39,6 +39,14 @@ class DetectorFamily(abc.ABC):
             raise ValueError(f"detector family {self.name!r} has no options {sorted(options)}")
         return self
 
+    def for_backend(self, backend: Any) -> DetectorFamily:
+        """This family set up for the engine's model (e.g. its input size), once the contract is checked.
+
+        Raises:
+            ModelContractError: shapes the contract allows one by one but that do not fit together.
+        """
+        return self
+
     @abc.abstractmethod
     def preprocess(self, rgb: np.ndarray) -> Tuple[Dict[str, np.ndarray], Any]:
         """The engine inputs for one image, and what :meth:`decode` needs to map boxes back.

@@ -1,9 +1,10 @@
 """The "yolov8" detector family: ultralytics YOLOv8 ONNX exports (COCO classes, person = class 0);
 decoded as the ultralytics predictor does (docs/ALGORITHMS.md §1), multi-label as an option.
 
-Input ``images`` (1, 3, 640, 640) float32 RGB / 255, letterboxed (aspect kept, padded with 114,
-centred as ultralytics does); output ``output0`` (1, 84, 8400): cx, cy, w, h in letterbox pixels
-and 80 sigmoid class scores per anchor, no objectness (see model_contracts.YOLOV8_CONTRACT).
+Input ``images`` (1, 3, S, S) float32 RGB / 255, letterboxed (aspect kept, padded with 114,
+centred as ultralytics does); S is the export's (640 by default; 320 or 480 are cheaper on a CPU);
+output ``output0`` (1, 84, A) with A = (S/8)^2 + (S/16)^2 + (S/32)^2 (8,400 at 640): cx, cy, w, h in
+letterbox pixels and 80 sigmoid class scores per anchor, no objectness (model_contracts.YOLOV8_CONTRACT).
 """
 
 from __future__ import annotations
@@ -15,7 +16,14 @@ import cv2
 import numpy as np
 
 from leapnbv_perception.detector_families.base import DEFAULT_MAX_DETECTIONS, DetectorFamily, nms
-from leapnbv_perception.model_contracts import YOLO_INPUT_NAME, YOLO_INPUT_SIZE, YOLO_OUTPUT_NAME, YOLOV8_CONTRACT
+from leapnbv_perception.model_contracts import (
+    YOLO_INPUT_NAME,
+    YOLO_INPUT_SIZE,
+    YOLO_OUTPUT_NAME,
+    YOLOV8_CONTRACT,
+    ModelContractError,
+    yolo_anchor_count,
+)
 
 PAD_VALUE = 114
 PERSON_CLASS = 0
@@ -168,14 +176,26 @@ class YoloV8Family(DetectorFamily):
     contract = YOLOV8_CONTRACT
     input_size = YOLO_INPUT_SIZE
 
-    def __init__(self, multi_label: bool = False) -> None:
+    def __init__(self, multi_label: bool = False, input_size: int = YOLO_INPUT_SIZE) -> None:
         self.multi_label = bool(multi_label)
+        self.input_size = int(input_size)
 
     def with_options(self, **options: Any) -> YoloV8Family:
         unknown = sorted(set(options) - {"multi_label"})
         if unknown:
             raise ValueError(f"detector family 'yolov8' has no options {unknown}; it has ['multi_label']")
-        return YoloV8Family(multi_label=options.get("multi_label", self.multi_label))
+        return YoloV8Family(multi_label=options.get("multi_label", self.multi_label), input_size=self.input_size)
+
+    def for_backend(self, backend: Any) -> YoloV8Family:
+        """The letterbox side is the model's input side (an export at 320, 480, 640, ...); its output must
+        have that size's anchor count."""
+        size = int(backend.input_specs[YOLO_INPUT_NAME].shape[2])
+        anchors = int(backend.output_specs[YOLO_OUTPUT_NAME].shape[2])
+        if anchors != yolo_anchor_count(size):
+            raise ModelContractError(f"{getattr(backend, 'model_path', 'the detector model')}: a {size}x{size} "
+                                     f"input has {yolo_anchor_count(size)} anchors, but '{YOLO_OUTPUT_NAME}' has "
+                                     f"{anchors}")
+        return YoloV8Family(multi_label=self.multi_label, input_size=size)
 
     def preprocess(self, rgb: np.ndarray) -> Tuple[Dict[str, np.ndarray], LetterboxTransform]:
         tensor, transform = letterbox(rgb, self.input_size)
