@@ -42,10 +42,11 @@ def test_export_meets_the_detector_contract_and_matches_pytorch(tmp_path: Path) 
     assert centres_x.shape == (8400,) and float(expected[0, 4:].max()) < 0.05
 
 
-def test_a_320_export_is_read_at_its_own_size(tmp_path: Path) -> None:
-    from leapnbv_perception.detector import PersonDetector
+def test_a_320_export_meets_the_contract_at_its_own_size(tmp_path: Path) -> None:
+    # (the detector's letterbox at the model's size is tested in the runtime's tests: cv2 is not here)
+    from leapnbv_perception.model_contracts import yolo_anchor_count
 
     path = export_yolov8(random_yolov8("n", seed=2, image_size=320), str(tmp_path / "yolov8n_320.onnx"), 320)
-    detector = PersonDetector(OnnxRuntimeBackend(path))
-    assert detector.family.input_size == 320
-    assert dict(detector.backend.output_specs)["output0"].shape == (1, 84, 2100)
+    backend = OnnxRuntimeBackend(path)
+    check_backend_contract(backend, YOLOV8_CONTRACT)
+    assert dict(backend.output_specs)["output0"].shape == (1, 84, yolo_anchor_count(320)) == (1, 84, 2100)
