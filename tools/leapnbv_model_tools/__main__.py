@@ -1,4 +1,4 @@
-"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests} ..."""
+"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests, fp16-check, overflow-table} ..."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Optional, Sequence
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = ("export-hmr", "random-checkpoint", "manifests")
+    commands = ("export-hmr", "random-checkpoint", "manifests", "fp16-check", "overflow-table")
     if not argv or argv[0] not in commands:
         print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
         return 2
@@ -18,6 +18,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from leapnbv_model_tools.export import main as export_main
 
         return export_main(rest)
+    if command == "fp16-check":
+        from leapnbv_model_tools.fp16 import main as fp16_main
+
+        return fp16_main(rest)
+    if command == "overflow-table":
+        from leapnbv_model_tools.overflow_table import main as table_main
+
+        return table_main(rest)
     if command == "manifests":
         from leapnbv_model_tools.checkpoint import write_manifests
 
