@@ -1,4 +1,4 @@
-"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests, fp16-check, overflow-table} ..."""
+"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests, fp16-check, overflow-table, distill} ..."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Optional, Sequence
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = ("export-hmr", "random-checkpoint", "manifests", "fp16-check", "overflow-table")
+    commands = ("export-hmr", "random-checkpoint", "manifests", "fp16-check", "overflow-table", "distill")
     if not argv or argv[0] not in commands:
         print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
         return 2
@@ -26,6 +26,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from leapnbv_model_tools.overflow_table import main as table_main
 
         return table_main(rest)
+    if command == "distill":
+        from leapnbv_model_tools.distill import main as distill_main
+
+        return distill_main(rest)
     if command == "manifests":
         from leapnbv_model_tools.checkpoint import write_manifests
 

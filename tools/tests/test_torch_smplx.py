@@ -13,6 +13,7 @@ from leapnbv_model_tools.torch_smplx import (
     rot6d_to_matrix,
     vertex_loss,
 )
+
 from leapnbv_perception.hmr_tail import unmirror_left_hand
 from leapnbv_perception.rotations import rot6d_to_matrix as np_rot6d_to_matrix
 from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
