@@ -37,8 +37,9 @@ Erf, Exp, ...) is rounded to FP16 after each operation (numpy's half arithmetic:
 float32, rounded to nearest even). ReduceMean / ReduceSum / ReduceSumSquare on float16 are
 replaced by a sequential FP16 accumulation (each partial sum rounded to FP16, so a partial sum
 above 65504 becomes inf), then the division by the count in FP16: the worst case of an FP16
-reduction. MatMul / Gemm / Conv products are accumulated in float32 and rounded to FP16 once
-(numpy's half matmul; what tensor-core GEMMs with FP32 accumulation do); Softmax's sum is
+reduction. MatMul / Gemm / Conv / ConvTranspose products are accumulated in float32 and rounded to FP16
+once (numpy's half matmul, torch's float32 convolutions; what tensor-core GEMMs with FP32
+accumulation do); Softmax's sum is
 accumulated in float32 too. Nodes that the guarded model keeps in FP32 run in float32.
 
 Exit codes: 0 files written (and the guarded model within ``--max-error`` of FP32 when
@@ -455,6 +456,42 @@ def _emulated_reduce(kind: str):
     return type(kind, (OpRun,), {"op_domain": "", "_run": run})
 
 
+def _torch_conv(transpose: bool):
+    """Conv / ConvTranspose through torch (float32 accumulation), the result rounded to the input's dtype.
+
+    onnx.reference's own convolutions are Python loops (minutes per SMPLer-X crop).
+    """
+    from onnx.reference.op_run import OpRun
+
+    def run(self, x, w, b=None, auto_pad=None, dilations=None, group=None, kernel_shape=None, pads=None,
+            strides=None, output_padding=None, output_shape=None):
+        import torch
+        from torch.nn import functional as F
+
+        if auto_pad not in (None, "NOTSET", b"NOTSET") or output_shape is not None:
+            raise NotImplementedError("fp16 emulator: Conv auto_pad / output_shape")
+        dims = x.ndim - 2
+        dilations = list(dilations or [1] * dims)
+        strides = list(strides or [1] * dims)
+        pads = list(pads or [0] * (2 * dims))
+        if pads[:dims] != pads[dims:]:
+            raise NotImplementedError("fp16 emulator: asymmetric Conv pads")
+        group = int(group or 1)
+        tx, tw = torch.from_numpy(x.astype(np.float32)), torch.from_numpy(w.astype(np.float32))
+        tb = None if b is None else torch.from_numpy(b.astype(np.float32))
+        with torch.no_grad():
+            if transpose:
+                fn = {1: F.conv_transpose1d, 2: F.conv_transpose2d, 3: F.conv_transpose3d}[dims]
+                y = fn(tx, tw, tb, stride=strides, padding=pads[:dims],
+                       output_padding=list(output_padding or [0] * dims), groups=group, dilation=dilations)
+            else:
+                fn = {1: F.conv1d, 2: F.conv2d, 3: F.conv3d}[dims]
+                y = fn(tx, tw, tb, stride=strides, padding=pads[:dims], dilation=dilations, groups=group)
+        return (y.numpy().astype(x.dtype),)
+
+    return type("ConvTranspose" if transpose else "Conv", (OpRun,), {"op_domain": "", "_run": run})
+
+
 class Fp16Emulator:
     """Runs an ONNX (FP16, FP32 or mixed) with the FP16 arithmetic described in the module docstring."""
 
@@ -462,6 +499,7 @@ class Fp16Emulator:
         from onnx.reference import ReferenceEvaluator
 
         ops = [_emulated_reduce(kind) for kind in ("ReduceMean", "ReduceSum", "ReduceSumSquare")]
+        ops += [_torch_conv(False), _torch_conv(True)]
         self.evaluator = ReferenceEvaluator(model, new_ops=ops)
         self.input_name = model.graph.input[0].name
         self.output_names = [out.name for out in model.graph.output]
