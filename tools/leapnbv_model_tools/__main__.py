@@ -1,4 +1,5 @@
-"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests, fp16-check, overflow-table, distill} ..."""
+"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, manifests, fp16-check, overflow-table, distill,
+ladder} ..."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Optional, Sequence
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = ("export-hmr", "random-checkpoint", "manifests", "fp16-check", "overflow-table", "distill")
+    commands = ("export-hmr", "random-checkpoint", "manifests", "fp16-check", "overflow-table", "distill", "ladder")
     if not argv or argv[0] not in commands:
         print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
         return 2
@@ -30,6 +31,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from leapnbv_model_tools.distill import main as distill_main
 
         return distill_main(rest)
+    if command == "ladder":
+        from leapnbv_model_tools.ladder import main as ladder_main
+
+        return ladder_main(rest)
     if command == "manifests":
         from leapnbv_model_tools.checkpoint import write_manifests
 

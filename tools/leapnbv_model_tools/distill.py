@@ -3,7 +3,7 @@
     python -m leapnbv_model_tools distill --train train.jsonl [--val val.jsonl]
         --teacher T.pth.tar --teacher-variant l32 --student-variant s32 [--student-checkpoint S.pth.tar]
         --body-model SMPLX_NEUTRAL.npz --out DIR [--input 512x384|256x192] [--epochs 10]
-        [--batch-size 8] [--lr 1e-4] [--cache DIR] [--max-steps N] [--no-export]
+        [--batch-size 8] [--lr 1e-4] [--cache DIR] [--max-steps N] [--no-export] [--targets teacher|gt]
     torchrun --nproc_per_node 2 -m leapnbv_model_tools distill ...   (DistributedDataParallel)
 
 Manifest (JSON lines): ``{"image": "a.png", "box": [x1, y1, x2, y2], "params": {...}}``; the
@@ -29,6 +29,9 @@ its mean, DDP averages the gradients: the same update as one process with batch 
 ``checkpoint.pt`` (student, optimizer, step, history) is written at every epoch's end, every
 ``--save-every`` steps and when ``--max-steps`` stops the run; a run on the same --out resumes
 from it (the configuration must match) and continues at the next step, in the same data order.
+
+``--targets gt`` trains on the manifest's ground-truth meshes instead (same loss, no teacher):
+the baseline a distilled student is compared with, and how a teacher is trained on synthetic data.
 
 Validation (each epoch, process 0): PA-MPVPE (mm, Procrustes-aligned mean vertex distance) of
 the student to the teacher's mesh, and to the ground-truth mesh where the manifest gives it.
@@ -58,8 +61,8 @@ import torch
 from torch import nn
 
 PARAM_SIZES = {"root": 3, "body": 63, "lhand": 45, "rhand": 45, "jaw": 3, "betas": 10, "expression": 10}
-CONFIG_KEYS = ("train", "teacher_variant", "student_variant", "student_checkpoint", "input", "batch_size", "lr",
-               "seed", "teacher_sha256", "body_model_sha256")
+CONFIG_KEYS = ("train", "targets", "teacher_variant", "student_variant", "student_checkpoint", "input", "batch_size",
+               "lr", "seed", "teacher_sha256", "body_model_sha256")
 
 
 class DistillError(ValueError):
@@ -284,6 +287,7 @@ class DistillConfig:
     max_steps: int = 0
     save_every: int = 0
     export: bool = True
+    targets: str = "teacher"
     teacher_sha256: str = ""
     body_model_sha256: str = ""
 
@@ -318,12 +322,18 @@ def _mean_over_processes(value: float, world: int) -> float:
 def distill(config: DistillConfig) -> Dict[str, object]:
     from leapnbv_model_tools.checkpoint import CheckpointError, load_smplerx, random_smplerx
     from leapnbv_model_tools.smplerx import VARIANTS
-    from leapnbv_model_tools.torch_smplx import TorchSMPLX, mesh_from_axis_angle, mesh_from_outputs, vertex_loss
+    from leapnbv_model_tools.torch_smplx import (
+        TorchSMPLX,
+        centroid_relative,
+        mesh_from_axis_angle,
+        mesh_from_outputs,
+        vertex_loss,
+    )
     from leapnbv_perception.smplx_layer import SMPLXModel
 
     rank, world = _distributed()
     torch.manual_seed(config.seed)
-    for name in ("teacher_variant", "student_variant"):
+    for name in ("teacher_variant", "student_variant") if config.targets == "teacher" else ("student_variant",):
         if getattr(config, name) not in VARIANTS:
             raise DistillError(f"--{name.replace('_', '-')} {getattr(config, name)!r}: known {sorted(VARIANTS)}")
     if config.batch_size % world:
@@ -332,14 +342,18 @@ def distill(config: DistillConfig) -> Dict[str, object]:
         input_hw = tuple(int(v) for v in config.input.split("x"))
     except ValueError as error:
         raise DistillError(f"--input {config.input!r} is not HxW") from error
-    for path, what in ((config.teacher, "teacher checkpoint"), (config.body_model, "body model")):
+    if config.targets not in ("teacher", "gt"):
+        raise DistillError(f"--targets {config.targets!r}: 'teacher' or 'gt'")
+    use_teacher = config.targets == "teacher"
+    checks = [(config.body_model, "body model")] + ([(config.teacher, "teacher checkpoint")] if use_teacher else [])
+    for path, what in checks:
         if not os.path.isfile(path):
             raise DistillError(f"{what} not found: '{path}'")
-    config.teacher_sha256 = sha256_file(config.teacher)
+    config.teacher_sha256 = sha256_file(config.teacher) if use_teacher else ""
     config.body_model_sha256 = sha256_file(config.body_model)
     try:
         body = SMPLXModel.load(config.body_model)
-        teacher = load_smplerx(config.teacher, config.teacher_variant)
+        teacher = load_smplerx(config.teacher, config.teacher_variant) if use_teacher else None
         student = (load_smplerx(config.student_checkpoint, config.student_variant) if config.student_checkpoint
                    else random_smplerx(config.student_variant, config.seed))
     except (CheckpointError, ValueError, OSError) as error:
@@ -347,6 +361,8 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     layer = TorchSMPLX(body)
     train = read_manifest(config.train)
     val = read_manifest(config.val) if config.val else []
+    if not use_teacher and any(s.params is None for s in train):
+        raise DistillError(f"--targets gt: manifest '{config.train}' has samples without params")
     if len(train) < config.batch_size:
         raise DistillError(f"manifest '{config.train}' has {len(train)} samples, fewer than --batch-size "
                            f"{config.batch_size}")
@@ -357,12 +373,19 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     val_crops = np.stack([make_crop(s, input_hw) for s in val]) if val else np.zeros((0, 3) + input_hw, np.float32)
     train_hashes = [crop_sha256(c) for c in train_crops]
     val_hashes = [crop_sha256(c) for c in val_crops]
-    cache = TeacherCache(config.cache or str(out / "teacher_cache"), config.teacher_sha256, config.teacher_variant,
-                         config.body_model_sha256, input_hw)
-    cache.fill(teacher, layer, np.concatenate([train_crops, val_crops]), train_hashes + val_hashes, rank, world)
-    _barrier(world)
-    train_targets = torch.from_numpy(cache.load(train_hashes))
-    val_targets = cache.load(val_hashes) if val else None
+    val_targets = None
+    cache = None
+    if use_teacher:
+        cache = TeacherCache(config.cache or str(out / "teacher_cache"), config.teacher_sha256,
+                             config.teacher_variant, config.body_model_sha256, input_hw)
+        cache.fill(teacher, layer, np.concatenate([train_crops, val_crops]), train_hashes + val_hashes, rank, world)
+        _barrier(world)
+        train_targets = torch.from_numpy(cache.load(train_hashes))
+        val_targets = cache.load(val_hashes) if val else None
+    else:
+        with torch.no_grad():
+            train_targets = centroid_relative(mesh_from_axis_angle(
+                layer, {k: torch.from_numpy(np.stack([s.params[k] for s in train])).float() for k in PARAM_SIZES}))
     val_gt = None
     if val and all(s.params is not None for s in val):
         with torch.no_grad():
@@ -410,7 +433,9 @@ def distill(config: DistillConfig) -> Dict[str, object]:
         student.eval()
         with torch.no_grad():
             meshes = [mesh_from_outputs(layer, student(torch.from_numpy(c[None])))[0].numpy() for c in val_crops]
-        row = {"step": step, "val_teacher": float(np.mean([pa_mpvpe_mm(m, t) for m, t in zip(meshes, val_targets)]))}
+        row: Dict[str, float] = {"step": step}
+        if val_targets is not None:
+            row["val_teacher"] = float(np.mean([pa_mpvpe_mm(m, t) for m, t in zip(meshes, val_targets)]))
         if val_gt is not None:
             row["val_gt"] = float(np.mean([pa_mpvpe_mm(m, g) for m, g in zip(meshes, val_gt)]))
         history["val"].append(row)
@@ -441,8 +466,10 @@ def distill(config: DistillConfig) -> Dict[str, object]:
         save()
     if rank == 0 and sys.stderr.isatty():
         print(file=sys.stderr)
-    result: Dict[str, object] = {"step": step, "history": history, "teacher_cache": str(cache.folder),
-                                 "teacher_computed": cache.computed, "teacher_reused": cache.reused}
+    result: Dict[str, object] = {"step": step, "history": history,
+                                 "teacher_cache": str(cache.folder) if cache else "",
+                                 "teacher_computed": cache.computed if cache else 0,
+                                 "teacher_reused": cache.reused if cache else 0}
     if rank == 0:
         result["curves"] = write_curves(history, str(out / "curves.png"))
         if config.export and step >= total_steps:
@@ -472,8 +499,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                                  "1 export parity failed, 2 bad input)")
     parser.add_argument("--train", required=True, help="manifest (JSON lines: image, box, optional params)")
     parser.add_argument("--val", default="")
-    parser.add_argument("--teacher", required=True, help="teacher checkpoint (official structure)")
-    parser.add_argument("--teacher-variant", required=True)
+    parser.add_argument("--targets", default="teacher", choices=["teacher", "gt"],
+                        help="train on the teacher's meshes, or on the manifest's ground-truth meshes")
+    parser.add_argument("--teacher", default="", help="teacher checkpoint (official structure)")
+    parser.add_argument("--teacher-variant", default="")
     parser.add_argument("--student-variant", required=True)
     parser.add_argument("--student-checkpoint", default="", help="start from this checkpoint (default: random)")
     parser.add_argument("--body-model", required=True, help="SMPL-X .npz (or a stand-in in its layout)")
@@ -494,7 +523,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            student_variant=args.student_variant, student_checkpoint=args.student_checkpoint,
                            body_model=args.body_model, out=args.out, input=args.input, epochs=args.epochs,
                            batch_size=args.batch_size, lr=args.lr, seed=args.seed, cache=args.cache,
-                           max_steps=args.max_steps, save_every=args.save_every, export=not args.no_export)
+                           max_steps=args.max_steps, save_every=args.save_every, export=not args.no_export,
+                           targets=args.targets)
     try:
         result = distill(config)
     except DistillError as error:

@@ -122,3 +122,14 @@ def test_two_processes_give_the_loss_curve_of_one(setup, tmp_path: Path) -> None
     history = json.loads((tmp_path / "two" / "history.json").read_text())
     np.testing.assert_allclose([loss for _, loss in history["loss"]],
                                [loss for _, loss in single["history"]["loss"]], rtol=1e-4)
+
+
+def test_ground_truth_targets(setup, tmp_path: Path) -> None:
+    root = setup[0]
+    with pytest.raises(DistillError, match="samples without params"):
+        distill(_config(setup, str(tmp_path / "a"), targets="gt", teacher=""))
+    result = distill(_config(setup, str(tmp_path / "b"), train=str(root / "val.jsonl"), targets="gt", teacher="",
+                             epochs=1))
+    assert result["step"] == 1 and result["teacher_computed"] == 0
+    assert np.isfinite(result["history"]["loss"][0][1]) and "val_teacher" not in result["history"]["val"][0]
+    assert result["history"]["val"][0]["val_gt"] > 0
