@@ -9,10 +9,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 from leapnbv_model_tools.checkpoint import random_smplerx, save_official
 from leapnbv_model_tools.distill import DistillConfig, DistillError, distill, pa_mpvpe_mm
+from leapnbv_model_tools.fp16 import convert_float16
 
 torch.set_num_threads(1)
 
@@ -70,6 +72,18 @@ def test_teacher_cache_resume_and_export(setup, tmp_path: Path) -> None:
     assert len(whole["history"]["val"]) == 2 and whole["history"]["val"][0]["val_gt"] > 0
     assert whole["parity_ok"] and Path(whole["onnx"]).stat().st_size > 0
     assert (tmp_path / "whole" / "curves.png").stat().st_size > 1000
+    # The ladder's evaluation of the exported ONNX (onnxruntime; FP16 emulated) gives the PA-MPVPE that
+    # validation computed in PyTorch for the same student and crops.
+    from leapnbv_model_tools.ladder import evaluate
+
+    root, _, body = setup
+    val_gt = whole["history"]["val"][-1]["val_gt"]
+    assert evaluate(str(whole["onnx"]), False, str(root / "val.jsonl"), body, (256, 192)) == pytest.approx(val_gt,
+                                                                                                           abs=0.05)
+    half = convert_float16(onnx.load(str(whole["onnx"])), [])
+    onnx.save(half, str(tmp_path / "half.onnx"))
+    assert evaluate(str(tmp_path / "half.onnx"), True, str(root / "val.jsonl"), body, (256, 192)) == pytest.approx(
+        val_gt, abs=5.0)
     # Stopped after step 1, then resumed: the same losses as the run that never stopped.
     first = distill(_config(setup, str(tmp_path / "resumed"), max_steps=1))
     assert first["step"] == 1 and first["teacher_computed"] == 0 and first["teacher_reused"] == 6
