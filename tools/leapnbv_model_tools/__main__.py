@@ -1,4 +1,5 @@
-"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, random-yolov8, manifests} ..."""
+"""python -m leapnbv_model_tools {export-hmr, random-checkpoint, random-yolov8, manifests, fp16-check,
+overflow-table, distill, ladder} ..."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from typing import Optional, Sequence
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = ("export-hmr", "random-checkpoint", "random-yolov8", "manifests")
+    commands = ("export-hmr", "random-checkpoint", "random-yolov8", "manifests", "fp16-check", "overflow-table",
+                "distill", "ladder")
     if not argv or argv[0] not in commands:
         print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
         return 2
@@ -34,6 +36,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 2
         print(export_yolov8(random_yolov8(args.scale, args.seed, args.size), args.out, args.size))
         return 0
+    if command == "fp16-check":
+        from leapnbv_model_tools.fp16 import main as fp16_main
+
+        return fp16_main(rest)
+    if command == "overflow-table":
+        from leapnbv_model_tools.overflow_table import main as table_main
+
+        return table_main(rest)
+    if command == "distill":
+        from leapnbv_model_tools.distill import main as distill_main
+
+        return distill_main(rest)
+    if command == "ladder":
+        from leapnbv_model_tools.ladder import main as ladder_main
+
+        return ladder_main(rest)
     if command == "manifests":
         from leapnbv_model_tools.checkpoint import write_manifests
 

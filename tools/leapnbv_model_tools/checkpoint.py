@@ -18,7 +18,7 @@ from typing import Dict, List, Tuple
 
 import torch
 
-from leapnbv_model_tools.smplerx import VARIANTS, SMPLerX
+from leapnbv_model_tools.smplerx import OFFICIAL_VARIANTS, VARIANTS, SMPLerX
 
 MANIFEST_DIR = Path(__file__).resolve().parent / "manifests"
 _RENAMES = (("backbone.", "encoder."), ("body_rotation_net.", "body_regressor."),
@@ -120,7 +120,7 @@ def manifest(variant: str) -> Dict[str, List[int]]:
 def write_manifests(folder: Path = MANIFEST_DIR) -> List[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for variant in VARIANTS:
+    for variant in OFFICIAL_VARIANTS:
         keys = manifest(variant)
         count = sum(_numel(shape) for key, shape in keys.items() if not key.endswith("num_batches_tracked"))
         path = folder / f"smpler_x_{variant}.json"

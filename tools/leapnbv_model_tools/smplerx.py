@@ -59,7 +59,13 @@ VARIANTS: Dict[str, Variant] = {
     "b32": Variant("b32", 768, 12, 12),
     "l32": Variant("l32", 1024, 24, 16),
     "h32": Variant("h32", 1280, 32, 16),
+    # Not SMPLer-X releases: narrow members of the same family for the tests and the synthetic
+    # compression ladder on a CPU (same heads and contract, width / depth / heads reduced).
+    "t32": Variant("t32", 32, 1, 2),
+    "t64": Variant("t64", 64, 2, 2),
+    "t128": Variant("t128", 128, 3, 4),
 }
+OFFICIAL_VARIANTS = ("s32", "b32", "l32", "h32")
 
 
 class LayerNorm(nn.LayerNorm):
