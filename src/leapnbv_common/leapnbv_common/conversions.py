@@ -482,7 +482,8 @@ class GroundPlaneArrays:
     """The values of a GroundPlane message: the floor n.x + d = 0 in the camera optical frame.
 
     ``normal`` (3,) float64 points up (toward the camera side); ``offset`` d is then the camera's
-    height above the floor. ``source`` is GroundPlane.SOURCE_RANSAC or SOURCE_CAMERA_POSE.
+    height above the floor. ``source`` is GroundPlane.SOURCE_RANSAC or SOURCE_CAMERA_POSE;
+    ``quality`` is the 0..1 trust figure (leapnbv_geometry.ground.floor_quality).
     """
 
     normal: np.ndarray
@@ -491,6 +492,7 @@ class GroundPlaneArrays:
     source: int = GroundPlane.SOURCE_RANSAC
     inlier_count: int = 0
     inlier_ratio: float = 0.0
+    quality: float = 0.0
 
 
 GROUND_PLANE_SOURCES = (GroundPlane.SOURCE_RANSAC, GroundPlane.SOURCE_CAMERA_POSE)
@@ -506,7 +508,7 @@ def ground_plane_to_arrays(msg: GroundPlane) -> GroundPlaneArrays:
     plane = GroundPlaneArrays(
         normal=np.array([msg.normal.x, msg.normal.y, msg.normal.z], dtype=np.float64),
         offset=float(msg.offset), valid=bool(msg.valid), source=int(msg.source),
-        inlier_count=int(msg.inlier_count), inlier_ratio=float(msg.inlier_ratio))
+        inlier_count=int(msg.inlier_count), inlier_ratio=float(msg.inlier_ratio), quality=float(msg.quality))
     try:
         check_ground_plane(plane.normal, plane.offset, plane.valid, plane.source, GROUND_PLANE_SOURCES)
     except ContractError as error:
@@ -518,7 +520,8 @@ def arrays_to_ground_plane(plane: GroundPlaneArrays, header: Optional[Header] = 
                            compute_time_ms: float = 0.0) -> GroundPlane:
     """A GroundPlane message (the inverse of ground_plane_to_arrays)."""
     msg = GroundPlane(offset=float(plane.offset), inlier_count=int(plane.inlier_count),
-                      inlier_ratio=float(plane.inlier_ratio), valid=bool(plane.valid), source=int(plane.source))
+                      inlier_ratio=float(plane.inlier_ratio), valid=bool(plane.valid), source=int(plane.source),
+                      quality=float(plane.quality))
     if header is not None:
         msg.header = header
     msg.normal.x, msg.normal.y, msg.normal.z = (float(v) for v in np.asarray(plane.normal).reshape(3))

@@ -167,13 +167,14 @@ def _rotation(angle: float) -> np.ndarray:
 
 def test_ground_plane_round_trip():
     plane = cv.GroundPlaneArrays(normal=np.array([0.0, -0.98, 0.2]), offset=1.25, valid=True, source=1,
-                                 inlier_count=321, inlier_ratio=0.25)
+                                 inlier_count=321, inlier_ratio=0.25, quality=0.75)
     msg = cv.arrays_to_ground_plane(plane, cv.header_with_stamp(1_500_000_123, "cam"), compute_time_ms=2.5)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1, 500_000_123, "cam")
     back = cv.ground_plane_to_arrays(msg)
     np.testing.assert_array_equal(back.normal, plane.normal)
     assert (back.offset, back.valid, back.source, back.inlier_count) == (1.25, True, 1, 321)
     assert back.inlier_ratio == pytest.approx(0.25)
+    assert back.quality == pytest.approx(0.75)
 
 
 def test_target_geometry_round_trip_carries_the_camera_of_the_frame():

@@ -1,11 +1,14 @@
 """ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC).
 
-When RANSAC finds no floor (occluders hide it), the floor z = 0 of the camera's pose of the
-same stamp (T_fixed_cameraOptical in a floor-aligned fixed frame, from the robot's localization /
-TF or the simulator, through the shared camera-pose source: :mod:`leapnbv_common.camera_pose`,
-today the PoseStamped topic ``camera_pose``) is published instead, marked
-``source = SOURCE_CAMERA_POSE``. A pose of the frame's stamp is waited for briefly (DDS does not
-order topics); without one the invalid plane goes out as before.
+The camera's pose of the same stamp (T_fixed_cameraOptical in a floor-aligned fixed frame, from the
+robot's localization / TF or the simulator, through the shared camera-pose source:
+:mod:`leapnbv_common.camera_pose`, today the PoseStamped topic ``camera_pose``) checks RANSAC's
+plane: one that disagrees with the pose's floor z = 0 beyond the tolerance is refused, and the
+pose's floor is published instead, as when RANSAC finds none (``source = SOURCE_CAMERA_POSE``;
+:func:`leapnbv_geometry.ground.fuse_floor`). A pose of the frame's stamp is waited for briefly (DDS
+does not order topics); until a first pose has come, a RANSAC plane goes out at once. The first
+frame of a scene (no recent person mask) leaves out its own person boxes (detections of the same
+stamp, waited for briefly once detections flow).
 
 Parameters: :class:`leapnbv_geometry.params.GroundParams`; all but the camera-pose source and
 its switch change at runtime (``ros2 param set``).
@@ -27,6 +30,7 @@ from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_sou
 from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, check_same_size, refused
 from leapnbv_common.conversions import (
     DEPTH_ENCODINGS,
+    detections_to_boxes,
     GroundPlaneArrays,
     arrays_to_ground_plane,
     camera_info_to_k,
@@ -40,10 +44,18 @@ from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import CompanionWait
-from leapnbv_common.topics import GROUND_PLANE, PERSON_MASK
-from leapnbv_geometry.ground import fit_ground_plane, floor_plane_from_camera_pose, ground_points_from_depth
+from leapnbv_common.topics import DETECTIONS, GROUND_PLANE, PERSON_MASK
+from leapnbv_geometry.ground import (
+    FLOOR_NONE,
+    box_exclusion_mask,
+    expected_up,
+    fit_ground_plane,
+    floor_plane_from_camera_pose,
+    fuse_floor,
+    ground_points_from_depth,
+)
 from leapnbv_geometry.params import GroundParams
-from leapnbv_msgs.msg import GroundPlane
+from leapnbv_msgs.msg import GroundPlane, PersonDetections
 
 POSE_CACHE = 30  # camera poses (and frames waiting for theirs) remembered by stamp: ~1 s at 30 Hz
 FALLBACK_LOG_EVERY = 100  # log the camera-pose fallback on its first frame and every this many after
@@ -56,26 +68,35 @@ class FittedFrame(NamedTuple):
     header: Header
     compute_time_ms: float
     point_count: int  # the points RANSAC was fitted on
+    ransac: object = None  # the GroundPlaneResult (fused with the pose's floor when it is published)
 
 
 class GroundDiagnostics(StageDiagnostics):
     """StageDiagnostics plus which estimate the published planes were (``planes.ransac``,
-    ``planes.camera_pose``, ``planes.none`` for invalid ones): a floor taken from the camera pose is
-    served, not rejected, so it is counted apart from the rejections (the status stays OK)."""
+    ``planes.camera_pose``, ``planes.none`` for invalid ones) and why (``floor.<decision>``: the
+    FLOOR_* names of leapnbv_geometry.ground, e.g. ``floor.camera_pose_refused_ransac``): a floor
+    taken from the camera pose is served, not rejected, so it is counted apart from the rejections
+    (the status stays OK)."""
 
     def __init__(self, node) -> None:
         super().__init__(node)
         self.plane_sources: Dict[str, int] = collections.Counter()
         self.last_plane_source = ""
+        self.last_floor_decision = ""
 
-    def plane_out(self, source: str) -> None:
+    def plane_out(self, source: str, decision: str = "") -> None:
         self.plane_sources[source] += 1
         self.last_plane_source = source
+        if decision:
+            self.plane_sources[f"floor.{decision}"] += 1
+            self.last_floor_decision = decision
 
     def status(self) -> DiagnosticStatus:
         status = super().status()
         status.values.append(KeyValue(key="last_plane_source", value=self.last_plane_source))
-        status.values.extend(KeyValue(key=f"planes.{k}", value=str(v)) for k, v in sorted(self.plane_sources.items()))
+        status.values.append(KeyValue(key="last_floor_decision", value=self.last_floor_decision))
+        status.values.extend(KeyValue(key=k if k.startswith("floor.") else f"planes.{k}", value=str(v))
+                             for k, v in sorted(self.plane_sources.items()))
         return status
 
 
@@ -92,6 +113,10 @@ class GroundNode(Node):
         self.create_subscription(CameraInfo, "depth/camera_info", self.on_camera_info, camera_input_qos(1))
         self.create_subscription(Image, PERSON_MASK, self.on_mask, stage_input_qos(1))
         self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(5))
+        # A frame with no recent mask (a scene's first) leaves out its own person boxes.
+        self.detections: "collections.OrderedDict[int, np.ndarray]" = collections.OrderedDict()
+        self.detections_flowing = False
+        self.create_subscription(PersonDetections, DETECTIONS, self.on_detections, stage_input_qos(5))
         # The mask excluded from frame t is the previous frame's. Waiting briefly for it (when
         # masks are flowing) makes the fit independent of message timing, so replays repeat.
         self.previous_depth_stamp: Optional[int] = None
@@ -138,6 +163,28 @@ class GroundNode(Node):
             depth, self.pending = self.pending[0], None
             self.fit(depth)
 
+    @rejects_bad_input("bad_detections")
+    def on_detections(self, msg: PersonDetections) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.detections[stamp] = detections_to_boxes(msg)
+        while len(self.detections) > POSE_CACHE:
+            self.detections.popitem(last=False)
+        self.detections_flowing = True
+        if self.pending is not None and self.pending[2] and stamp_to_ns(self.pending[0].header.stamp) == stamp:
+            depth, self.pending = self.pending[0], None
+            self.fit(depth)
+
+    def needs_detections(self, msg: Image) -> bool:
+        """A frame without a recent person mask waits for its own detections (once they flow)."""
+        p = self.params.value
+        if not (p.exclude_detections and self.detections_flowing and p.mask_wait_s > 0):
+            return False
+        if stamp_to_ns(msg.header.stamp) in self.detections:
+            return False
+        mask = self.person_mask
+        return mask is None or abs(stamp_to_ns(msg.header.stamp) - stamp_to_ns(mask.header.stamp)) > \
+            p.mask_max_age_s * 1e9
+
     @rejects_bad_input("bad_depth")
     def on_depth(self, msg: Image) -> None:
         self.diagnostics.frame_in()
@@ -151,7 +198,10 @@ class GroundNode(Node):
         mask_stamp = stamp_to_ns(self.person_mask.header.stamp) if self.person_mask is not None else None
         if (self.params.value.mask_wait_s > 0 and self.masks_flowing and self.previous_depth_stamp is not None
                 and mask_stamp != self.previous_depth_stamp):
-            self.pending = (msg, self.get_clock().now().nanoseconds)
+            self.pending = (msg, self.get_clock().now().nanoseconds, False)
+            return
+        if self.needs_detections(msg):
+            self.pending = (msg, self.get_clock().now().nanoseconds, True)
             return
         self.fit(msg)
 
@@ -161,20 +211,31 @@ class GroundNode(Node):
         if self.pending is None:
             return
         if self.get_clock().now().nanoseconds - self.pending[1] >= self.params.value.mask_wait_s * 1e9:
-            depth, self.pending = self.pending[0], None
-            self.masks_flowing = False  # no mask for that frame: do not wait again until one comes
+            depth, for_detections, self.pending = self.pending[0], self.pending[2], None
+            if for_detections:
+                self.detections_flowing = False  # none for that frame: do not wait again until some come
+            else:
+                self.masks_flowing = False  # no mask for that frame: do not wait again until one comes
             self.fit(depth)
 
     def exclusion_mask(self, depth_msg: Image, shape) -> Optional[np.ndarray]:
         """The latest person mask, if recent and of the same size (the person is not floor)."""
         mask = self.person_mask
         if mask is None or (mask.height, mask.width) != shape:
-            return None
+            return self.detection_mask(depth_msg, shape)
         age = (depth_msg.header.stamp.sec - mask.header.stamp.sec) + \
               (depth_msg.header.stamp.nanosec - mask.header.stamp.nanosec) * 1e-9
         if abs(age) > self.params.value.mask_max_age_s:
-            return None
+            return self.detection_mask(depth_msg, shape)
         return image_to_numpy(mask) > 0
+
+    def detection_mask(self, depth_msg: Image, shape) -> Optional[np.ndarray]:
+        """The frame's own person boxes (no recent mask: the first frame of a scene), or None."""
+        p = self.params.value
+        boxes = self.detections.get(stamp_to_ns(depth_msg.header.stamp)) if p.exclude_detections else None
+        if boxes is None or len(boxes) == 0:
+            return None
+        return box_exclusion_mask(shape, boxes, p.detection_grow_px)
 
     @rejects_bad_input("bad_depth")
     def fit(self, msg: Image) -> None:
@@ -195,16 +256,16 @@ class GroundNode(Node):
         result = fit_ground_plane(points, max_tilt_deg=p.max_tilt_deg, inlier_threshold=p.inlier_threshold,
                                   iterations=p.iterations, min_inliers=p.min_inliers,
                                   min_inlier_ratio=p.min_inlier_ratio, seed=p.seed, max_points=p.max_points,
-                                  depth_noise_coeff=p.depth_noise_coeff,
+                                  depth_noise_coeff=p.depth_noise_coeff, up=expected_up(p.camera_pitch_deg),
                                   camera_height_range=(p.min_camera_height, p.max_camera_height))
         plane = GroundPlaneArrays(normal=result.normal, offset=result.offset, valid=result.valid,
                                   source=GroundPlane.SOURCE_RANSAC, inlier_count=result.inlier_count,
                                   inlier_ratio=result.inlier_ratio)
-        frame = FittedFrame(plane, msg.header, (time.perf_counter() - started) * 1e3, len(points))
-        if result.valid or not p.use_camera_pose_fallback:
-            self.publish_plane(frame, None)
+        frame = FittedFrame(plane, msg.header, (time.perf_counter() - started) * 1e3, len(points), result)
+        if not p.use_camera_pose_fallback or (result.valid and self.pose_floors.latest_companion is None):
+            self.publish_plane(frame, None)  # no pose to check it against (none has come so far)
             return
-        # No floor in view: the floor of this frame's camera pose, once it is here (or the wait ran out).
+        # The floor of this frame's camera pose checks RANSAC's, once it is here (or the wait ran out).
         stamp = stamp_to_ns(msg.header.stamp)
         ready = self.pose_floors.add_frame(stamp, frame, self.get_clock().now().nanoseconds)
         if ready is None:
@@ -213,32 +274,37 @@ class GroundNode(Node):
             self.publish_plane(ready[0], ready[1])
 
     def publish_plane(self, frame: FittedFrame, pose_floor: Optional[Tuple[int, np.ndarray, float]]) -> None:
-        """Publish a fitted plane; a RANSAC failure becomes the pose's floor when the pose has its stamp.
+        """Publish the frame's floor: RANSAC's, checked against the pose's floor when the pose has its stamp.
 
         Args:
             frame: the plane as RANSAC gave it, with its frame's header.
             pose_floor: (stamp ns, normal, offset) of a camera pose, or None.
         """
-        plane = frame.plane
-        if not plane.valid and pose_floor is not None and pose_floor[0] == stamp_to_ns(frame.header.stamp):
-            _, normal, offset = pose_floor
-            plane = dataclasses.replace(plane, normal=normal, offset=offset, valid=True,
+        p = self.params.value
+        matching = pose_floor is not None and pose_floor[0] == stamp_to_ns(frame.header.stamp)
+        floor = fuse_floor(frame.ransac, (pose_floor[1], pose_floor[2]) if matching else None,
+                           max_angle_deg=p.pose_max_angle_deg, max_height_m=p.pose_max_height_m,
+                           full_support_ratio=p.quality_full_support)
+        plane = dataclasses.replace(frame.plane, quality=floor.quality)
+        if floor.from_pose:
+            plane = dataclasses.replace(plane, normal=floor.normal, offset=floor.offset, valid=True,
                                         source=GroundPlane.SOURCE_CAMERA_POSE)
             self.fallback_count += 1
             if (self.fallback_count - 1) % FALLBACK_LOG_EVERY == 0:
                 self.get_logger().warning(
-                    f"no floor in view ({plane.inlier_count} RANSAC inliers of {frame.point_count} points): "
-                    f"published the floor of the camera pose (height {offset:.3f} m); {self.fallback_count} such "
-                    "frames so far")
+                    f"{floor.decision} ({plane.inlier_count} RANSAC inliers of {frame.point_count} points): "
+                    f"published the floor of the camera pose (height {floor.offset:.3f} m); {self.fallback_count} "
+                    "such frames so far")
         elif not plane.valid:
             detail = f"{plane.inlier_count} inliers of {frame.point_count} points"
-            if self.params.value.use_camera_pose_fallback:
+            if p.use_camera_pose_fallback:
                 detail += "; no camera pose of this stamp"
             self.diagnostics.reject("no_ground_plane", detail)
         if not plane.valid:
-            self.diagnostics.plane_out("none")
+            self.diagnostics.plane_out("none", FLOOR_NONE)
         else:
-            self.diagnostics.plane_out("camera_pose" if plane.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac")
+            self.diagnostics.plane_out("camera_pose" if plane.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac",
+                                       floor.decision)
         self.publisher.publish(arrays_to_ground_plane(plane, frame.header, frame.compute_time_ms))
         self.diagnostics.frame_out(frame.header.stamp, frame.compute_time_ms)
 
