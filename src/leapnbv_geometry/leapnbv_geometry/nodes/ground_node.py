@@ -30,12 +30,12 @@ from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_sou
 from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, check_same_size, refused
 from leapnbv_common.conversions import (
     DEPTH_ENCODINGS,
-    detections_to_boxes,
     GroundPlaneArrays,
     arrays_to_ground_plane,
     camera_info_to_k,
     check_image,
     depth_to_metres,
+    detections_to_boxes,
     image_size,
     image_to_numpy,
     stamp_to_ns,
@@ -114,7 +114,7 @@ class GroundNode(Node):
         self.create_subscription(Image, PERSON_MASK, self.on_mask, stage_input_qos(1))
         self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(5))
         # A frame with no recent mask (a scene's first) leaves out its own person boxes.
-        self.detections: "collections.OrderedDict[int, np.ndarray]" = collections.OrderedDict()
+        self.detections: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self.detections_flowing = False
         self.create_subscription(PersonDetections, DETECTIONS, self.on_detections, stage_input_qos(5))
         # The mask excluded from frame t is the previous frame's. Waiting briefly for it (when
