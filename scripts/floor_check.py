@@ -7,7 +7,8 @@ noise. Three ways of fitting each view:
 * ``before``: as the ground node fitted a scene's first frame until now: no person left out (no
   previous mask yet), the simulator-set priors (0.8-1.6 m, tilt from -y), the camera pose's floor
   only when RANSAC finds none;
-* ``ransac_after``: the person's detection box left out and the priors from the robot's
+* ``before_excluded``: ``before`` with the upper part of the person's detection box left out (detection_top_share);
+* ``ransac_after``: the upper part of the person's detection box left out and the priors from the robot's
   mounting height (+- ``--height-tolerance``), no camera pose;
 * ``fused``: the same, checked against the camera pose's floor (``fuse_floor``): what the node
   publishes now.
@@ -80,7 +81,8 @@ def main(argv: List[str]) -> int:
     seeds = benchmark_seeds(args.scenes)
     for family in families:
         heights, noise_factor = FAMILIES[family]
-        counts: Dict[str, List[int]] = {way: [0, 0] for way in ("before", "ransac_after", "fused")}
+        counts: Dict[str, List[int]] = {way: [0, 0] for way in ("before", "before_excluded", "ransac_after",
+                                                                "fused")}
         decisions: Dict[str, int] = {}
         done = 0
         for seed in seeds:
@@ -104,12 +106,17 @@ def main(argv: List[str]) -> int:
                 np.zeros((0, 4))
             plain = ground_points_from_depth(depth, frame.K, stride=params.stride)
             excluded = ground_points_from_depth(depth, frame.K, exclude_mask=box_exclusion_mask(
-                depth.shape, boxes, params.detection_grow_px), stride=params.stride)
+                depth.shape, boxes, params.detection_grow_px, params.detection_top_share), stride=params.stride)
             # before: sim-set priors, no exclusion, pose only when RANSAC finds none
             result = fit(plain, params, (params.min_camera_height, params.max_camera_height), (0.0, -1.0, 0.0))
             normal, offset = (result.normal, result.offset) if result.valid else pose_floor
             angle, height = error(normal, offset, truth_normal, truth_offset)
             counts["before"][0] += int(angle > WRONG_DEG or height > WRONG_M)
+            # the same with the person box left out (the first-frame exclusion alone)
+            result = fit(excluded, params, (params.min_camera_height, params.max_camera_height), (0.0, -1.0, 0.0))
+            normal, offset = (result.normal, result.offset) if result.valid else pose_floor
+            angle, height = error(normal, offset, truth_normal, truth_offset)
+            counts["before_excluded"][0] += int(angle > WRONG_DEG or height > WRONG_M)
             # after: the robot's mounting priors (height of this family's robot), the person box left out
             mount = float(np.mean(heights))
             prior = (max(0.0, mount - args.height_tolerance - 0.5 * (heights[1] - heights[0])),

@@ -125,6 +125,23 @@ def test_simulator_node_publishes_one_stamp_on_all_topics_and_follows_a_goal(rep
         # The body, seen from 0.5 m further right, sits 0.5 m further left in the camera frame.
         shift = np.asarray(node.by_stamp[after]["ground_truth"].translation) - np.asarray(truth.translation)
         np.testing.assert_allclose(shift, [-0.5, 0.0, 0.0], atol=1e-4)
+
+        # A goal 0.5 m up the image (off the mounting height): the robot's base goes under it, the camera stays
+        # at its mounting height (robot_motion = base, the default).
+        up_goal = PoseStamped()
+        up_goal.header = node.by_stamp[after]["ground_truth"].header
+        up_goal.pose = pose_msg(np.eye(3), np.array([0.0, -0.5, 0.0]))
+        _, position_after = pose_to_numpy(node.by_stamp[after]["camera_pose"].pose)
+        lifted = position_after + rotation_after @ np.array([0.0, -0.5, 0.0])
+        mounted = np.array([lifted[0], lifted[1], position_after[2]])
+        assert lifted[2] > position_after[2] + 0.4
+        node.goal_pub.publish(up_goal)
+
+        def stayed_mounted():
+            return any(s > after and np.linalg.norm(pose_to_numpy(node.by_stamp[s]["camera_pose"].pose)[1]
+                                                    - mounted) < 1e-6 for s in node.complete_frames())
+
+        assert _spin_until(node, stayed_mounted, 20.0), "the camera left its mounting height"
     finally:
         process.send_signal(signal.SIGINT)
         try:

@@ -31,6 +31,7 @@ from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, run_in_workers
 from leapnbv_evaluation.results import EvaluationRun
 from leapnbv_evaluation.task_report import task_table_markdown, write_evaluation_outputs
 from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 
@@ -97,13 +98,19 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="benchmark rooms with furniture around the person (default) or without")
     parser.add_argument("--no-obstacle-map", action="store_true",
                         help="the planner gets no map of the room: it knows only what each frame shows")
+    parser.add_argument("--robot-motion", choices=list(ROBOT_MOTIONS), default="base",
+                        help="base (default): the robot's base drives to a pick and its camera stays at its mounting "
+                        "height; free: the camera jumps to the 6-DoF pick")
+    parser.add_argument("--robot-head", choices=list(HEAD_MODES), default="pan_tilt",
+                        help="pan_tilt (default): the camera tilts toward the pick; fixed: it keeps its pitch")
     args = parser.parse_args(argv)
 
     options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
                                 hmr_model=args.hmr_model, body_model=args.body_model,
                                 scene_body_model=args.scene_body_model, params_file=args.params,
                                 set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
-                                room=args.room, obstacle_map=not args.no_obstacle_map)
+                                room=args.room, obstacle_map=not args.no_obstacle_map,
+                                robot_motion=args.robot_motion, robot_head=args.robot_head)
     try:
         if args.workers < 1:
             raise EvaluationError(f"--workers must be >= 1, got {args.workers}")

@@ -89,6 +89,7 @@ from leapnbv_evaluation.results import (
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.nodes.simulator_node import SimulatorNode
+from leapnbv_sim.poses import RobotModel
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
@@ -131,6 +132,9 @@ class EvaluationOptions:
         obstacle_map: The simulator publishes each scene's static obstacles as a voxel map (what
             a robot's mapping stack knows of the room) and the nbv node uses it, with the
             camera pose of every frame; False: the planner knows only what each frame shows.
+        robot_motion: "base" (default: the robot's base drives to a pick, its camera stays at the
+            start camera's mounting height) or "free" (the camera jumps to the 6-DoF pick).
+        robot_head: "pan_tilt" (default: the camera tilts to the pick's pitch) or "fixed".
     """
 
     perception: str = "ground_truth"
@@ -147,6 +151,12 @@ class EvaluationOptions:
     score_all_candidates: bool = True
     room: str = "furnished"
     obstacle_map: bool = True
+    robot_motion: str = "base"
+    robot_head: str = "pan_tilt"
+
+    @property
+    def robot(self) -> RobotModel:
+        return RobotModel(motion=self.robot_motion, head=self.robot_head)
 
     @property
     def real_models(self) -> bool:
@@ -201,10 +211,13 @@ class FrameOutputs:
             raise EvaluationError(f"view_candidates: {error}") from error
 
 
-def simulator_parameters(publish_obstacle_map: bool = True) -> List[Parameter]:
-    """The in-process simulator's parameters: frames only when asked, goals reached at once."""
+def simulator_parameters(publish_obstacle_map: bool = True, robot: Optional[RobotModel] = None) -> List[Parameter]:
+    """The in-process simulator's parameters: frames only when asked, goals reached at once, the robot's motion."""
+    robot = robot or RobotModel()
     return [Parameter("rate_hz", value=0.0), Parameter("move_speed_m_s", value=0.0),
-            Parameter("publish_obstacle_map", value=bool(publish_obstacle_map))]
+            Parameter("publish_obstacle_map", value=bool(publish_obstacle_map)),
+            Parameter("robot_motion", value=robot.motion), Parameter("robot_head", value=robot.head),
+            Parameter("robot_camera_height", value=float(robot.camera_height))]
 
 
 class ClosedLoopEvaluator:
@@ -284,7 +297,8 @@ class ClosedLoopEvaluator:
             self.ready_s = self.runner.wait_ready(self.collector, timeout_s=self.options.ready_timeout_s)
         except GraphError as exc:
             raise EvaluationError(f"the graph did not start: {exc}") from exc
-        self.sim = SimulatorNode(scene=first_scene, parameter_overrides=simulator_parameters(self.options.obstacle_map))
+        self.sim = SimulatorNode(scene=first_scene, parameter_overrides=simulator_parameters(self.options.obstacle_map,
+                                                                                    self.options.robot))
         self._subscribe_outputs()
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.sim)
@@ -480,7 +494,8 @@ class ClosedLoopEvaluator:
         except ConversionError as error:
             raise EvaluationError(f"target_geometry of seed {seed}: {error}") from error
         ground = ground_plane_to_arrays(ground_msg) if ground_msg is not None else None
-        views = score_methods(scene, before, candidates, seed, self.options.score_all_candidates, self.methods)
+        views = score_methods(scene, before, candidates, seed, self.options.score_all_candidates, self.methods,
+                              self.options.robot)
         leap = views.per_method.get(DEFAULT_METHOD)
         if candidates is not None and leap is not None and leap.chosen_index >= 0:
             frames.append(self._closed_loop_after(scene, candidates, stamp_base, scene_index,
@@ -505,7 +520,7 @@ class ClosedLoopEvaluator:
         chosen = result.chosen_index
         stamp0 = frame_stamp_ns(stamp_base, scene_index, 0)
         goal_received = self._wait_goal(stamp0)
-        expected = candidate_world_pose(scene.start_camera, candidates, chosen)
+        expected = candidate_world_pose(scene.start_camera, candidates, chosen, self.options.robot)
         if not goal_received:
             # The goal message did not arrive: move the robot from the candidates directly.
             self.sim.move_to(expected)

@@ -389,16 +389,20 @@ def mounting_priors(camera_height: float, height_tolerance: float) -> Tuple[floa
     return max(0.0, float(camera_height) - float(height_tolerance)), float(camera_height) + float(height_tolerance)
 
 
-def box_exclusion_mask(shape: Tuple[int, int], boxes: np.ndarray, grow_px: float = 10.0) -> np.ndarray:
+def box_exclusion_mask(shape: Tuple[int, int], boxes: np.ndarray, grow_px: float = 10.0,
+                       top_share: float = 1.0) -> np.ndarray:
     """Pixels inside any person box (x1, y1, x2, y2[, score]) grown by ``grow_px``: the person is not floor.
 
     Used on a frame for which no person mask exists yet (the first frame of a scene), so that the
-    fit does not take the person's own points for floor.
+    fit does not take the person's own points for floor. With ``top_share`` < 1 only the upper
+    share of each box is left out: the floor round the feet, often the only floor an occluder
+    leaves in view, stays in the fit.
 
     Args:
         shape: (H, W) of the depth image.
         boxes: (N, 4+) boxes in image pixels (corners first; extra columns ignored).
-        grow_px: pixels added on every side.
+        grow_px: pixels added on every side (at the bottom only when the whole box is left out).
+        top_share: share (0..1] of each box's height, from its top, that is left out.
 
     Returns:
         (H, W) bool mask.
@@ -416,8 +420,9 @@ def box_exclusion_mask(shape: Tuple[int, int], boxes: np.ndarray, grow_px: float
     for x1, y1, x2, y2 in boxes[:, :4]:
         if not np.all(np.isfinite([x1, y1, x2, y2])):
             continue
+        bottom = y2 + grow_px if top_share >= 1.0 else y1 + float(top_share) * (y2 - y1)
         c0, c1 = int(max(0, np.floor(x1 - grow_px))), int(min(width, np.ceil(x2 + grow_px)))
-        r0, r1 = int(max(0, np.floor(y1 - grow_px))), int(min(height, np.ceil(y2 + grow_px)))
+        r0, r1 = int(max(0, np.floor(y1 - grow_px))), int(min(height, np.ceil(bottom)))
         mask[r0:r1, c0:c1] = True
     return mask
 

@@ -115,5 +115,8 @@ def test_box_exclusion_mask_covers_the_grown_boxes_only():
     assert box_exclusion_mask((40, 60), np.zeros((0, 5))).sum() == 0
     edge = box_exclusion_mask((40, 60), np.array([[50.0, 30.0, 70.0, 50.0]]), grow_px=0.0)
     assert edge[30:, 50:].all() and edge.sum() == 10 * 10
+    top = box_exclusion_mask((40, 60), np.array([[10.0, 10.0, 20.0, 30.0]]), grow_px=2.0, top_share=0.5)
+    rows, cols = np.nonzero(top)
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (8, 19, 8, 21)  # the lower half stays in the fit
     with pytest.raises(GroundPlaneError, match="boxes must be"):
         box_exclusion_mask((40, 60), np.zeros((2, 3)))

@@ -235,7 +235,7 @@ class GroundNode(Node):
         boxes = self.detections.get(stamp_to_ns(depth_msg.header.stamp)) if p.exclude_detections else None
         if boxes is None or len(boxes) == 0:
             return None
-        return box_exclusion_mask(shape, boxes, p.detection_grow_px)
+        return box_exclusion_mask(shape, boxes, p.detection_grow_px, p.detection_top_share)
 
     @rejects_bad_input("bad_depth")
     def fit(self, msg: Image) -> None:
