@@ -38,6 +38,7 @@ class FeasibilityReason(enum.IntEnum):
     OK = 0
     OUT_OF_TRAVEL_RANGE = 1
     OBSTACLE = 2
+    UNREACHABLE = 3  # no free path of at most max_path_length (leapnbv_planner.reachability)
 
 
 @dataclass
@@ -194,6 +195,14 @@ def _ring_start_direction(
     raise CandidateGenerationError("cannot find an in-plane start direction for the ring")
 
 
+def ring_radii(params: CandidateRingParams) -> np.ndarray:
+    """The ring radii, innermost first: ``radius`` alone, or num_rings radii evenly from min_radius to radius."""
+    rings = int(getattr(params, "num_rings", 1))
+    if rings <= 1:
+        return np.array([float(params.radius)])
+    return np.linspace(float(params.min_radius), float(params.radius), rings)
+
+
 def generate_candidates(
     centroid: np.ndarray,
     plane_normal: np.ndarray,
@@ -211,7 +220,8 @@ def generate_candidates(
     is generally not the current distance); the ring then runs counter-clockwise seen from
     above (right-hand rule about n).
     With include_current the current view (identity rotation, origin) is prepended as
-    index 0, so ring candidate k has index k + 1.
+    index 0, so ring candidate k has index k + 1. With num_rings > 1 there are num_rings such
+    rings (radii from :func:`ring_radii`, innermost first), N candidates each, the same angles.
 
     Args:
         centroid: (3,) target centroid.
@@ -245,11 +255,14 @@ def generate_candidates(
     start = _ring_start_direction(ring_center, current_foot, unit_normal)
     side = np.cross(unit_normal, start)
     angles = 2.0 * np.pi * np.arange(num_ring) / max(num_ring, 1)
-    ring_feet = (
+    feet_per_ring = [
         ring_center[None, :]
-        + float(params.radius) * np.cos(angles)[:, None] * start[None, :]
-        + float(params.radius) * np.sin(angles)[:, None] * side[None, :]
-    )
+        + float(radius) * np.cos(angles)[:, None] * start[None, :]
+        + float(radius) * np.sin(angles)[:, None] * side[None, :]
+        for radius in ring_radii(params)
+    ]
+    ring_feet = np.concatenate(feet_per_ring, axis=0) if feet_per_ring else np.zeros((0, 3))
+    num_ring = ring_feet.shape[0]
     ring_positions = ring_feet + camera_height * unit_normal[None, :]
     ring_rotations = np.array(
         [camera_look_at(position, centroid, unit_normal) for position in ring_positions]

@@ -19,9 +19,17 @@ from typing import TYPE_CHECKING, Any, Optional, Tuple
 
 import numpy as np
 
-from leapnbv_planner.candidates import CandidateSet, FeasibilityResult, check_feasibility, generate_candidates
+from leapnbv_planner.candidates import (
+    CandidateSet,
+    FeasibilityReason,
+    FeasibilityResult,
+    check_feasibility,
+    generate_candidates,
+    normalize_plane,
+)
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
+from leapnbv_planner.reachability import Reachability, build_occupancy_grid, reachability
 from leapnbv_planner.scoring import CandidateScores, choose_best, score_candidates
 
 if TYPE_CHECKING:  # the core needs no ROS; only the conversion to the message arrays imports it
@@ -48,6 +56,11 @@ class Plan:
         up: (3,) the ground normal n as the plane gives it (pointing up, not necessarily unit length).
         base_goal: (rotation, position) of the robot base at the chosen view, None when none is chosen.
         line_of_sight_clear: (C,) the obstacle map's clear share per candidate, None without the map.
+        path_lengths: (C,) metres of the robot's shortest free path to each candidate (0 for the current
+            view, inf: none), None when reachability is off.
+        base_path: (P, 3) floor points of the path to the chosen candidate (the robot's foot point first,
+            the goal's last), None when reachability is off or nothing is chosen.
+        reach: the path search (grid, parents), None when reachability is off.
     """
 
     candidates: CandidateSet
@@ -59,6 +72,9 @@ class Plan:
     up: np.ndarray
     base_goal: Optional[Frame]
     line_of_sight_clear: Optional[np.ndarray] = None
+    path_lengths: Optional[np.ndarray] = None
+    base_path: Optional[np.ndarray] = None
+    reach: Optional[Reachability] = None
 
     @property
     def used_obstacle_map(self) -> bool:
@@ -150,13 +166,38 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
             obstacle_map, rotation, position, candidates.positions, target_points,
             params.map_max_target_points, params.map_target_margin)
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
+    reach, path_lengths = None, None
+    if getattr(params, "reachability", False):
+        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, normal, offset, params)
+        path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
     scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, target.k,
                               target.width, target.height, params.term_weights(), delta_px=params.delta_px,
-                              line_of_sight_clear=line_of_sight_clear)
+                              line_of_sight_clear=line_of_sight_clear, path_lengths=path_lengths,
+                              travel_scale=float(getattr(params, "max_path_length", 6.0)))
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
-    base_goal = None
+    base_goal, base_path = None, None
     if chosen >= 0:
         base_goal = base_goal_frame(candidates.foot_points[chosen], candidates.ring_center, normal)
+        if reach is not None:
+            base_path = reach.path_to(candidates.foot_points[chosen])
     return Plan(candidates=candidates, feasibility=feasibility, scores=scores, chosen_index=int(chosen),
                 includes_current_view=bool(params.include_current), ring_radius=float(params.radius),
-                up=normal, base_goal=base_goal, line_of_sight_clear=line_of_sight_clear)
+                up=normal, base_goal=base_goal, line_of_sight_clear=line_of_sight_clear,
+                path_lengths=path_lengths, base_path=base_path, reach=reach)
+
+
+def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles: np.ndarray, target: Any,
+                 normal: np.ndarray, offset: float, params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
+    """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
+    unit_normal, unit_offset = normalize_plane(normal, offset)
+    current_foot = -unit_offset * unit_normal
+    grid = build_occupancy_grid(obstacles, target.target_points, unit_normal, unit_offset,
+                                np.vstack([candidates.foot_points, current_foot[None]]), params.grid_resolution,
+                                params.robot_radius, params.floor_clearance, params.unknown_space,
+                                camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),
+                                        int(target.height)))
+    reach = reachability(grid, current_foot, candidates.foot_points, params.max_path_length, params.robot_radius)
+    reasons = np.asarray(feasibility.reasons).copy()
+    unreachable = (reasons == int(FeasibilityReason.OK)) & ~reach.reachable & ~np.asarray(candidates.is_current)
+    reasons[unreachable] = int(FeasibilityReason.UNREACHABLE)
+    return FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons), reach

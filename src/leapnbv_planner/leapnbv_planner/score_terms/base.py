@@ -93,6 +93,9 @@ class ScoringContext:
         line_of_sight_clear: optional (C,) factors in [0, 1]: the share of target points each
             candidate sees through free space of the robot's obstacle map (the occlusion term
             multiplies by it).
+        path_lengths: optional (C,) metres the robot drives to each candidate (inf: no path); None:
+            the straight distance between the camera centres.
+        travel_scale: metres of travel that cost the whole travel term.
 
     Raises:
         ScoringInputError: a shape, intrinsic, image size, delta_px or line_of_sight_clear is invalid.
@@ -100,7 +103,8 @@ class ScoringContext:
 
     def __init__(self, target_points: np.ndarray, background_points: np.ndarray, rotations: np.ndarray,
                  positions: np.ndarray, K: np.ndarray, width: int, height: int, delta_px: float = 4.0,
-                 line_of_sight_clear: Optional[np.ndarray] = None) -> None:
+                 line_of_sight_clear: Optional[np.ndarray] = None, path_lengths: Optional[np.ndarray] = None,
+                 travel_scale: float = 6.0) -> None:
         self.targets = finite_points(target_points, "target_points")
         self.background = finite_points(background_points, "background_points")
         self.rotations, self.positions = check_poses(rotations, positions)
@@ -115,6 +119,16 @@ class ScoringContext:
                 raise ScoringInputError(f"line_of_sight_clear must be {self.num_candidates} values in [0, 1],"
                                         f" got shape {clear.shape}")
             self.line_of_sight_clear = clear
+        self.path_lengths: Optional[np.ndarray] = None
+        if path_lengths is not None:
+            lengths = np.asarray(path_lengths, dtype=np.float64).reshape(-1)
+            if lengths.shape != (self.num_candidates,) or np.any(np.isnan(lengths)) or np.any(lengths < 0.0):
+                raise ScoringInputError(f"path_lengths must be {self.num_candidates} values >= 0, got shape "
+                                        f"{lengths.shape}")
+            self.path_lengths = lengths
+        if not (np.isfinite(travel_scale) and travel_scale > 0.0):
+            raise ScoringInputError(f"travel_scale must be a finite number > 0, got {travel_scale}")
+        self.travel_scale = float(travel_scale)
         self._counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
         self.kernel_calls = 0
 
