@@ -5,11 +5,12 @@ The floor around the robot and the candidates is cut into square cells in the pl
 occupied when an obstacle point (background or obstacle-map point higher than ``floor_clearance``
 above the floor, or a person point: the robot does not drive through the person) falls in it; the
 occupied cells are inflated by the robot's radius, so a free cell is one the robot's centre may
-take. Cells the current view does not see (not inflated: nothing is known to be there) (outside its field of view) are unknown: free or
-occupied by the ``unknown_space`` parameter (the field of view is the wedge of the image's columns
-on the floor: the floor just below the image, in front of the robot, counts as seen). The path length from the robot's current foot point
-to each candidate's is a Dijkstra shortest path over free cells (8-connected, no corner cutting);
-a candidate is reachable when its cell is free and the path is at most ``max_path_length``.
+take. Cells outside the current view's field of view are unknown: free or occupied by the
+``unknown_space`` parameter (not inflated: nothing is known to be there). The field of view is the
+wedge of the image's columns on the floor: the floor just below the image, in front of the robot,
+counts as seen. The path length from the robot's current foot point to each candidate's is a
+Dijkstra shortest path over free cells (8-connected, no corner cutting); a candidate is reachable
+when its cell is free and the path is at most ``max_path_length``.
 
 Everything is in the observation's camera optical frame; the plane coordinates are
 (p . e1, p . e2) with (e1, e2) = ``plane_basis(n)``.
