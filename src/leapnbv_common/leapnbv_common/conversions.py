@@ -11,7 +11,8 @@ from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
-from geometry_msgs.msg import Point, Pose, Quaternion
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
+from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
@@ -771,3 +772,21 @@ def poses_to_numpy(poses: Sequence[Pose]) -> Tuple[np.ndarray, np.ndarray]:
     pairs = [pose_to_numpy(pose) for pose in poses]
     return (np.array([r for r, _ in pairs], dtype=np.float64).reshape(-1, 3, 3),
             np.array([p for _, p in pairs], dtype=np.float64).reshape(-1, 3))
+
+
+def path_msg(rotations: np.ndarray, positions: np.ndarray, header: Optional[Header] = None) -> Path:
+    """A nav_msgs/Path of (P, 3, 3) rotations and (P, 3) positions, every pose with the path's header."""
+    rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if rotations.shape[0] != positions.shape[0]:
+        raise ConversionError(f"path: {rotations.shape[0]} rotations for {positions.shape[0]} positions")
+    msg = Path()
+    if header is not None:
+        msg.header = header
+    msg.poses = [PoseStamped(header=msg.header, pose=pose_msg(r, p)) for r, p in zip(rotations, positions)]
+    return msg
+
+
+def path_to_numpy(msg: Path) -> Tuple[np.ndarray, np.ndarray]:
+    """((P, 3, 3) rotations, (P, 3) positions) of a nav_msgs/Path (the inverse of path_msg)."""
+    return poses_to_numpy([pose.pose for pose in msg.poses])

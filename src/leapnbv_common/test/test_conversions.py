@@ -238,3 +238,15 @@ def test_scene_ground_truth_round_trip():
     for name in ("person_box", "root_pose", "body_pose", "left_hand_pose", "betas", "expression", "translation"):
         np.testing.assert_allclose(getattr(back, name), np.asarray(getattr(truth, name), np.float32), err_msg=name)
     assert back.body_model_id == "stand_in_small" and back.occlusion_share == pytest.approx(0.4)
+
+
+def test_path_round_trip():
+    rotations = np.stack([_rotation(0.1), _rotation(-0.4), np.eye(3)])
+    positions = np.array([[0.0, 1.2, 0.0], [0.5, 1.2, 1.0], [1.0, 1.2, 2.0]])
+    msg = cv.path_msg(rotations, positions, cv.header_with_stamp(5, "cam"))
+    assert len(msg.poses) == 3 and msg.poses[1].header.frame_id == "cam" and msg.header.stamp.nanosec == 5
+    back_r, back_p = cv.path_to_numpy(msg)
+    np.testing.assert_allclose(back_r, rotations, atol=1e-12)
+    np.testing.assert_array_equal(back_p, positions)
+    with pytest.raises(cv.ConversionError, match="2 rotations for 3 positions"):
+        cv.path_msg(rotations[:2], positions)

@@ -86,6 +86,18 @@ class Plan:
             return None
         return self.candidates.rotations[self.chosen_index], self.candidates.positions[self.chosen_index]
 
+    def base_path_frames(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """((P, 3, 3), (P, 3)) poses along the path to the base goal: level, x along the path (the goal's own
+        orientation last); None without a path."""
+        if self.base_path is None or self.base_goal is None:
+            return None
+        points = np.asarray(self.base_path, dtype=np.float64)
+        rotations = np.empty((len(points), 3, 3))
+        for index in range(len(points) - 1):
+            rotations[index] = base_goal_frame(points[index], points[index + 1], self.up)[0]
+        rotations[-1] = self.base_goal[0]
+        return rotations, points
+
     def ring_centre_frame(self) -> Frame:
         """A level frame on the ring centre (the ring marker's pose): z up, x toward the last candidate."""
         return base_goal_frame(self.candidates.ring_center, self.candidates.positions[-1], self.up)

@@ -20,6 +20,7 @@ from typing import Optional, Set
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
@@ -31,6 +32,7 @@ from leapnbv_common.conversions import (
     arrays_to_view_candidates,
     ground_plane_to_arrays,
     obstacle_map_to_points,
+    path_msg,
     point_msg,
     pose_msg,
     stamp_to_ns,
@@ -58,6 +60,7 @@ class NbvNode(Node):
         self.candidates_pub = self.create_publisher(ViewCandidates, topics.VIEW_CANDIDATES, stage_output_qos())
         self.goal_pub = self.create_publisher(PoseStamped, topics.NEXT_BEST_VIEW, latched_goal_qos())
         self.base_goal_pub = self.create_publisher(PoseStamped, topics.BASE_GOAL, latched_goal_qos())
+        self.base_path_pub = self.create_publisher(Path, topics.BASE_PATH, latched_goal_qos())
         self.markers_pub = self.create_publisher(MarkerArray, topics.MARKERS, stage_output_qos())
         warm_up_scoring()  # compile the kernels before subscribing: the graph is ready only after it
         warm_up_obstacle_map()
@@ -163,6 +166,9 @@ class NbvNode(Node):
         if plan.chosen_index >= 0:
             self.goal_pub.publish(PoseStamped(header=target.header, pose=out.poses[plan.chosen_index]))
             self.base_goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.base_goal)))
+            path = plan.base_path_frames()
+            if path is not None:
+                self.base_path_pub.publish(path_msg(*path, target.header))
         else:
             self.diagnostics.reject("no_feasible_view", "every candidate is infeasible: no goal published")
         self.markers_pub.publish(candidate_markers(target.header, out, plan))
