@@ -135,8 +135,36 @@ def _pose_arrays(camera_pose: Any) -> Frame:
     return np.asarray(rotation, dtype=np.float64), np.asarray(position, dtype=np.float64)
 
 
+def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit outward vertex normals of a triangle mesh (area-weighted face normals summed per vertex).
+
+    The faces' winding decides the sign; a closed body's normals are turned outward when they point, on
+    the whole, toward its centre. A vertex in no face gets a zero normal (it never faces a camera).
+
+    Raises:
+        ValueError: vertices not (V, 3) or faces not (F, 3) indices into them.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
+    corners = vertices[faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_normals)
+    lengths = np.linalg.norm(normals, axis=1)
+    normals = np.where(lengths[:, None] > 0, normals / np.maximum(lengths, 1e-300)[:, None], 0.0)
+    if float(np.sum(normals * (vertices - vertices.mean(axis=0)))) < 0.0:
+        normals = -normals
+    return normals
+
+
 def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
-               obstacle_map: Optional[VoxelObstacleMap] = None, camera_pose: Any = None) -> Plan:
+               obstacle_map: Optional[VoxelObstacleMap] = None, camera_pose: Any = None,
+               body_mesh: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Plan:
     """Plan the next-best view of one frame.
 
     Args:
@@ -150,6 +178,8 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
         camera_pose: the frame's camera in the map's frame: a StampedCameraPose (rotation,
             position attributes) or a (rotation, position) pair; the caller checks that its frame
             is the map's.
+        body_mesh: optional (vertices (V, 3), faces (F, 3)) of the person's metric body mesh in the
+            frame's optical frame (the raster node's human_mesh_metric): the body_occlusion term scores it.
 
     Returns:
         The Plan.
@@ -170,13 +200,21 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     target_points = target.target_points
     background = target.background_points
     candidates = generate_candidates(centroid, normal, offset, params)
-    obstacles, line_of_sight_clear = background, None
+    obstacles, line_of_sight_clear, mesh_clear = background, None, None
+    mesh_vertices = mesh_normals = None
+    if body_mesh is not None and "body_occlusion" in params.score_terms:
+        mesh_vertices = np.asarray(body_mesh[0], dtype=np.float64)
+        mesh_normals = mesh_vertex_normals(mesh_vertices, body_mesh[1])
     if obstacle_map is not None and camera_pose is not None:
         rotation, position = _pose_arrays(camera_pose)
         obstacles = np.concatenate([background, centres_in_observation(obstacle_map, rotation, position)])
         line_of_sight_clear = line_of_sight_clear_fraction(
             obstacle_map, rotation, position, candidates.positions, target_points,
             params.map_max_target_points, params.map_target_margin)
+        if mesh_vertices is not None:
+            mesh_clear = line_of_sight_clear_fraction(
+                obstacle_map, rotation, position, candidates.positions, mesh_vertices,
+                params.map_max_target_points, params.map_target_margin)
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
     reach, path_lengths = None, None
     if getattr(params, "reachability", False):
@@ -185,7 +223,9 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, target.k,
                               target.width, target.height, params.term_weights(), delta_px=params.delta_px,
                               line_of_sight_clear=line_of_sight_clear, path_lengths=path_lengths,
-                              travel_scale=float(getattr(params, "max_path_length", 6.0)))
+                              travel_scale=float(getattr(params, "max_path_length", 6.0)),
+                              mesh_vertices=mesh_vertices, mesh_normals=mesh_normals,
+                              mesh_line_of_sight_clear=mesh_clear)
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
     base_goal, base_path = None, None
     if chosen >= 0:

@@ -56,7 +56,7 @@ def ring_poses(count=6):
 
 def test_built_in_terms_have_todays_names_and_default_weights():
     assert {term.name: term.default_weight for term in registered_terms()} == {
-        "visibility": 0.03, "area": 0.14, "occlusion": 0.83, "travel": 0.05}
+        "visibility": 0.03, "area": 0.14, "occlusion": 0.83, "travel": 0.05, "body_occlusion": 0.83}
     defaults = nbv_params_class()()
     assert defaults.term_weights() == [("visibility", 0.03), ("area", 0.14), ("occlusion", 0.83)]
     assert defaults.score_terms == DEFAULT_SCORE_TERMS == ["visibility", "area", "occlusion"]

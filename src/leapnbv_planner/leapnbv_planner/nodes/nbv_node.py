@@ -16,6 +16,7 @@ missing) the node plans from the frame alone.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from typing import Optional, Set
 
 import numpy as np
@@ -31,6 +32,7 @@ from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, refu
 from leapnbv_common.conversions import (
     arrays_to_view_candidates,
     ground_plane_to_arrays,
+    human_mesh_to_arrays,
     obstacle_map_to_points,
     path_msg,
     point_msg,
@@ -42,11 +44,13 @@ from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.qos import latched_goal_qos, latched_map_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import CompanionWait
-from leapnbv_msgs.msg import GroundPlane, TargetGeometry, ViewCandidates
+from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry, ViewCandidates
 from leapnbv_planner.obstacle_map import voxel_map_from_centres, warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
 from leapnbv_planner.plan import Plan, base_goal_frame, plan_views
 from leapnbv_planner.scoring import warm_up_scoring
+
+BODY_MESH_CACHE = 30  # body meshes (and frames waiting for theirs) remembered by stamp
 
 
 class NbvNode(Node):
@@ -73,6 +77,10 @@ class NbvNode(Node):
         if p.use_obstacle_map:
             self.create_subscription(PointCloud2, topics.OBSTACLE_MAP, self.on_obstacle_map, latched_map_qos())
             self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, p.camera_pose_cache)
+        # The person's metric body mesh by stamp (the body_occlusion term), and frames waiting for theirs.
+        self.body_meshes: OrderedDict[int, tuple] = OrderedDict()
+        self.waiting_for_mesh: OrderedDict[int, tuple] = OrderedDict()
+        self.create_subscription(HumanMesh, topics.HUMAN_MESH_METRIC, self.on_body_mesh, stage_input_qos(5))
         self.create_subscription(TargetGeometry, topics.TARGET_GEOMETRY, self.on_target, stage_input_qos(5))
         self.create_subscription(GroundPlane, topics.GROUND_PLANE, self.on_ground, stage_input_qos(5))
         self.create_timer(0.02, self.expire_waits)
@@ -137,6 +145,40 @@ class NbvNode(Node):
         for target, ground in self.ground.expire(self.now_ns()):
             self.diagnostics.reject("ground_plane_late", "used the latest ground plane instead of the frame's")
             self.plan(target, ground)
+        wait_ns = self.params.value.body_mesh_wait_s * 1e9
+        for stamp in [s for s, (_, _, since) in self.waiting_for_mesh.items() if self.now_ns() - since >= wait_ns]:
+            target, ground, _ = self.waiting_for_mesh.pop(stamp)
+            self.plan(target, ground, mesh_waited=True)
+
+    @rejects_bad_input("bad_body_mesh")
+    def on_body_mesh(self, msg: HumanMesh) -> None:
+        mesh = human_mesh_to_arrays(msg)
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.body_meshes[stamp] = (mesh.vertices.astype(np.float64), mesh.faces.reshape(-1, 3))
+        while len(self.body_meshes) > BODY_MESH_CACHE:
+            self.body_meshes.popitem(last=False)
+        waiting = self.waiting_for_mesh.pop(stamp, None)
+        if waiting is not None:
+            self.plan(waiting[0], waiting[1])
+
+    def body_mesh_for(self, target: TargetGeometry, ground: GroundPlane, mesh_waited: bool):
+        """(found, mesh): the frame's body mesh when body_occlusion is scored; (False, None) puts the frame on
+        hold until its mesh comes or body_mesh_wait_s runs out (then it is planned without: the paper's S_o)."""
+        p = self.params.value
+        if "body_occlusion" not in p.score_terms:
+            return True, None
+        stamp = stamp_to_ns(target.header.stamp)
+        mesh = self.body_meshes.get(stamp)
+        if mesh is not None:
+            return True, mesh
+        if not mesh_waited and p.body_mesh_wait_s > 0:
+            self.waiting_for_mesh[stamp] = (target, ground, self.now_ns())
+            while len(self.waiting_for_mesh) > BODY_MESH_CACHE:
+                self.waiting_for_mesh.popitem(last=False)
+            return False, None
+        self.diagnostics.reject("no_body_mesh", "no metric body mesh of this frame: body_occlusion scored the "
+                                "observed points")
+        return True, None
 
     def usable_ground(self, target: TargetGeometry, ground: Optional[GroundPlane]) -> Optional[GroundPlane]:
         if ground is None or not ground.valid:
@@ -145,7 +187,7 @@ class NbvNode(Node):
         return ground if abs(age_s) <= self.params.value.ground_max_age_s else None
 
     @rejects_bad_input("bad_target")
-    def plan(self, target: TargetGeometry, ground: Optional[GroundPlane]) -> None:
+    def plan(self, target: TargetGeometry, ground: Optional[GroundPlane], mesh_waited: bool = False) -> None:
         started = time.perf_counter()
         if not target.valid:
             self.diagnostics.reject("empty_target", "no person points in this frame: no goal")
@@ -157,10 +199,13 @@ class NbvNode(Node):
         if ground is None:
             self.diagnostics.reject("no_ground_plane", "no valid ground plane for this frame: no goal published")
             return
+        found, body_mesh = self.body_mesh_for(target, ground, mesh_waited)
+        if not found:
+            return  # planned when the frame's body mesh comes (or the wait runs out)
         target_arrays = target_geometry_to_arrays(target)
         camera_pose = self.camera_pose_for_frame(stamp_to_ns(target.header.stamp), target.header.frame_id)
         plan = plan_views(target_arrays, ground_plane_to_arrays(ground), self.params.value,
-                          self.obstacle_map if camera_pose is not None else None, camera_pose)
+                          self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh)
         out = arrays_to_view_candidates(plan.to_arrays(), target.header, (time.perf_counter() - started) * 1e3)
         self.candidates_pub.publish(out)
         if plan.chosen_index >= 0:
