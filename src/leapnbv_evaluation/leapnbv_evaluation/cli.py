@@ -24,7 +24,14 @@ import sys
 import time
 from typing import List, Optional, Sequence
 
-from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS, ROOMS, benchmark_seeds, checked_seed_count
+from leapnbv_evaluation.benchmark_set import (
+    BASE_ROOMS,
+    BENCHMARK_SEEDS,
+    FAMILY_SEEDS,
+    ROOMS,
+    checked_seed_count,
+    room_seeds,
+)
 from leapnbv_evaluation.episode import EvaluationError
 from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
 from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, run_in_workers
@@ -35,17 +42,19 @@ from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 
-def seeds_for(count: int, offset: int = 0) -> List[int]:
-    """Benchmark seeds [offset, offset + count) (the small stand-in checks seeds past the committed checks).
+def seeds_for(count: int, offset: int = 0, room: str = "furnished") -> List[int]:
+    """Benchmark seeds [offset, offset + count) of a room or family (the small stand-in checks seeds past the
+    committed ones).
 
     Raises:
         EvaluationError: A count below 1 or a negative offset.
     """
     body = None
-    if offset + count > checked_seed_count():
+    committed = checked_seed_count() if room in BASE_ROOMS else len(FAMILY_SEEDS.get(room, []))
+    if offset + count > committed:
         body = SMPLXModel.load(ensure_stand_in_body_model("small"))
     try:
-        return benchmark_seeds(count, offset, body)
+        return room_seeds(room, count, offset, body)
     except ValueError as error:
         raise EvaluationError(f"--scenes {count} --seed-offset {offset}: {error}") from error
 
@@ -95,7 +104,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="override one graph parameter (repeatable)")
     parser.add_argument("--frame-timeout", type=float, default=15.0, help="seconds to wait for a frame's plan")
     parser.add_argument("--room", choices=list(ROOMS), default="furnished",
-                        help="benchmark rooms with furniture around the person (default) or without")
+                        help="benchmark rooms with furniture around the person (default), without, or a family "
+                        "(leapnbv_evaluation.benchmark_set.FAMILY_CHANGES: its own seeds and robot)")
     parser.add_argument("--no-obstacle-map", action="store_true",
                         help="the planner gets no map of the room: it knows only what each frame shows")
     parser.add_argument("--robot-motion", choices=list(ROBOT_MOTIONS), default="base",
@@ -114,7 +124,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         if args.workers < 1:
             raise EvaluationError(f"--workers must be >= 1, got {args.workers}")
-        seeds = seeds_for(args.scenes, args.seed_offset)
+        seeds = seeds_for(args.scenes, args.seed_offset, args.room)
         run = run_evaluation(seeds, args.out, options, workers=args.workers, domain_base=args.domain_base)
     except EvaluationError as exc:
         print(f"[evaluation] {exc}", file=sys.stderr)

@@ -65,7 +65,7 @@ from leapnbv_common.topics import (
     VIEW_CANDIDATES,
     output_topic,
 )
-from leapnbv_evaluation.benchmark_set import benchmark_scene
+from leapnbv_evaluation.benchmark_set import FAMILY_GRAPH_PARAMETERS, benchmark_scene
 from leapnbv_evaluation.episode import (
     DEFAULT_METHOD,
     DEFAULT_STAMP_BASE_NS,
@@ -275,8 +275,9 @@ class ClosedLoopEvaluator:
         if o.real_models and not (o.detector_model and o.hmr_model and o.body_model):
             raise EvaluationError("real perception needs --detector-model, --hmr-model and --body-model")
         map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
+        robot = FAMILY_GRAPH_PARAMETERS.get(o.room, [])  # the family's robot (camera mounting), before --set
         return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body),
-                               parse_set_arguments(map_switch + list(o.set_parameters)))
+                               parse_set_arguments(map_switch + robot + list(o.set_parameters)))
 
     def start(self) -> None:
         """Start the graph's processes and the in-process nodes; wait until all are connected.
