@@ -41,6 +41,9 @@ from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
+#: A scene's frames are 0.1 s apart and scenes 10 s: at most this many moves fit in a scene's stamps.
+MAX_MOVES = 50
+
 
 def seeds_for(count: int, offset: int = 0, room: str = "furnished") -> List[int]:
     """Benchmark seeds [offset, offset + count) of a room or family (the small stand-in checks seeds past the
@@ -113,6 +116,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                         "height; free: the camera jumps to the 6-DoF pick")
     parser.add_argument("--robot-head", choices=list(HEAD_MODES), default="pan_tilt",
                         help="pan_tilt (default): the camera tilts toward the pick; fixed: it keeps its pitch")
+    parser.add_argument("--max-moves", type=int, default=1,
+                        help="leap_nbv's episode continues through the graph up to this many moves (default 1)")
+    parser.add_argument("--min-gain", type=float, default=0.02,
+                        help="a further move is made only when the graph's pick scores this much above staying")
     args = parser.parse_args(argv)
 
     options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
@@ -120,10 +127,13 @@ def main(argv: Optional[List[str]] = None) -> int:
                                 scene_body_model=args.scene_body_model, params_file=args.params,
                                 set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
                                 room=args.room, obstacle_map=not args.no_obstacle_map,
-                                robot_motion=args.robot_motion, robot_head=args.robot_head)
+                                robot_motion=args.robot_motion, robot_head=args.robot_head,
+                                max_moves=args.max_moves, min_gain=args.min_gain)
     try:
         if args.workers < 1:
             raise EvaluationError(f"--workers must be >= 1, got {args.workers}")
+        if not 1 <= args.max_moves <= MAX_MOVES:
+            raise EvaluationError(f"--max-moves must be in [1, {MAX_MOVES}], got {args.max_moves}")
         seeds = seeds_for(args.scenes, args.seed_offset, args.room)
         run = run_evaluation(seeds, args.out, options, workers=args.workers, domain_base=args.domain_base)
     except EvaluationError as exc:

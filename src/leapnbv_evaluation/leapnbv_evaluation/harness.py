@@ -83,6 +83,7 @@ from leapnbv_evaluation.results import (
     ClosedLoopResult,
     EvaluationRun,
     MethodResult,
+    MoveStep,
     PoseRecord,
     SceneResult,
 )
@@ -135,6 +136,9 @@ class EvaluationOptions:
         robot_motion: "base" (default: the robot's base drives to a pick, its camera stays at the
             start camera's mounting height) or "free" (the camera jumps to the 6-DoF pick).
         robot_head: "pan_tilt" (default: the camera tilts to the pick's pitch) or "fixed".
+        max_moves: leap_nbv's episode continues through the graph up to this many moves (1: one move, the
+            table's), each planned on the view the previous one reached ...
+        min_gain: ... while the graph's pick scores at least this much above staying (its predicted gain).
     """
 
     perception: str = "ground_truth"
@@ -153,6 +157,8 @@ class EvaluationOptions:
     obstacle_map: bool = True
     robot_motion: str = "base"
     robot_head: str = "pan_tilt"
+    max_moves: int = 1
+    min_gain: float = 0.02
 
     @property
     def robot(self) -> RobotModel:
@@ -540,7 +546,41 @@ class ClosedLoopEvaluator:
             closed_loop_matches_render=bool(np.array_equal(after_frame.depth_mm, render.depth_mm)))
         if after_candidates is not None and after_candidates.chosen_index >= 0:
             self._wait_goal(stamp1)  # the next goal lands here, not as a stale goal in the next scene
+        if self.options.max_moves > 1:
+            self._further_moves(scene, stamp_base, scene_index, outputs1, result.closed_loop)
         return outputs1
+
+    def _further_moves(self, scene: Scene, stamp_base: int, scene_index: int, outputs: FrameOutputs,
+                       record: ClosedLoopResult) -> None:
+        """Moves 2..max_moves: each planned by the graph on the view the previous move reached (the simulator
+        already follows that view's goal); the episode stops when the graph plans nothing or its pick's
+        predicted gain (score minus the current view's) is below min_gain."""
+        record.stop_reason = "max_moves"
+        for move in range(2, int(self.options.max_moves) + 1):
+            candidates = outputs.candidates() if outputs.failure is None else None
+            if candidates is None or candidates.chosen_index < 0:
+                record.stop_reason = "no plan"
+                return
+            chosen = int(candidates.chosen_index)
+            gain = float(candidates.score[chosen] - candidates.score[0]) if candidates.includes_current_view \
+                else float("inf")
+            if chosen == 0 or gain < self.options.min_gain:
+                record.stop_reason = "predicted gain below min_gain"
+                return
+            before = self.sim.camera.copy()
+            stamp = frame_stamp_ns(stamp_base, scene_index, move)
+            rendered, outputs_next = self._run_frame(stamp)
+            after = self.sim.camera
+            record.steps.append(MoveStep(
+                move=move, stamp_ns=stamp, planned_from_stamp_ns=outputs.stamp_ns, chosen_index=chosen,
+                predicted_gain=round(gain, 6), travel_m=round(float(np.linalg.norm(after.position[:2]
+                                                                                  - before.position[:2])), 4),
+                surface_coverage=view_metrics(scene, rendered).surface_coverage,
+                end_to_end_ms=outputs_next.latency_ms().get(END_TO_END)))
+            next_candidates = outputs_next.view_candidates
+            if next_candidates is not None and next_candidates.chosen_index >= 0:
+                self._wait_goal(stamp)
+            outputs = outputs_next
 
     def _pa_mpvpe(self, outputs: FrameOutputs, frame: RenderedFrame) -> Optional[float]:
         """PA-MPVPE of the graph's metric mesh against the ground truth (real models only)."""
