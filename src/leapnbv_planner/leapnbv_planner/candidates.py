@@ -175,6 +175,24 @@ def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarr
     return np.stack([x_axis, y_axis, z_axis], axis=1)
 
 
+def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray) -> np.ndarray:
+    """camera_look_at for (C, 3) positions at once (the same arithmetic row by row); degenerate rows
+    (looking along up, or at the target itself) go through camera_look_at."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    unit_up = unit_up / float(np.linalg.norm(unit_up))  # as camera_look_at does, for the same bits
+    view = target[None, :] - positions
+    distance = np.linalg.norm(view, axis=1)
+    z_axis = view / np.where(distance > 0, distance, 1.0)[:, None]
+    x_axis = np.cross(z_axis, unit_up[None, :])
+    x_length = np.linalg.norm(x_axis, axis=1)
+    x_axis = x_axis / np.where(x_length > 0, x_length, 1.0)[:, None]
+    y_axis = np.cross(z_axis, x_axis)
+    rotations = np.stack([x_axis, y_axis, z_axis], axis=2)
+    for index in np.flatnonzero((distance < _DEGENERATE_NORM) | (x_length < _DEGENERATE_NORM)):
+        rotations[index] = camera_look_at(positions[index], target, unit_up)
+    return rotations
+
+
 def _ring_start_direction(
     ring_center: np.ndarray, current_foot: np.ndarray, unit_normal: np.ndarray
 ) -> np.ndarray:
@@ -264,9 +282,7 @@ def generate_candidates(
     ring_feet = np.concatenate(feet_per_ring, axis=0) if feet_per_ring else np.zeros((0, 3))
     num_ring = ring_feet.shape[0]
     ring_positions = ring_feet + camera_height * unit_normal[None, :]
-    ring_rotations = np.array(
-        [camera_look_at(position, centroid, unit_normal) for position in ring_positions]
-    ).reshape(num_ring, 3, 3)
+    ring_rotations = _look_at_many(ring_positions, centroid, unit_normal)
 
     if params.include_current:
         rotations = np.concatenate([np.eye(3)[None], ring_rotations], axis=0)

@@ -126,6 +126,9 @@ def count_visible_targets(
         in_view[c] = count
         if count == 0:
             continue
+        if num_background == 0:  # nothing can hide anything (S_v's projection-only call)
+            not_hidden[c] = count
+            continue
 
         # Region of the min-depth image that can influence a target pixel.
         col_lo = col_min - half_window

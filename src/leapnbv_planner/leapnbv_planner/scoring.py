@@ -103,6 +103,8 @@ def score_candidates(
                              path_lengths=path_lengths, travel_scale=travel_scale, mesh_vertices=mesh_vertices,
                              mesh_normals=mesh_normals, mesh_line_of_sight_clear=mesh_line_of_sight_clear)
     computes = [get_term(name).compute for name, _ in terms]
+    if any(name == "occlusion" for name, _ in terms):
+        context.visible_counts()  # S_o's kernel call gives S_v's counts too: one call, whatever the term order
     columns = []
     score = np.zeros(context.num_candidates)
     for index, ((_, weight), compute) in enumerate(zip(terms, computes)):

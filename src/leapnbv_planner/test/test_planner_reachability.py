@@ -104,3 +104,15 @@ def test_plan_views_marks_candidates_behind_a_wall_unreachable_and_returns_the_p
     finite = np.isfinite(plan.path_lengths)
     np.testing.assert_allclose(travel[finite], 1.0 - np.minimum(1.0, plan.path_lengths[finite] / 6.0))
     assert travel[0] == 1.0 and np.all(travel[~finite] == 0.0)
+
+
+def test_the_ring_rotations_are_camera_look_at_bit_for_bit():
+    from leapnbv_planner.candidates import camera_look_at, generate_candidates
+
+    params = default_nbv_params()
+    params.num_rings, params.min_radius = 3, 1.5
+    normal = np.array([0.0, -0.98, 0.2]) / np.linalg.norm([0.0, -0.98, 0.2])
+    centroid = np.array([0.3, 0.2, 3.1])
+    candidates = generate_candidates(centroid, normal, 1.25, params)
+    for rotation, position in zip(candidates.rotations[1:], candidates.positions[1:]):
+        np.testing.assert_array_equal(rotation, camera_look_at(position, centroid, normal))

@@ -152,6 +152,7 @@ class ScoringContext:
                                             f"[0, 1], got shape {clear.shape}")
                 self.mesh_line_of_sight_clear = clear
         self._mesh_counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        self._in_view: Optional[np.ndarray] = None
         self._counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
         self.kernel_calls = 0
 
@@ -180,6 +181,20 @@ class ScoringContext:
             self.kernel_calls += 1
         return self._counts
 
+    def in_view_counts(self) -> np.ndarray:
+        """(C,) int64 target points in view: from visible_counts when it ran, else from a kernel call without
+        the background (projection only, no occlusion test: what S_v needs when S_o is not scored)."""
+        if self._counts is not None:
+            return self._counts[0]
+        if self._in_view is None:
+            fx, skew, cx, fy, cy, width, height = self.camera
+            self._in_view, _ = count_visible_targets(
+                self.targets, np.zeros((0, 3)), self.rotations, self.positions,
+                fx, skew, cx, fy, cy, width, height, self.half_window, np.zeros((0, 3)),
+            )
+            self.kernel_calls += 1
+        return self._in_view
+
     def mesh_counts(self) -> Tuple[np.ndarray, np.ndarray]:
         """(facing (C,) int64, not_hidden (C,) int64) over the body mesh's vertices, once per context.
 
@@ -198,8 +213,9 @@ class ScoringContext:
                 self.mesh_vertices, self.background, self.rotations, self.positions,
                 fx, skew, cx, fy, cy, width, height, self.half_window, self.mesh_normals,
             )
-            towards = self.positions[:, None, :] - self.mesh_vertices[None, :, :]  # (C, V, 3)
-            facing = np.count_nonzero(np.einsum("cvk,vk->cv", towards, self.mesh_normals) > 0.0, axis=1)
+            # n . (t_c - v) > 0  <=>  n . t_c > n . v: one (C, 3) x (3, V) product.
+            facing = np.count_nonzero(self.positions @ self.mesh_normals.T
+                                      > np.einsum("vk,vk->v", self.mesh_normals, self.mesh_vertices), axis=1)
             self._mesh_counts = (facing.astype(np.int64), not_hidden)
             self.kernel_calls += 1
         return self._mesh_counts
