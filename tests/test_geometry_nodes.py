@@ -398,6 +398,39 @@ def test_ground_checks_ransac_against_the_pose_refusing_a_disagreeing_plane(grap
     assert diag(graph, "ground_node", "floor.ransac_confirmed") >= confirmed_before + 1
 
 
+def test_ground_leaves_out_the_person_boxes_of_a_frame_without_a_mask(graph, scene):
+    from leapnbv_common.conversions import box_to_detection
+    from leapnbv_msgs.msg import PersonDetections
+
+    probe = graph["probe"]
+    frame = scene["frames"][0]
+    detections_pub = probe.node.create_publisher(PersonDetections, f"{NS}/detections", stage_output_qos(5))
+    assert probe.spin_until(lambda: detections_pub.get_subscription_count() >= 1, 10.0)
+
+    def fitted_points(plane) -> float:
+        return plane.inlier_count / plane.inlier_ratio  # the points RANSAC was fitted on
+
+    key_plain, key_boxed = (550, 0), (552, 0)
+    depth = lambda key: numpy_to_image(frame.depth_mm, "16UC1", make_header(*key))  # noqa: E731
+    assert send_until(probe, lambda: send_depth(graph, depth(key_plain)),
+                      lambda: by_stamp(graph["planes"], key_plain), 15.0)
+    box = np.array([*frame.ground_truth.person_box_xyxy, 0.9], np.float32)
+
+    def send_boxed() -> None:
+        detections_pub.publish(PersonDetections(header=make_header(*key_boxed), image_width=640, image_height=480,
+                                                detections=[box_to_detection(box)], backend="ground_truth"))
+        probe.spin_for(0.05)
+        send_depth(graph, depth(key_boxed))
+
+    assert send_until(probe, send_boxed, lambda: by_stamp(graph["planes"], key_boxed), 15.0)
+    plain, boxed = by_stamp(graph["planes"], key_plain)[0], by_stamp(graph["planes"], key_boxed)[0]
+    # The upper 60 % of the grown box is left out: fewer points, the floor still found.
+    x1, y1, x2, y2 = frame.ground_truth.person_box_xyxy
+    dropped = fitted_points(plain) - fitted_points(boxed)
+    assert dropped > 0.3 * ((x2 - x1) * 0.6 * (y2 - y1)) / 16  # stride 4: one point per 16 pixels
+    assert boxed.valid and abs(boxed.offset - frame.camera_pose.position[2]) < 0.05
+
+
 def test_ground_rejects_a_bad_camera_pose_and_keeps_serving(graph):
     probe = graph["probe"]
     before = diag(graph, "ground_node", "rejected.bad_camera_pose")
