@@ -10,10 +10,10 @@ import pytest
 from leapnbv_common.conversions import ViewCandidatesArrays
 from leapnbv_evaluation.results import (
     ClosedLoopResult,
-    MoveStep,
     EvaluationRun,
     GraphVsTruth,
     MethodResult,
+    MoveStep,
     PoseRecord,
     ResultsError,
     SceneResult,
