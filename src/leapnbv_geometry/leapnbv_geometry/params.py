@@ -95,10 +95,9 @@ class GroundParams:
                                      "its own person boxes (detections of the same stamp)")
     detection_grow_px: float = param(10.0, "px: person boxes are grown by this much when left out", min=0.0,
                                      max=1000.0)
-    # The floor round the feet is often the only floor an occluder leaves in view. On the 50 committed start views
-    # (RANSAC alone, no pose) the count of wrong floors moved between 2 and 6 with what was left out (nothing 3,
-    # the whole box 6, its top 60 % 2-6, the true person mask 4): within RANSAC's own variation there; the pose
-    # check (fuse_floor) is what removes them.
+    # The floor round the feet is often the only floor an occluder leaves in view. Measured on 50 start views per
+    # family (scripts/floor_check.py, RANSAC alone): leaving the person out did not lower the wrong floors there
+    # (3 -> 2-6 on the committed views, within RANSAC's own variation); the pose check (fuse_floor) removes them.
     detection_top_share: float = param(0.6, "share of each person box's height, from its top, left out (the rest "
                                        "keeps the floor round the feet)", min=0.05, max=1.0)
     camera_pose_source: str = param("topic", "where the camera pose comes from: a key of "
