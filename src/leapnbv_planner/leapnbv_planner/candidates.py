@@ -180,7 +180,8 @@ def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray
     (looking along up, or at the target itself) go through camera_look_at."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     unit_up = unit_up / float(np.linalg.norm(unit_up))  # as camera_look_at does, for the same bits
-    view = target[None, :] - positions
+    targets = np.broadcast_to(np.asarray(target, dtype=np.float64), positions.shape)
+    view = targets - positions
     distance = np.linalg.norm(view, axis=1)
     z_axis = view / np.where(distance > 0, distance, 1.0)[:, None]
     x_axis = np.cross(z_axis, unit_up[None, :])
@@ -189,7 +190,7 @@ def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray
     y_axis = np.cross(z_axis, x_axis)
     rotations = np.stack([x_axis, y_axis, z_axis], axis=2)
     for index in np.flatnonzero((distance < _DEGENERATE_NORM) | (x_length < _DEGENERATE_NORM)):
-        rotations[index] = camera_look_at(positions[index], target, unit_up)
+        rotations[index] = camera_look_at(positions[index], targets[index], unit_up)
     return rotations
 
 
@@ -281,8 +282,18 @@ def generate_candidates(
     ]
     ring_feet = np.concatenate(feet_per_ring, axis=0) if feet_per_ring else np.zeros((0, 3))
     num_ring = ring_feet.shape[0]
-    ring_positions = ring_feet + camera_height * unit_normal[None, :]
-    ring_rotations = _look_at_many(ring_positions, centroid, unit_normal)
+    mounting = float(getattr(params, "camera_height", 0.0))
+    ring_positions = ring_feet + (mounting if mounting > 0.0 else camera_height) * unit_normal[None, :]
+    aim = centroid
+    if getattr(params, "camera_tilt", "look_at") == "fixed":
+        # A head without tilt: aim along the level bearing to the target, pitched as the current camera is
+        # (sin(pitch) = -z.n for the current optical axis z = (0, 0, 1)).
+        sin_pitch = float(np.clip(-unit_normal[2], -0.999, 0.999))
+        level = centroid[None, :] - ring_positions
+        level -= (level @ unit_normal)[:, None] * unit_normal[None, :]
+        level /= np.maximum(np.linalg.norm(level, axis=1), 1e-12)[:, None]
+        aim = ring_positions + np.sqrt(1.0 - sin_pitch ** 2) * level - sin_pitch * unit_normal[None, :]
+    ring_rotations = _look_at_many(ring_positions, aim, unit_normal)
 
     if params.include_current:
         rotations = np.concatenate([np.eye(3)[None], ring_rotations], axis=0)

@@ -41,6 +41,12 @@ class CandidateRingParams:
     robot_radius: float = param(0.3, "metres: footprint radius checked for obstacles", min=0.0, max=5.0)
     floor_clearance: float = param(0.05, "metres: background points higher than this above the floor are obstacles",
                                    min=0.0, max=2.0)
+    camera_height: float = param(0.0, "metres: the candidates' camera height above the floor (the robot's mounting); "
+                                 "0 = the current camera's, from the ground plane (or the camera pose)", min=0.0,
+                                 max=10.0)
+    camera_tilt: str = param("look_at", "look_at: each candidate camera aims at the target (a pan-tilt head); fixed: "
+                             "it turns toward the target and keeps the current camera's pitch", choices=("look_at",
+                                                                                                       "fixed"))
     num_rings: int = param(1, "rings of candidates, radii evenly from min_radius to radius (1: radius only)",
                            min=1, max=8)
     min_radius: float = param(1.5, "metres: radius of the innermost ring when num_rings > 1", min=0.1, max=20.0)

@@ -34,7 +34,8 @@ def test_defaults_are_the_robot_values_and_valid():
     assert NODE_PARAMETER_NAMES <= names
     assert names - NODE_PARAMETER_NAMES == {
         "score_terms", "camera_pose_source", "body_mesh_wait_s", "weight_travel", "weight_body_occlusion",
-        "num_rings", "min_radius", "reachability", "max_path_length", "grid_resolution", "unknown_space"}
+        "num_rings", "min_radius", "reachability", "max_path_length", "grid_resolution", "unknown_space",
+        "camera_height", "camera_tilt"}
     for name, value in ROBOT_VALUES.items():
         assert getattr(params, name) == value, name
     assert params.score_terms == ["visibility", "area", "occlusion"] and params.camera_pose_source == "topic"

@@ -116,3 +116,26 @@ def test_the_ring_rotations_are_camera_look_at_bit_for_bit():
     candidates = generate_candidates(centroid, normal, 1.25, params)
     for rotation, position in zip(candidates.rotations[1:], candidates.positions[1:]):
         np.testing.assert_array_equal(rotation, camera_look_at(position, centroid, normal))
+
+
+def test_mounting_height_and_a_fixed_head():
+    from leapnbv_planner.candidates import generate_candidates
+
+    params = default_nbv_params()
+    pitch = np.radians(12.0)
+    up = np.array([0.0, -np.cos(pitch), -np.sin(pitch)])  # the current camera looks 12 deg down
+    centroid = np.array([0.2, 0.6, 3.0])
+    params.camera_height = 0.9
+    candidates = generate_candidates(centroid, up, 1.3, params)
+    heights = candidates.positions[1:] @ up + 1.3
+    np.testing.assert_allclose(heights, 0.9, atol=1e-12)  # the mounting height, not the current 1.3 m
+    params.camera_tilt = "fixed"
+    fixed = generate_candidates(centroid, up, 1.3, params)
+    axes = fixed.rotations[1:, :, 2]
+    np.testing.assert_allclose(np.degrees(np.arcsin(-(axes @ up))), 12.0, atol=1e-9)  # the current pitch
+    bearing = centroid - fixed.positions[1:]
+    bearing -= (bearing @ up)[:, None] * up
+    level_axes = axes - (axes @ up)[:, None] * up
+    cosine = np.sum(bearing * level_axes, axis=1) / np.linalg.norm(bearing, axis=1) / np.linalg.norm(level_axes, axis=1)
+    np.testing.assert_allclose(cosine, 1.0, atol=1e-12)  # turned toward the target
+    np.testing.assert_allclose(fixed.rotations[1:, :, 0] @ up, 0.0, atol=1e-12)  # no roll
