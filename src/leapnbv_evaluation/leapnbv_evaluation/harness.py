@@ -567,7 +567,8 @@ class ClosedLoopEvaluator:
             if chosen == 0 or gain < self.options.min_gain:
                 record.stop_reason = "predicted gain below min_gain"
                 return
-            before = self.sim.camera.copy()
+            # Where the planned-on view was taken (the simulator already follows that view's goal).
+            before = self.sim.camera_pose_at(outputs.stamp_ns) or self.sim.camera.copy()
             stamp = frame_stamp_ns(stamp_base, scene_index, move)
             rendered, outputs_next = self._run_frame(stamp)
             after = self.sim.camera
