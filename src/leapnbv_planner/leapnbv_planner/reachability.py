@@ -24,7 +24,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from leapnbv_planner.candidates import plane_basis
-from leapnbv_planner.path_kernel import grid_distances
+from leapnbv_planner.path_kernel import grid_distances, mark_occupied
 
 UNKNOWN_SPACE_CHOICES = ("free", "occupied")
 GRID_MARGIN_M = 1.0  # the grid reaches this far beyond the outermost candidate and the robot
@@ -182,15 +182,9 @@ def build_occupancy_grid(
     grid = OccupancyGrid(unit_normal=np.asarray(unit_normal, dtype=np.float64), offset=float(offset), axes=axes,
                          origin=low, cell=cell, occupied=np.zeros(shape, dtype=bool),
                          seen=np.ones(shape, dtype=bool), free=np.ones(shape, dtype=bool))
-    points = np.asarray(obstacle_points, dtype=np.float64).reshape(-1, 3)
-    points = points[np.all(np.isfinite(points), axis=1)]
-    points = points[points @ grid.unit_normal + offset > floor_clearance]
-    person = np.asarray(person_points, dtype=np.float64).reshape(-1, 3)
-    person = person[np.all(np.isfinite(person), axis=1)]
-    for cloud in (points, person):
-        if len(cloud):
-            rows, cols, inside = grid.cells_of(cloud)
-            grid.occupied[rows[inside], cols[inside]] = True
+    for cloud, min_height in ((obstacle_points, float(floor_clearance)), (person_points, -np.inf)):
+        mark_occupied(np.ascontiguousarray(np.asarray(cloud, dtype=np.float64).reshape(-1, 3)), grid.unit_normal,
+                      float(offset), min_height, axes, np.asarray(low, dtype=np.float64), float(cell), grid.occupied)
     if camera is not None:
         k, width, height = camera
         all_rows, all_cols = np.indices(shape)
