@@ -93,6 +93,10 @@ class GroundParams:
                                         min=0.001, max=1.0)
     exclude_detections: bool = param(True, "a frame with no recent person mask (the first of a scene) leaves out "
                                      "its own person boxes (detections of the same stamp)")
+    # The graph's plan needs the frame's detections anyway (the mesh comes from them): waiting for them costs no
+    # end-to-end time, and a wait that runs out under load would make the fit depend on timing.
+    detections_wait_s: float = param(1.0, "s: a frame without a recent person mask waits this long for its own "
+                                     "detections (once detections flow; 0 = never)", min=0.0, max=WAIT_MAX_S)
     detection_grow_px: float = param(10.0, "px: person boxes are grown by this much when left out", min=0.0,
                                      max=1000.0)
     # The floor round the feet is often the only floor an occluder leaves in view. Measured on 50 start views per

@@ -78,7 +78,7 @@ class PlannerParams(CandidateRingParams):
                                        " candidate", min=1, max=1_000_000)
     map_target_margin: float = param(0.1, "metres: the end of each line of sight, at the target, not checked in"
                                      " the map", min=0.0, max=2.0)
-    body_mesh_wait_s: float = param(0.3, "s: with body_occlusion scored, a frame waits this long for its metric body "
+    body_mesh_wait_s: float = param(1.0, "s: with body_occlusion scored, a frame waits this long for its metric body "
                                     "mesh (human_mesh_metric), then is scored on the observed points", min=0.0,
                                     max=10.0)
     camera_pose_source: str = param("topic", "where the camera pose of each frame comes from (a key of"

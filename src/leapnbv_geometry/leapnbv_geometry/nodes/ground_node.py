@@ -177,7 +177,7 @@ class GroundNode(Node):
     def needs_detections(self, msg: Image) -> bool:
         """A frame without a recent person mask waits for its own detections (once they flow)."""
         p = self.params.value
-        if not (p.exclude_detections and self.detections_flowing and p.mask_wait_s > 0):
+        if not (p.exclude_detections and self.detections_flowing and p.detections_wait_s > 0):
             return False
         if stamp_to_ns(msg.header.stamp) in self.detections:
             return False
@@ -210,7 +210,9 @@ class GroundNode(Node):
             self.publish_plane(plane, None)  # no pose of its stamp came: the invalid plane, as before
         if self.pending is None:
             return
-        if self.get_clock().now().nanoseconds - self.pending[1] >= self.params.value.mask_wait_s * 1e9:
+        p = self.params.value
+        wait_s = p.detections_wait_s if self.pending[2] else p.mask_wait_s
+        if self.get_clock().now().nanoseconds - self.pending[1] >= wait_s * 1e9:
             depth, for_detections, self.pending = self.pending[0], self.pending[2], None
             if for_detections:
                 self.detections_flowing = False  # none for that frame: do not wait again until some come
