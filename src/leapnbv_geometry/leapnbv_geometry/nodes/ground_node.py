@@ -149,6 +149,8 @@ class GroundNode(Node):
         else:
             self.depth_input = None
             self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(1), raw=True)
+            # Only for the first frame's exclusion: the boxes that came before their depth frame.
+            self.create_subscription(PersonDetections, DETECTIONS, self.keep_detection_boxes, stage_input_qos(5))
         # The mask excluded from frame t is the previous fitted frame's. Waiting briefly for it (when
         # masks are flowing) makes the fit independent of message timing, so replays repeat.
         self.previous_fit_stamp: Optional[int] = None
@@ -233,11 +235,17 @@ class GroundNode(Node):
         if not msg.detections:
             self.diagnostics.drop("no_person")  # nobody downstream works on this frame
             return
-        if refused(self.diagnostics, "bad_detections", detections_to_boxes, msg):
+        if not self.keep_detection_boxes(msg):
             return
-        self.detection_boxes.put(stamp_to_ns(msg.header.stamp), detections_to_boxes(msg))
         self.pull_companions()
         self.start_frame(stamp_to_ns(msg.header.stamp))
+
+    def keep_detection_boxes(self, msg: PersonDetections) -> bool:
+        """Keep the frame's person boxes by stamp (a first frame leaves them out); False: refused as bad."""
+        if refused(self.diagnostics, "bad_detections", detections_to_boxes, msg):
+            return False
+        self.detection_boxes.put(stamp_to_ns(msg.header.stamp), detections_to_boxes(msg))
+        return True
 
     @rejects_bad_input("bad_depth")
     def on_depth(self, msg: bytes, info) -> None:
