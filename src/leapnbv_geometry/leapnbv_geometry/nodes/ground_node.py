@@ -115,7 +115,8 @@ class GroundNode(Node):
         self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(5))
         # A frame with no recent mask (a scene's first) leaves out its own person boxes.
         self.detections: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
-        self.detections_flowing = False
+        # None until known: the first frame waits for its detections (a graph without a detector pays that once)
+        self.detections_flowing: Optional[bool] = None
         self.create_subscription(PersonDetections, DETECTIONS, self.on_detections, stage_input_qos(5))
         # The mask excluded from frame t is the previous frame's. Waiting briefly for it (when
         # masks are flowing) makes the fit independent of message timing, so replays repeat.
@@ -159,7 +160,8 @@ class GroundNode(Node):
             return
         self.person_mask = msg
         self.masks_flowing = True
-        if self.pending is not None and stamp_to_ns(msg.header.stamp) == self.previous_depth_stamp:
+        waiting_for_mask = self.pending is not None and not self.pending[2]  # not a frame waiting for detections
+        if waiting_for_mask and stamp_to_ns(msg.header.stamp) == self.previous_depth_stamp:
             depth, self.pending = self.pending[0], None
             self.fit(depth)
 
@@ -175,9 +177,11 @@ class GroundNode(Node):
             self.fit(depth)
 
     def needs_detections(self, msg: Image) -> bool:
-        """A frame without a recent person mask waits for its own detections (once they flow)."""
+        """A frame without a recent person mask waits for its own detections (unless the last wait found none:
+        then not until detections come again). The first frame waits too, so whether a bag's first frame leaves
+        its person out does not depend on which message arrived first."""
         p = self.params.value
-        if not (p.exclude_detections and self.detections_flowing and p.detections_wait_s > 0):
+        if not (p.exclude_detections and self.detections_flowing is not False and p.detections_wait_s > 0):
             return False
         if stamp_to_ns(msg.header.stamp) in self.detections:
             return False
@@ -192,8 +196,10 @@ class GroundNode(Node):
         if refused(self.diagnostics, "bad_depth", check_image, msg, DEPTH_ENCODINGS, "depth") or \
                 refused(self.diagnostics, "bad_depth", self.stamps.check, "depth", msg):
             return
-        if self.pending is not None:  # a newer frame: the waiting one is served now
-            depth, self.pending = self.pending[0], None
+        if self.pending is not None:
+            if stamp_to_ns(msg.header.stamp) == stamp_to_ns(self.pending[0].header.stamp):
+                return  # the waiting frame sent once more: it keeps waiting
+            depth, self.pending = self.pending[0], None  # a newer frame: the waiting one is served now
             self.fit(depth)
         mask_stamp = stamp_to_ns(self.person_mask.header.stamp) if self.person_mask is not None else None
         if (self.params.value.mask_wait_s > 0 and self.masks_flowing and self.previous_depth_stamp is not None
