@@ -14,7 +14,7 @@ obvious way. Its S_o must equal the fast one exactly.
 
 The ring and every other parameter are the nbv node's defaults (the robot's values, radius 2.5 m).
 
-Usage: .venv/bin/python scripts/bench_planner.py [--repeats 200] [--reference-repeats 3]
+Usage: .venv/bin/python scripts/bench_planner.py [--repeats 200] [--reference-repeats 3] [--robot-only]
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"
 os.environ["MKL_NUM_THREADS"] = "1"
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from functools import partial  # noqa: E402
@@ -216,6 +217,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=200)
     parser.add_argument("--reference-repeats", type=int, default=3)
+    parser.add_argument("--robot-only", action="store_true", help="only the robot's plan (3 rings, reachability, "
+                        "mesh S_o)")
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {0})
@@ -224,6 +227,10 @@ def main() -> None:
     centroid = np.median(ray_cast_scene(WIDTH, HEIGHT)[0], axis=0)
 
     params = nbv_params_class()()  # the robot's values
+    if args.robot_only:
+        warm_up_obstacle_map()
+        bench_robot_plan(params, centroid, room_voxel_map(), args.repeats)
+        return
 
     def ring(num_candidates: int):
         return generate_candidates(
@@ -320,6 +327,52 @@ def main() -> None:
                                              ("with the obstacle map", grid, (np.eye(3), np.zeros(3)))):
         median, p95 = time_call(partial(plan_views, frame, ground, params, obstacle_map, camera_pose), args.repeats)
         print(f"  {label:22s}: {median:7.2f} / {p95:7.2f}")
+
+    bench_robot_plan(params, centroid, grid, args.repeats)
+
+
+def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
+    """The robot's plan: 3 rings x 16 candidates (1.5-2.5 m), reachability on the floor grid, the mesh S_o over a
+    10k-vertex body mesh, 100k background points (20k target points for S_v)."""
+    target, background = scene_with_counts(20000, 100000)
+    ground = SimpleNamespace(valid=True, normal=PLANE_NORMAL, offset=PLANE_OFFSET)
+    mesh_vertices, mesh_faces = cylinder_mesh(10000)
+    robot = dataclasses.replace(params, num_rings=3, min_radius=1.5, reachability=True,
+                                score_terms=["visibility", "area", "body_occlusion"])
+    frame = SimpleNamespace(valid=True, target_points=target.astype(np.float32),
+                            background_points=background.astype(np.float32), centroid=centroid,
+                            k=INTRINSICS, width=WIDTH, height=HEIGHT)
+    print(f"\nplan_views, 3 rings x 16 + current, reachability, mesh S_o ({len(mesh_vertices)} vertices), 100k "
+          "background:")
+    for label, obstacle_map, camera_pose in (("frame only", None, None),
+                                             ("with the obstacle map", grid, (np.eye(3), np.zeros(3)))):
+        median, p95 = time_call(partial(plan_views, frame, ground, robot, obstacle_map, camera_pose,
+                                        (mesh_vertices, mesh_faces)), repeats)
+        print(f"  {label:22s}: {median:7.2f} / {p95:7.2f}")
+    plan = plan_views(frame, ground, robot, grid, (np.eye(3), np.zeros(3)), (mesh_vertices, mesh_faces))
+    print(f"  feasible {int(plan.feasibility.feasible.sum())} of {len(plan.candidates)}, unreachable "
+          f"{int((plan.feasibility.reasons == 3).sum())}, chosen {plan.chosen_index}, path "
+          f"{0 if plan.base_path is None else len(plan.base_path)} cells")
+
+
+def cylinder_mesh(count: int) -> Tuple[np.ndarray, np.ndarray]:
+    """The scene's person cylinder as a mesh surface (an open tube: its normals point outward) of about ``count``
+    vertices, 1 cm outside the ray-cast surface."""
+    segments = 100
+    rings = max(2, count // segments)
+    angles = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
+    radius = PERSON_RADIUS + 0.01
+    heights = PERSON_CENTRE[1] + np.linspace(-PERSON_HEIGHT / 2, PERSON_HEIGHT / 2, rings)
+    y, a = np.meshgrid(heights, angles, indexing="ij")
+    vertices = np.column_stack([PERSON_CENTRE[0] + radius * np.cos(a).ravel(), y.ravel(),
+                                PERSON_CENTRE[2] + radius * np.sin(a).ravel()])
+    faces = []
+    for r in range(rings - 1):
+        for k in range(segments):
+            i, j = r * segments + k, r * segments + (k + 1) % segments
+            faces.append([i, j, i + segments])
+            faces.append([j, j + segments, i + segments])
+    return vertices, np.array(faces, dtype=np.int64)
 
 
 if __name__ == "__main__":

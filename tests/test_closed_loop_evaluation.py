@@ -125,6 +125,23 @@ def test_simulator_node_publishes_one_stamp_on_all_topics_and_follows_a_goal(rep
         # The body, seen from 0.5 m further right, sits 0.5 m further left in the camera frame.
         shift = np.asarray(node.by_stamp[after]["ground_truth"].translation) - np.asarray(truth.translation)
         np.testing.assert_allclose(shift, [-0.5, 0.0, 0.0], atol=1e-4)
+
+        # A goal 0.5 m up the image (off the mounting height): the robot's base goes under it, the camera stays
+        # at its mounting height (robot_motion = base, the default).
+        up_goal = PoseStamped()
+        up_goal.header = node.by_stamp[after]["ground_truth"].header
+        up_goal.pose = pose_msg(np.eye(3), np.array([0.0, -0.5, 0.0]))
+        _, position_after = pose_to_numpy(node.by_stamp[after]["camera_pose"].pose)
+        lifted = position_after + rotation_after @ np.array([0.0, -0.5, 0.0])
+        mounted = np.array([lifted[0], lifted[1], position_after[2]])
+        assert lifted[2] > position_after[2] + 0.4
+        node.goal_pub.publish(up_goal)
+
+        def stayed_mounted():
+            return any(s > after and np.linalg.norm(pose_to_numpy(node.by_stamp[s]["camera_pose"].pose)[1]
+                                                    - mounted) < 1e-6 for s in node.complete_frames())
+
+        assert _spin_until(node, stayed_mounted, 20.0), "the camera left its mounting height"
     finally:
         process.send_signal(signal.SIGINT)
         try:
@@ -144,6 +161,10 @@ def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
         second = evaluator.evaluate(BENCHMARK_SEEDS[:2])
         # A worker's share of a longer run: seed 2 at its place (index 2) gets the same stamps as there.
         share = evaluator.evaluate(BENCHMARK_SEEDS[2:3], first_index=2)
+        # Several moves: the episode goes on through the graph from the view each move reached.
+        evaluator.options.max_moves, evaluator.options.min_gain = 3, -1.0  # move while the graph picks a move
+        multi = evaluator.evaluate(BENCHMARK_SEEDS[:1])
+        evaluator.options.max_moves = 1
     elapsed = time.monotonic() - started
     assert elapsed < 240.0
 
@@ -204,4 +225,20 @@ def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
     for name in ("results.md", "results.json", "chosen_views.json", "evaluation.md", "run.json"):
         assert (tmp_path / "out" / name).exists(), name
     assert EvaluationRun.read(str(tmp_path / "out" / "run.json")) == first
+
+    loop = multi.scenes[0].per_method["leap_nbv"].closed_loop
+    # The first move is the table's (the same pick as in the one-move run); the further ones are recorded.
+    assert multi.scenes[0].per_method["leap_nbv"].chosen_index == first.scenes[0].per_method["leap_nbv"].chosen_index
+    assert loop.stop_reason in ("max_moves", "no plan", "predicted gain below min_gain")
+    assert [step.move for step in loop.steps] == list(range(2, 2 + len(loop.steps)))
+    if loop.stop_reason == "max_moves":
+        assert len(loop.steps) == 2
+    for step in loop.steps:
+        assert 0.0 <= step.surface_coverage <= 1.0 and step.travel_m >= 0.0 and step.chosen_index > 0
+        assert step.stamp_ns - multi.scenes[0].stamp_ns == (step.move) * 100_000_000
+    if loop.steps:  # travel is measured from where the planned-on view was taken (the simulator moved on since)
+        assert max(step.travel_m for step in loop.steps) > 0.0
+    multi.ready_s, multi.total_wall_s = evaluator.ready_s, elapsed
+    multi.write(str(tmp_path / "multi.json"))
+    assert EvaluationRun.read(str(tmp_path / "multi.json")) == multi
 

@@ -358,19 +358,23 @@ def test_ground_falls_back_on_the_camera_pose_when_no_floor_is_in_view(graph):
     assert graph["procs"][f"{NS}/ground_node"].poll() is None
 
 
-def test_ground_keeps_ransac_when_the_floor_is_in_view_even_with_a_pose(graph, scene):
+def test_ground_checks_ransac_against_the_pose_refusing_a_disagreeing_plane(graph, scene):
     probe = graph["probe"]
     frame = scene["frames"][0]
-    key = (530, 0)
-    # A pose that disagrees with the rendered camera (0.5 m higher, pitched 25 deg): RANSAC must win.
-    pose = camera_pose(key, height=frame.camera_pose.position[2] + 0.5, pitch_down_deg=25.0)
+    refused_before = diag(graph, "ground_node", "floor.camera_pose_refused_ransac")
+    confirmed_before = diag(graph, "ground_node", "floor.ransac_confirmed")
 
-    def send() -> None:
+    def send(pose, key) -> None:
         graph["pose_pub"].publish(pose)
         probe.spin_for(0.05)
         send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", make_header(*key)))
 
-    assert send_until(probe, send, lambda: by_stamp(graph["planes"], key), 15.0)
+    # The rendered camera's own pose: RANSAC agrees with it and is kept (its quality above one half).
+    key = (530, 0)
+    true_pose = PoseStamped(header=make_header(*key), pose=pose_msg(frame.camera_pose.rotation,
+                                                                    frame.camera_pose.position))
+    true_pose.header.frame_id = "map"
+    assert send_until(probe, lambda: send(true_pose, key), lambda: by_stamp(graph["planes"], key), 15.0)
     plane = by_stamp(graph["planes"], key)[0]
     assert plane.valid and plane.source == GroundPlane.SOURCE_RANSAC
     normal, offset = plane_arrays(plane)
@@ -378,6 +382,57 @@ def test_ground_keeps_ransac_when_the_floor_is_in_view_even_with_a_pose(graph, s
     up_in_camera = frame.camera_pose.rotation.T @ np.array([0.0, 0.0, 1.0])
     assert np.degrees(np.arccos(np.clip(normal @ up_in_camera, -1.0, 1.0))) < 2.0
     assert plane.inlier_count >= 200
+    assert 0.5 < plane.quality <= 1.0
+
+    # A pose that disagrees with the plane in view (0.5 m higher, pitched 25 deg): RANSAC's plane is
+    # refused and the pose's floor is published (the pose is the robot's localization: it wins).
+    key = (531, 0)
+    pose = camera_pose(key, height=frame.camera_pose.position[2] + 0.5, pitch_down_deg=25.0)
+    assert send_until(probe, lambda: send(pose, key), lambda: by_stamp(graph["planes"], key), 15.0)
+    plane = by_stamp(graph["planes"], key)[0]
+    assert plane.valid and plane.source == GroundPlane.SOURCE_CAMERA_POSE
+    normal, offset = plane_arrays(plane)
+    expected_normal, expected_offset = floor_plane_from_camera_pose(*pose_to_numpy(pose.pose))
+    np.testing.assert_allclose(normal, expected_normal, atol=1e-9)
+    assert offset == pytest.approx(expected_offset, abs=1e-9)
+    assert plane.quality == pytest.approx(0.5)
+    assert plane.inlier_count >= 200  # RANSAC's own numbers, as it found them
+    assert probe.spin_until(lambda: diag(graph, "ground_node", "floor.camera_pose_refused_ransac")
+                            >= refused_before + 1, 5.0)
+    assert diag(graph, "ground_node", "floor.ransac_confirmed") >= confirmed_before + 1
+
+
+def test_ground_leaves_out_the_person_boxes_of_a_frame_without_a_mask(graph, scene):
+    from leapnbv_common.conversions import box_to_detection
+    from leapnbv_msgs.msg import PersonDetections
+
+    probe = graph["probe"]
+    frame = scene["frames"][0]
+    detections_pub = probe.node.create_publisher(PersonDetections, f"{NS}/detections", stage_output_qos(5))
+    assert probe.spin_until(lambda: detections_pub.get_subscription_count() >= 1, 10.0)
+
+    def fitted_points(plane) -> float:
+        return plane.inlier_count / plane.inlier_ratio  # the points RANSAC was fitted on
+
+    key_plain, key_boxed = (550, 0), (552, 0)
+    depth = lambda key: numpy_to_image(frame.depth_mm, "16UC1", make_header(*key))  # noqa: E731
+    assert send_until(probe, lambda: send_depth(graph, depth(key_plain)),
+                      lambda: by_stamp(graph["planes"], key_plain), 15.0)
+    box = np.array([*frame.ground_truth.person_box_xyxy, 0.9], np.float32)
+
+    def send_boxed() -> None:
+        detections_pub.publish(PersonDetections(header=make_header(*key_boxed), image_width=640, image_height=480,
+                                                detections=[box_to_detection(box)], backend="ground_truth"))
+        probe.spin_for(0.05)
+        send_depth(graph, depth(key_boxed))
+
+    assert send_until(probe, send_boxed, lambda: by_stamp(graph["planes"], key_boxed), 15.0)
+    plain, boxed = by_stamp(graph["planes"], key_plain)[0], by_stamp(graph["planes"], key_boxed)[0]
+    # The upper 60 % of the grown box is left out: fewer points, the floor still found.
+    x1, y1, x2, y2 = frame.ground_truth.person_box_xyxy
+    dropped = fitted_points(plain) - fitted_points(boxed)
+    assert dropped > 0.3 * ((x2 - x1) * 0.6 * (y2 - y1)) / 16  # stride 4: one point per 16 pixels
+    assert boxed.valid and abs(boxed.offset - frame.camera_pose.position[2]) < 0.05
 
 
 def test_ground_rejects_a_bad_camera_pose_and_keeps_serving(graph):

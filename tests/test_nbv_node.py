@@ -400,6 +400,35 @@ def voxel_box(centre_xy: np.ndarray, half_xy: float, height: float) -> np.ndarra
     return (index + 0.5) * VOXEL
 
 
+def test_reachability_publishes_the_path_to_the_base_goal(graph, planned):
+    from nav_msgs.msg import Path
+
+    from leapnbv_common.conversions import path_to_numpy
+
+    probe = graph["probe"]
+    paths = probe.collect(Path, f"{NS}/base_path", latched_goal_qos())
+    results = set_parameters(probe, f"{NS}/nbv_node", reachability=True, num_rings=3, min_radius=1.5)
+    assert all(r.successful for r in results), [r.reason for r in results]
+    try:
+        key = send_frame(graph, make_header(420, 0))
+        assert probe.spin_until(lambda: by_stamp(graph["candidates"], key) and by_stamp(graph["base_goals"], key)
+                                and by_stamp(paths, key), 10.0), read_log(graph["procs"][NS + "/nbv_node"])[-3000:]
+        (views,) = by_stamp(graph["candidates"], key)
+        assert len(views.score) == 1 + 3 * deployed_params().num_candidates
+        (base,) = by_stamp(graph["base_goals"], key)
+        (path,) = by_stamp(paths, key)
+        rotations, positions = path_to_numpy(path)
+        assert len(positions) >= 2
+        _, goal_position = pose_to_numpy(base.pose)
+        np.testing.assert_allclose(positions[-1], goal_position, atol=1e-9)  # it ends at the base goal
+        np.testing.assert_allclose([plane_distance(p) for p in positions], 0.0, atol=1e-6)  # on the floor
+        steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+        assert steps.max() < 0.2  # grid cells, no jumps
+    finally:
+        results = set_parameters(probe, f"{NS}/nbv_node", reachability=False, num_rings=1)
+        assert all(r.successful for r in results), [r.reason for r in results]
+
+
 def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
     from sensor_msgs.msg import PointCloud2
 

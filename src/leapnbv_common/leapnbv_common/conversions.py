@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
-from geometry_msgs.msg import Point, Pose, Quaternion
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
+from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
@@ -585,7 +586,8 @@ class GroundPlaneArrays:
     """The values of a GroundPlane message: the floor n.x + d = 0 in the camera optical frame.
 
     ``normal`` (3,) float64 points up (toward the camera side); ``offset`` d is then the camera's
-    height above the floor. ``source`` is GroundPlane.SOURCE_RANSAC or SOURCE_CAMERA_POSE.
+    height above the floor. ``source`` is GroundPlane.SOURCE_RANSAC or SOURCE_CAMERA_POSE;
+    ``quality`` is the 0..1 trust figure (leapnbv_geometry.ground.floor_quality).
     """
 
     normal: np.ndarray
@@ -594,6 +596,7 @@ class GroundPlaneArrays:
     source: int = GroundPlane.SOURCE_RANSAC
     inlier_count: int = 0
     inlier_ratio: float = 0.0
+    quality: float = 0.0
 
 
 GROUND_PLANE_SOURCES = (GroundPlane.SOURCE_RANSAC, GroundPlane.SOURCE_CAMERA_POSE)
@@ -609,7 +612,7 @@ def ground_plane_to_arrays(msg: GroundPlane) -> GroundPlaneArrays:
     plane = GroundPlaneArrays(
         normal=np.array([msg.normal.x, msg.normal.y, msg.normal.z], dtype=np.float64),
         offset=float(msg.offset), valid=bool(msg.valid), source=int(msg.source),
-        inlier_count=int(msg.inlier_count), inlier_ratio=float(msg.inlier_ratio))
+        inlier_count=int(msg.inlier_count), inlier_ratio=float(msg.inlier_ratio), quality=float(msg.quality))
     try:
         check_ground_plane(plane.normal, plane.offset, plane.valid, plane.source, GROUND_PLANE_SOURCES)
     except ContractError as error:
@@ -622,7 +625,7 @@ def arrays_to_ground_plane(plane: GroundPlaneArrays, header: Optional[Header] = 
     """A GroundPlane message (the inverse of ground_plane_to_arrays); ``inputs``: see input_stamp_msgs."""
     msg = GroundPlane(offset=float(plane.offset), inlier_count=int(plane.inlier_count),
                       inlier_ratio=float(plane.inlier_ratio), valid=bool(plane.valid), source=int(plane.source),
-                      inputs=input_stamp_msgs(inputs))
+                      quality=float(plane.quality), inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
     msg.normal.x, msg.normal.y, msg.normal.z = (float(v) for v in np.asarray(plane.normal).reshape(3))
@@ -874,3 +877,21 @@ def poses_to_numpy(poses: Sequence[Pose]) -> Tuple[np.ndarray, np.ndarray]:
     pairs = [pose_to_numpy(pose) for pose in poses]
     return (np.array([r for r, _ in pairs], dtype=np.float64).reshape(-1, 3, 3),
             np.array([p for _, p in pairs], dtype=np.float64).reshape(-1, 3))
+
+
+def path_msg(rotations: np.ndarray, positions: np.ndarray, header: Optional[Header] = None) -> Path:
+    """A nav_msgs/Path of (P, 3, 3) rotations and (P, 3) positions, every pose with the path's header."""
+    rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if rotations.shape[0] != positions.shape[0]:
+        raise ConversionError(f"path: {rotations.shape[0]} rotations for {positions.shape[0]} positions")
+    msg = Path()
+    if header is not None:
+        msg.header = header
+    msg.poses = [PoseStamped(header=msg.header, pose=pose_msg(r, p)) for r, p in zip(rotations, positions)]
+    return msg
+
+
+def path_to_numpy(msg: Path) -> Tuple[np.ndarray, np.ndarray]:
+    """((P, 3, 3) rotations, (P, 3) positions) of a nav_msgs/Path (the inverse of path_msg)."""
+    return poses_to_numpy([pose.pose for pose in msg.poses])

@@ -55,6 +55,9 @@ NEXT_BEST_VIEW = "next_best_view"
 BASE_GOAL = "base_goal"
 GOAL_STATUS = "goal_status"  # leapnbv_msgs/GoalStatus, latched: whether next_best_view / base_goal may be acted on
 MARKERS = "markers"
+# nav_msgs/Path to the base goal (latched), published with it when the planner's reachability is on; not in
+# OUTPUT_TOPICS (not every frame has one).
+BASE_PATH = "base_path"
 
 # Every output of the graph (absolute names), with its message type.
 OUTPUT_TOPICS: Dict[str, str] = {

@@ -167,13 +167,14 @@ def _rotation(angle: float) -> np.ndarray:
 
 def test_ground_plane_round_trip():
     plane = cv.GroundPlaneArrays(normal=np.array([0.0, -0.98, 0.2]), offset=1.25, valid=True, source=1,
-                                 inlier_count=321, inlier_ratio=0.25)
+                                 inlier_count=321, inlier_ratio=0.25, quality=0.75)
     msg = cv.arrays_to_ground_plane(plane, cv.header_with_stamp(1_500_000_123, "cam"), compute_time_ms=2.5)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1, 500_000_123, "cam")
     back = cv.ground_plane_to_arrays(msg)
     np.testing.assert_array_equal(back.normal, plane.normal)
     assert (back.offset, back.valid, back.source, back.inlier_count) == (1.25, True, 1, 321)
     assert back.inlier_ratio == pytest.approx(0.25)
+    assert back.quality == pytest.approx(0.75)
 
 
 def test_target_geometry_round_trip_carries_the_camera_of_the_frame():
@@ -270,3 +271,15 @@ def test_serialized_header_and_image_size_are_read_without_deserializing():
         assert (header.frame_id, header.stamp.sec, header.stamp.nanosec, height, width) == (frame_id, 12, 345, 48, 64)
     with pytest.raises(cv.ConversionError):
         cv.serialized_header_stamp_ns(b"\x00\x01\x00\x00")
+
+
+def test_path_round_trip():
+    rotations = np.stack([_rotation(0.1), _rotation(-0.4), np.eye(3)])
+    positions = np.array([[0.0, 1.2, 0.0], [0.5, 1.2, 1.0], [1.0, 1.2, 2.0]])
+    msg = cv.path_msg(rotations, positions, cv.header_with_stamp(5, "cam"))
+    assert len(msg.poses) == 3 and msg.poses[1].header.frame_id == "cam" and msg.header.stamp.nanosec == 5
+    back_r, back_p = cv.path_to_numpy(msg)
+    np.testing.assert_allclose(back_r, rotations, atol=1e-12)
+    np.testing.assert_array_equal(back_p, positions)
+    with pytest.raises(cv.ConversionError, match="2 rotations for 3 positions"):
+        cv.path_msg(rotations[:2], positions)

@@ -11,7 +11,7 @@ checks the seeds with the body model.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, List, Optional
+from typing import Any, Dict, List, Optional
 
 from leapnbv_sim.generation import SceneConfig, generate_scene
 from leapnbv_sim.scene import Scene, SceneError
@@ -105,8 +105,67 @@ VERIFIED_BELOW = 2104
 UNQUALIFIED_SEEDS: frozenset = frozenset()
 
 #: Rooms of the benchmark: "furnished" (BENCHMARK_CONFIG) or "open" (no furniture; the seeds
-#: qualify under both, the furniture keeps off the start view's line of sight).
-ROOMS = ("furnished", "open")
+#: qualify under both, the furniture keeps off the start view's line of sight) ...
+BASE_ROOMS = ("furnished", "open")
+
+#: ... and the families, each a change of BENCHMARK_CONFIG with its own committed seeds
+#: (FAMILY_SEEDS): the room's walls (corner, corridor, near a wall: no furniture, the walls are the
+#: obstacles), the starting occlusion, the person's distance, the robot's camera height (the ground
+#: node's mounting priors follow it: FAMILY_GRAPH_PARAMETERS) and the depth noise.
+FAMILY_CHANGES: Dict[str, Dict[str, Any]] = {
+    "corner": {"room_layout": "corner", "clutter_count_range": (0, 0)},
+    "corridor": {"room_layout": "corridor", "clutter_count_range": (0, 0)},
+    "near_wall": {"room_layout": "near_wall", "clutter_count_range": (0, 0)},
+    "heavy_occlusion": {"occluder_share_range": (0.60, 0.80)},
+    "far": {"person_distance_range": (4.0, 6.0)},
+    "camera_0.6": {"camera_height_range": (0.6, 0.6)},
+    "camera_1.8": {"camera_height_range": (1.8, 1.8)},
+    "noise_3x": {"noise": "3x"},
+}
+ROOMS = BASE_ROOMS + tuple(FAMILY_CHANGES)
+
+#: Graph parameters a family's robot sets (its camera's mounting height: the ground node's priors).
+FAMILY_GRAPH_PARAMETERS: Dict[str, List[str]] = {
+    "camera_0.6": ["ground_node.min_camera_height=0.3", "ground_node.max_camera_height=0.9"],
+    "camera_1.8": ["ground_node.min_camera_height=1.5", "ground_node.max_camera_height=2.1"],
+}
+
+#: The first 40 qualifying seeds of each family (``select_benchmark_seeds(40, small_model,
+#: family_config(0, family))``, produced once by ``scripts/family_seeds.py``; do not edit by hand).
+FAMILY_SEEDS: Dict[str, List[int]] = {
+    "corner": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    "corridor": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    "near_wall": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    "heavy_occlusion": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 16, 17, 18, 19, 20, 21, 22, 24, 25, 26, 27, 28,
+        29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39, 40, 41
+    ],
+    "far": [
+        0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 27, 28,
+        29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39, 40, 41
+    ],
+    "camera_0.6": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    "camera_1.8": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    "noise_3x": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+}
 
 
 def checked_seed_count() -> int:
@@ -149,15 +208,48 @@ def benchmark_seeds(count: int, offset: int = 0, body_model: Any = None) -> List
 
 
 def benchmark_config(seed: int, room: str = "furnished") -> SceneConfig:
-    """The scene config of one benchmark seed in a room ("furnished": BENCHMARK_CONFIG; "open": no furniture).
+    """The scene config of one benchmark seed in a room ("furnished": BENCHMARK_CONFIG; "open": no furniture;
+    a family of FAMILY_CHANGES: BENCHMARK_CONFIG with the family's changes).
 
     Raises:
         ValueError: An unknown room.
     """
     if room not in ROOMS:
         raise ValueError(f"room must be one of {ROOMS}, got {room!r}")
-    clutter = BENCHMARK_CONFIG.clutter_count_range if room == "furnished" else (0, 0)
-    return dataclasses.replace(BENCHMARK_CONFIG, seed=int(seed), clutter_count_range=clutter)
+    if room in BASE_ROOMS:
+        clutter = BENCHMARK_CONFIG.clutter_count_range if room == "furnished" else (0, 0)
+        return dataclasses.replace(BENCHMARK_CONFIG, seed=int(seed), clutter_count_range=clutter)
+    changes = dict(FAMILY_CHANGES[room])
+    if changes.get("noise") == "3x":
+        noise = BENCHMARK_CONFIG.noise
+        changes["noise"] = dataclasses.replace(noise, sigma_quadratic_per_m=3 * noise.sigma_quadratic_per_m,
+                                               sigma_constant_m=3 * noise.sigma_constant_m)
+    return dataclasses.replace(BENCHMARK_CONFIG, seed=int(seed), **changes)
+
+
+def room_seeds(room: str, count: int, offset: int = 0, body_model: Any = None) -> List[int]:
+    """Seeds [offset, offset + count) of a room: the benchmark sequence for "furnished" / "open", a
+    family's committed FAMILY_SEEDS (then, past them, the family's next qualifying seeds, checked with
+    ``body_model``).
+
+    Raises:
+        ValueError: an unknown room, a bad count or offset, or seeds past the committed ones without a body model.
+    """
+    if room in BASE_ROOMS:
+        return benchmark_seeds(count, offset, body_model)
+    if room not in FAMILY_CHANGES:
+        raise ValueError(f"room must be one of {ROOMS}, got {room!r}")
+    if count < 1 or offset < 0:
+        raise ValueError(f"room seeds need count >= 1 and offset >= 0, got count {count}, offset {offset}")
+    seeds = list(FAMILY_SEEDS.get(room, []))
+    if len(seeds) < offset + count:
+        if body_model is None:
+            raise ValueError(f"{offset + count} seeds of {room} reach past the {len(seeds)} committed ones: give "
+                             "the body model to find the rest")
+        first = seeds[-1] + 1 if seeds else 0
+        seeds += select_benchmark_seeds(offset + count - len(seeds), body_model, benchmark_config(0, room),
+                                        first_seed=first, max_seed=first + 100 * (offset + count))
+    return seeds[offset:offset + count]
 
 
 def benchmark_scene(seed: int, body_model: Any, room: str = "furnished") -> Scene:

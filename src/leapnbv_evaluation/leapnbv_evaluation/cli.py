@@ -24,27 +24,40 @@ import sys
 import time
 from typing import List, Optional, Sequence
 
-from leapnbv_evaluation.benchmark_set import BENCHMARK_SEEDS, ROOMS, benchmark_seeds, checked_seed_count
+from leapnbv_evaluation.benchmark_set import (
+    BASE_ROOMS,
+    BENCHMARK_SEEDS,
+    FAMILY_SEEDS,
+    ROOMS,
+    checked_seed_count,
+    room_seeds,
+)
 from leapnbv_evaluation.episode import EvaluationError
 from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
 from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, run_in_workers
 from leapnbv_evaluation.results import EvaluationRun
 from leapnbv_evaluation.task_report import task_table_markdown, write_evaluation_outputs
 from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
+#: A scene's frames are 0.1 s apart and scenes 10 s: at most this many moves fit in a scene's stamps.
+MAX_MOVES = 50
 
-def seeds_for(count: int, offset: int = 0) -> List[int]:
-    """Benchmark seeds [offset, offset + count) (the small stand-in checks seeds past the committed checks).
+
+def seeds_for(count: int, offset: int = 0, room: str = "furnished") -> List[int]:
+    """Benchmark seeds [offset, offset + count) of a room or family (the small stand-in checks seeds past the
+    committed ones).
 
     Raises:
         EvaluationError: A count below 1 or a negative offset.
     """
     body = None
-    if offset + count > checked_seed_count():
+    committed = checked_seed_count() if room in BASE_ROOMS else len(FAMILY_SEEDS.get(room, []))
+    if offset + count > committed:
         body = SMPLXModel.load(ensure_stand_in_body_model("small"))
     try:
-        return benchmark_seeds(count, offset, body)
+        return room_seeds(room, count, offset, body)
     except ValueError as error:
         raise EvaluationError(f"--scenes {count} --seed-offset {offset}: {error}") from error
 
@@ -94,20 +107,34 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="override one graph parameter (repeatable)")
     parser.add_argument("--frame-timeout", type=float, default=15.0, help="seconds to wait for a frame's plan")
     parser.add_argument("--room", choices=list(ROOMS), default="furnished",
-                        help="benchmark rooms with furniture around the person (default) or without")
+                        help="benchmark rooms with furniture around the person (default), without, or a family "
+                        "(leapnbv_evaluation.benchmark_set.FAMILY_CHANGES: its own seeds and robot)")
     parser.add_argument("--no-obstacle-map", action="store_true",
                         help="the planner gets no map of the room: it knows only what each frame shows")
+    parser.add_argument("--robot-motion", choices=list(ROBOT_MOTIONS), default="base",
+                        help="base (default): the robot's base drives to a pick and its camera stays at its mounting "
+                        "height; free: the camera jumps to the 6-DoF pick")
+    parser.add_argument("--robot-head", choices=list(HEAD_MODES), default="pan_tilt",
+                        help="pan_tilt (default): the camera tilts toward the pick; fixed: it keeps its pitch")
+    parser.add_argument("--max-moves", type=int, default=1,
+                        help="leap_nbv's episode continues through the graph up to this many moves (default 1)")
+    parser.add_argument("--min-gain", type=float, default=0.02,
+                        help="a further move is made only when the graph's pick scores this much above staying")
     args = parser.parse_args(argv)
 
     options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
                                 hmr_model=args.hmr_model, body_model=args.body_model,
                                 scene_body_model=args.scene_body_model, params_file=args.params,
                                 set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
-                                room=args.room, obstacle_map=not args.no_obstacle_map)
+                                room=args.room, obstacle_map=not args.no_obstacle_map,
+                                robot_motion=args.robot_motion, robot_head=args.robot_head,
+                                max_moves=args.max_moves, min_gain=args.min_gain)
     try:
         if args.workers < 1:
             raise EvaluationError(f"--workers must be >= 1, got {args.workers}")
-        seeds = seeds_for(args.scenes, args.seed_offset)
+        if not 1 <= args.max_moves <= MAX_MOVES:
+            raise EvaluationError(f"--max-moves must be in [1, {MAX_MOVES}], got {args.max_moves}")
+        seeds = seeds_for(args.scenes, args.seed_offset, args.room)
         run = run_evaluation(seeds, args.out, options, workers=args.workers, domain_base=args.domain_base)
     except EvaluationError as exc:
         print(f"[evaluation] {exc}", file=sys.stderr)

@@ -12,8 +12,11 @@ Every method picks one of the SAME scored candidates of the start frame (the gra
 * ``oracle`` (when every candidate is rendered): the feasible candidate with the best
   ground-truth surface coverage, the ceiling of the candidate ring.
 
-The camera moves to each pick (``pose_in_world`` of the start camera and the candidate's pose in
-the observation frame), the scene is rendered there (the same noise draw for every method) and
+The robot is sent to each pick (``pose_in_world`` of the start camera and the candidate's pose in
+the observation frame): by default its base drives to the pick's point on the floor and the camera
+stays at the start camera's mounting height, tilted toward the pick's viewing direction
+(:class:`leapnbv_sim.poses.RobotModel`; ``motion="free"`` puts the camera at the 6-DoF pick
+instead), and the scene is rendered there (the same noise draw for every method) and
 scored: surface coverage (the headline), raw body coverage and the ground-truth reconstructed area
 (:class:`~leapnbv_evaluation.results.ViewMetrics`). Success is decided here, once per method
 (``metrics.is_success``). After a graph failure there are no candidates: every method stays.
@@ -29,7 +32,7 @@ from leapnbv_common.conversions import GroundPlaneArrays, TargetGeometryArrays, 
 from leapnbv_evaluation.metrics import body_coverage, is_success, surface_coverage
 from leapnbv_evaluation.results import GraphVsTruth, MethodResult, PoseRecord, ViewMetrics
 from leapnbv_planner.scoring import choose_best
-from leapnbv_sim.poses import CameraPose, pose_in_world
+from leapnbv_sim.poses import CameraPose, RobotModel, pose_in_world
 from leapnbv_sim.render import PERSON_ID, RenderedFrame
 from leapnbv_sim.scene import Scene
 
@@ -40,6 +43,8 @@ BASE_METHODS: Tuple[str, ...] = (DEFAULT_METHOD, "stay", "random")
 ORACLE_METHOD = "oracle"
 #: Mixed into the per-scene seed of the "random" method.
 RANDOM_METHOD_SALT = 7919
+#: The evaluation's robot: the base drives, the camera stays at the start camera's height, a pan-tilt head.
+DEFAULT_ROBOT = RobotModel()
 #: The noise draw of every after-move render (the same for all methods: a fair comparison).
 AFTER_FRAME_INDEX = 1
 
@@ -112,11 +117,13 @@ def view_metrics(scene: Scene, frame: RenderedFrame) -> ViewMetrics:
     )
 
 
-def candidate_world_pose(observation: CameraPose, candidates: ViewCandidatesArrays, index: int) -> CameraPose:
-    """World pose of candidate ``index`` (the observation's own pose for -1: staying)."""
+def candidate_world_pose(observation: CameraPose, candidates: ViewCandidatesArrays, index: int,
+                         robot: RobotModel = DEFAULT_ROBOT) -> CameraPose:
+    """World camera pose the robot reaches when sent to candidate ``index`` (the observation's own pose for -1)."""
     if index < 0:
         return observation.copy()
-    return pose_in_world(observation, candidates.rotations[index], candidates.positions[index])
+    return robot.reach(observation, pose_in_world(observation, candidates.rotations[index],
+                                                  candidates.positions[index]))
 
 
 def frame_stamp_ns(stamp_base_ns: int, scene_index: int, frame: int) -> int:
@@ -149,7 +156,8 @@ class MethodViews:
 
 
 def score_methods(scene: Scene, before: ViewMetrics, candidates: Optional[ViewCandidatesArrays], seed: int,
-                  score_all_candidates: bool, methods_when_staying: Sequence[str]) -> MethodViews:
+                  score_all_candidates: bool, methods_when_staying: Sequence[str],
+                  robot: RobotModel = DEFAULT_ROBOT) -> MethodViews:
     """Every method's pick among the candidates, rendered from the start camera's view of them and scored.
 
     Args:
@@ -160,6 +168,7 @@ def score_methods(scene: Scene, before: ViewMetrics, candidates: Optional[ViewCa
         seed: The scene's seed (the random method's draw).
         score_all_candidates: Render every candidate too and add the oracle.
         methods_when_staying: The methods to record when there are no candidates.
+        robot: How the robot reaches a pick (default: base motion, camera at its mounting height).
 
     Returns:
         The moves and renders.
@@ -173,14 +182,15 @@ def score_methods(scene: Scene, before: ViewMetrics, candidates: Optional[ViewCa
         choices = choose_method_views(candidates, seed)
         if score_all_candidates:
             for index in range(len(candidates)):
-                frame = scene.render(candidate_world_pose(start, candidates, index), frame_index=AFTER_FRAME_INDEX)
+                frame = scene.render(candidate_world_pose(start, candidates, index, robot),
+                                     frame_index=AFTER_FRAME_INDEX)
                 rendered[index] = (frame, view_metrics(scene, frame))
             candidate_views = [rendered[index][1] for index in range(len(candidates))]
             coverage = np.array([view.surface_coverage for view in candidate_views])
             choices[ORACLE_METHOD] = int(choose_best(coverage, candidates.feasible, candidates.positions, np.zeros(3)))
     per_method: Dict[str, MethodResult] = {}
     for method, index in choices.items():
-        pose = candidate_world_pose(start, candidates, index) if candidates is not None else start
+        pose = candidate_world_pose(start, candidates, index, robot) if candidates is not None else start
         if index not in rendered:
             frame = scene.render(pose, frame_index=AFTER_FRAME_INDEX)
             rendered[index] = (frame, view_metrics(scene, frame))

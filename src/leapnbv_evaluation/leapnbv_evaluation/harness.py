@@ -65,7 +65,7 @@ from leapnbv_common.topics import (
     VIEW_CANDIDATES,
     output_topic,
 )
-from leapnbv_evaluation.benchmark_set import benchmark_scene
+from leapnbv_evaluation.benchmark_set import FAMILY_GRAPH_PARAMETERS, benchmark_scene
 from leapnbv_evaluation.episode import (
     DEFAULT_METHOD,
     DEFAULT_STAMP_BASE_NS,
@@ -83,12 +83,14 @@ from leapnbv_evaluation.results import (
     ClosedLoopResult,
     EvaluationRun,
     MethodResult,
+    MoveStep,
     PoseRecord,
     SceneResult,
 )
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.nodes.simulator_node import SimulatorNode
+from leapnbv_sim.poses import RobotModel
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
@@ -131,6 +133,12 @@ class EvaluationOptions:
         obstacle_map: The simulator publishes each scene's static obstacles as a voxel map (what
             a robot's mapping stack knows of the room) and the nbv node uses it, with the
             camera pose of every frame; False: the planner knows only what each frame shows.
+        robot_motion: "base" (default: the robot's base drives to a pick, its camera stays at the
+            start camera's mounting height) or "free" (the camera jumps to the 6-DoF pick).
+        robot_head: "pan_tilt" (default: the camera tilts to the pick's pitch) or "fixed".
+        max_moves: leap_nbv's episode continues through the graph up to this many moves (1: one move, the
+            table's), each planned on the view the previous one reached ...
+        min_gain: ... while the graph's pick scores at least this much above staying (its predicted gain).
     """
 
     perception: str = "ground_truth"
@@ -147,6 +155,14 @@ class EvaluationOptions:
     score_all_candidates: bool = True
     room: str = "furnished"
     obstacle_map: bool = True
+    robot_motion: str = "base"
+    robot_head: str = "pan_tilt"
+    max_moves: int = 1
+    min_gain: float = 0.02
+
+    @property
+    def robot(self) -> RobotModel:
+        return RobotModel(motion=self.robot_motion, head=self.robot_head)
 
     @property
     def real_models(self) -> bool:
@@ -201,10 +217,13 @@ class FrameOutputs:
             raise EvaluationError(f"view_candidates: {error}") from error
 
 
-def simulator_parameters(publish_obstacle_map: bool = True) -> List[Parameter]:
-    """The in-process simulator's parameters: frames only when asked, goals reached at once."""
+def simulator_parameters(publish_obstacle_map: bool = True, robot: Optional[RobotModel] = None) -> List[Parameter]:
+    """The in-process simulator's parameters: frames only when asked, goals reached at once, the robot's motion."""
+    robot = robot or RobotModel()
     return [Parameter("rate_hz", value=0.0), Parameter("move_speed_m_s", value=0.0),
-            Parameter("publish_obstacle_map", value=bool(publish_obstacle_map))]
+            Parameter("publish_obstacle_map", value=bool(publish_obstacle_map)),
+            Parameter("robot_motion", value=robot.motion), Parameter("robot_head", value=robot.head),
+            Parameter("robot_camera_height", value=float(robot.camera_height))]
 
 
 class ClosedLoopEvaluator:
@@ -263,8 +282,9 @@ class ClosedLoopEvaluator:
             raise EvaluationError("real perception needs --detector-model, --hmr-model and --body-model")
         map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
         map_switch.append("nbv_node.max_goal_age_s=0.0")  # simulated stamps, not the clock's: no goal age limit
+        robot = FAMILY_GRAPH_PARAMETERS.get(o.room, [])  # the family's robot (camera mounting), before --set
         return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body),
-                               parse_set_arguments(map_switch + list(o.set_parameters)))
+                               parse_set_arguments(map_switch + robot + list(o.set_parameters)))
 
     def start(self) -> None:
         """Start the graph's processes and the in-process nodes; wait until all are connected.
@@ -285,7 +305,8 @@ class ClosedLoopEvaluator:
             self.ready_s = self.runner.wait_ready(self.collector, timeout_s=self.options.ready_timeout_s)
         except GraphError as exc:
             raise EvaluationError(f"the graph did not start: {exc}") from exc
-        self.sim = SimulatorNode(scene=first_scene, parameter_overrides=simulator_parameters(self.options.obstacle_map))
+        self.sim = SimulatorNode(scene=first_scene, parameter_overrides=simulator_parameters(self.options.obstacle_map,
+                                                                                    self.options.robot))
         self._subscribe_outputs()
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.sim)
@@ -481,7 +502,8 @@ class ClosedLoopEvaluator:
         except ConversionError as error:
             raise EvaluationError(f"target_geometry of seed {seed}: {error}") from error
         ground = ground_plane_to_arrays(ground_msg) if ground_msg is not None else None
-        views = score_methods(scene, before, candidates, seed, self.options.score_all_candidates, self.methods)
+        views = score_methods(scene, before, candidates, seed, self.options.score_all_candidates, self.methods,
+                              self.options.robot)
         leap = views.per_method.get(DEFAULT_METHOD)
         if candidates is not None and leap is not None and leap.chosen_index >= 0:
             frames.append(self._closed_loop_after(scene, candidates, stamp_base, scene_index,
@@ -506,7 +528,7 @@ class ClosedLoopEvaluator:
         chosen = result.chosen_index
         stamp0 = frame_stamp_ns(stamp_base, scene_index, 0)
         goal_received = self._wait_goal(stamp0)
-        expected = candidate_world_pose(scene.start_camera, candidates, chosen)
+        expected = candidate_world_pose(scene.start_camera, candidates, chosen, self.options.robot)
         if not goal_received:
             # The goal message did not arrive: move the robot from the candidates directly.
             self.sim.move_to(expected)
@@ -525,7 +547,42 @@ class ClosedLoopEvaluator:
             closed_loop_matches_render=bool(np.array_equal(after_frame.depth_mm, render.depth_mm)))
         if after_candidates is not None and after_candidates.chosen_index >= 0:
             self._wait_goal(stamp1)  # the next goal lands here, not as a stale goal in the next scene
+        if self.options.max_moves > 1:
+            self._further_moves(scene, stamp_base, scene_index, outputs1, result.closed_loop)
         return outputs1
+
+    def _further_moves(self, scene: Scene, stamp_base: int, scene_index: int, outputs: FrameOutputs,
+                       record: ClosedLoopResult) -> None:
+        """Moves 2..max_moves: each planned by the graph on the view the previous move reached (the simulator
+        already follows that view's goal); the episode stops when the graph plans nothing or its pick's
+        predicted gain (score minus the current view's) is below min_gain."""
+        record.stop_reason = "max_moves"
+        for move in range(2, int(self.options.max_moves) + 1):
+            candidates = outputs.candidates() if outputs.failure is None else None
+            if candidates is None or candidates.chosen_index < 0:
+                record.stop_reason = "no plan"
+                return
+            chosen = int(candidates.chosen_index)
+            gain = float(candidates.score[chosen] - candidates.score[0]) if candidates.includes_current_view \
+                else float("inf")
+            if chosen == 0 or gain < self.options.min_gain:
+                record.stop_reason = "predicted gain below min_gain"
+                return
+            # Where the planned-on view was taken (the simulator already follows that view's goal).
+            before = self.sim.camera_pose_at(outputs.stamp_ns) or self.sim.camera.copy()
+            stamp = frame_stamp_ns(stamp_base, scene_index, move)
+            rendered, outputs_next = self._run_frame(stamp)
+            after = self.sim.camera
+            record.steps.append(MoveStep(
+                move=move, stamp_ns=stamp, planned_from_stamp_ns=outputs.stamp_ns, chosen_index=chosen,
+                predicted_gain=round(gain, 6), travel_m=round(float(np.linalg.norm(after.position[:2]
+                                                                                  - before.position[:2])), 4),
+                surface_coverage=view_metrics(scene, rendered).surface_coverage,
+                end_to_end_ms=outputs_next.latency_ms().get(END_TO_END)))
+            next_candidates = outputs_next.view_candidates
+            if next_candidates is not None and next_candidates.chosen_index >= 0:
+                self._wait_goal(stamp)
+            outputs = outputs_next
 
     def _pa_mpvpe(self, outputs: FrameOutputs, frame: RenderedFrame) -> Optional[float]:
         """PA-MPVPE of the graph's metric mesh against the ground truth (real models only)."""

@@ -97,6 +97,8 @@ class ClosedLoopResult:
         after_graph_failure: Why the graph planned nothing for the after-view, or None.
         after_graph_chosen_index: The graph's choice in the after-view (None: no candidates).
         closed_loop_matches_render: The node's after-view is the in-process render of the pick.
+        steps: The further moves (2, 3, ...) of a multi-move episode (``max_moves`` > 1), in order.
+        stop_reason: Why the episode ended after its last move ("" for a one-move episode).
     """
 
     goal_received: bool
@@ -106,6 +108,8 @@ class ClosedLoopResult:
     after_graph_failure: Optional[str]
     after_graph_chosen_index: Optional[int]
     closed_loop_matches_render: bool
+    steps: List[MoveStep] = field(default_factory=list)
+    stop_reason: str = ""
 
     def to_json(self) -> Dict[str, Any]:
         return asdict(self)
@@ -115,7 +119,39 @@ class ClosedLoopResult:
         return cls(bool(data["goal_received"]), float(data["goal_position_error_m"]),
                    _optional(int, data["graph_area_after_px"]), int(data["after_stamp_ns"]),
                    _optional(str, data["after_graph_failure"]), _optional(int, data["after_graph_chosen_index"]),
-                   bool(data["closed_loop_matches_render"]))
+                   bool(data["closed_loop_matches_render"]),
+                   [MoveStep.from_json(step) for step in data.get("steps", [])], str(data.get("stop_reason", "")))
+
+
+@dataclass
+class MoveStep:
+    """One further move of a multi-move episode: the graph planned on the previous view, the robot moved.
+
+    Attributes:
+        move: 2 for the second move, and so on.
+        stamp_ns: Stamp of the view after this move.
+        planned_from_stamp_ns: Stamp of the view the move was planned on.
+        chosen_index: The graph's pick on that view.
+        predicted_gain: Its score minus the current view's (candidate 0's) score.
+        travel_m: Distance the camera moved (its foot point on the floor).
+        surface_coverage: Coverage of the view after the move.
+        end_to_end_ms: The view's time through the graph (None when it did not answer).
+    """
+
+    move: int
+    stamp_ns: int
+    planned_from_stamp_ns: int
+    chosen_index: int
+    predicted_gain: float
+    travel_m: float
+    surface_coverage: float
+    end_to_end_ms: Optional[float] = None
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> MoveStep:
+        return cls(int(data["move"]), int(data["stamp_ns"]), int(data["planned_from_stamp_ns"]),
+                   int(data["chosen_index"]), float(data["predicted_gain"]), float(data["travel_m"]),
+                   float(data["surface_coverage"]), _optional(float, data.get("end_to_end_ms")))
 
 
 @dataclass

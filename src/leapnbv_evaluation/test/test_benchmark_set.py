@@ -107,3 +107,36 @@ def test_rooms(body_model: SMPLXModel) -> None:
     # The furniture keeps off the start view: the same seed starts with the same occlusion in both rooms.
     assert furnished.start_occluder_share == empty.start_occluder_share
     np.testing.assert_array_equal(furnished.start_camera.as_matrix(), empty.start_camera.as_matrix())
+
+
+def test_families_change_the_benchmark_config_and_have_committed_seeds():
+    import dataclasses as _dc
+
+    from leapnbv_evaluation.benchmark_set import (
+        BENCHMARK_CONFIG,
+        FAMILY_CHANGES,
+        FAMILY_GRAPH_PARAMETERS,
+        FAMILY_SEEDS,
+        ROOMS,
+        benchmark_config,
+        room_seeds,
+    )
+
+    assert set(FAMILY_CHANGES) <= set(ROOMS) and {"furnished", "open"} <= set(ROOMS)
+    assert all(len(FAMILY_SEEDS[family]) >= 30 for family in FAMILY_CHANGES)
+    corridor = benchmark_config(5, "corridor")
+    assert (corridor.seed, corridor.room_layout, corridor.clutter_count_range) == (5, "corridor", (0, 0))
+    assert benchmark_config(1, "heavy_occlusion").occluder_share_range == (0.60, 0.80)
+    assert benchmark_config(1, "far").person_distance_range == (4.0, 6.0)
+    assert benchmark_config(1, "camera_0.6").camera_height_range == (0.6, 0.6)
+    noisy = benchmark_config(1, "noise_3x").noise
+    assert noisy.sigma_quadratic_per_m == pytest.approx(3 * BENCHMARK_CONFIG.noise.sigma_quadratic_per_m)
+    # Everything a family does not change is the benchmark's.
+    assert _dc.replace(benchmark_config(2, "far"), person_distance_range=BENCHMARK_CONFIG.person_distance_range) == \
+        _dc.replace(BENCHMARK_CONFIG, seed=2)
+    assert room_seeds("far", 3, 4) == FAMILY_SEEDS["far"][4:7]
+    assert "ground_node.min_camera_height=0.3" in FAMILY_GRAPH_PARAMETERS["camera_0.6"]
+    with pytest.raises(ValueError, match="room must be one of"):
+        benchmark_config(1, "attic")
+    with pytest.raises(ValueError, match="give the body model"):
+        room_seeds("corner", 5, len(FAMILY_SEEDS["corner"]))

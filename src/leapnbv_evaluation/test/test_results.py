@@ -13,6 +13,7 @@ from leapnbv_evaluation.results import (
     EvaluationRun,
     GraphVsTruth,
     MethodResult,
+    MoveStep,
     PoseRecord,
     ResultsError,
     SceneResult,
@@ -56,7 +57,10 @@ def _scene(seed: int, index: int, failed: bool = False) -> SceneResult:
         per_method["leap_nbv"].pa_mpvpe_mm = 43.21
         per_method["leap_nbv"].closed_loop = ClosedLoopResult(
             goal_received=True, goal_position_error_m=0.0, graph_area_after_px=21000, after_stamp_ns=10**18 + 7,
-            after_graph_failure=None, after_graph_chosen_index=4, closed_loop_matches_render=True)
+            after_graph_failure=None, after_graph_chosen_index=4, closed_loop_matches_render=True,
+            steps=[MoveStep(move=2, stamp_ns=10**18 + 2 * 10**8, planned_from_stamp_ns=10**18 + 10**8, chosen_index=3,
+                            predicted_gain=0.125, travel_m=1.75, surface_coverage=0.93, end_to_end_ms=None)],
+            stop_reason="predicted gain below min_gain")
     truth = GraphVsTruth([0.1, 0.2, 2.3], [0.0, -0.2, 2.4], [0.0, -0.98963, -0.14365], 1.2548)
     if not failed:
         truth.target_valid, truth.target_centroid_m, truth.ring_center_m = True, [0.03, -0.45, 2.25], [0.0, 0.9, 2.4]

@@ -14,11 +14,16 @@ import numpy as np
 from .target_geometry import backproject
 
 __all__ = [
+    "FloorEstimate",
     "GroundPlaneError",
     "GroundPlaneResult",
+    "box_exclusion_mask",
+    "expected_up",
     "fit_ground_plane",
     "floor_plane_from_camera_pose",
+    "fuse_floor",
     "ground_points_from_depth",
+    "mounting_priors",
 ]
 
 # Plane convention: n.x + d = 0 with |n| = 1 and n pointing up (n.up > 0; up is -y in the
@@ -364,3 +369,160 @@ def ground_points_from_depth(
     full_keep = np.zeros(depth.shape, dtype=bool)
     full_keep[::stride, ::stride] = keep
     return backproject(depth, K, mask=full_keep, stride=stride)
+
+
+# --------------------------------------------------------------------------- priors and fusion
+
+
+def expected_up(pitch_deg: float) -> np.ndarray:
+    """The floor's up in the optical frame of a camera pitched down by ``pitch_deg`` (no roll).
+
+    A camera whose optical axis points ``pitch_deg`` below the horizon sees the world's up as
+    (0, -cos p, -sin p): up leans back toward the camera as the camera looks down.
+    """
+    pitch = np.radians(float(pitch_deg))
+    return np.array([0.0, -np.cos(pitch), -np.sin(pitch)])
+
+
+def mounting_priors(camera_height: float, height_tolerance: float) -> Tuple[float, float]:
+    """(min, max) camera height above the floor from the robot's mounting height and its tolerance."""
+    return max(0.0, float(camera_height) - float(height_tolerance)), float(camera_height) + float(height_tolerance)
+
+
+def box_exclusion_mask(shape: Tuple[int, int], boxes: np.ndarray, grow_px: float = 10.0,
+                       top_share: float = 1.0) -> np.ndarray:
+    """Pixels inside any person box (x1, y1, x2, y2[, score]) grown by ``grow_px``: the person is not floor.
+
+    Used on a frame for which no person mask exists yet (the first frame of a scene), so that the
+    fit does not take the person's own points for floor. With ``top_share`` < 1 only the upper
+    share of each box is left out: the floor round the feet, often the only floor an occluder
+    leaves in view, stays in the fit.
+
+    Args:
+        shape: (H, W) of the depth image.
+        boxes: (N, 4+) boxes in image pixels (corners first; extra columns ignored).
+        grow_px: pixels added on every side (at the bottom only when the whole box is left out).
+        top_share: share (0..1] of each box's height, from its top, that is left out.
+
+    Returns:
+        (H, W) bool mask.
+
+    Raises:
+        GroundPlaneError: ``boxes`` is not (N, >= 4).
+    """
+    height, width = int(shape[0]), int(shape[1])
+    boxes = np.asarray(boxes, dtype=np.float64)
+    if boxes.size == 0:
+        return np.zeros((height, width), dtype=bool)
+    if boxes.ndim != 2 or boxes.shape[1] < 4:
+        raise GroundPlaneError(f"box_exclusion_mask: boxes must be (N, >= 4), got {boxes.shape}")
+    mask = np.zeros((height, width), dtype=bool)
+    for x1, y1, x2, y2 in boxes[:, :4]:
+        if not np.all(np.isfinite([x1, y1, x2, y2])):
+            continue
+        bottom = y2 + grow_px if top_share >= 1.0 else y1 + float(top_share) * (y2 - y1)
+        c0, c1 = int(max(0, np.floor(x1 - grow_px))), int(min(width, np.ceil(x2 + grow_px)))
+        r0, r1 = int(max(0, np.floor(y1 - grow_px))), int(min(height, np.ceil(bottom)))
+        mask[r0:r1, c0:c1] = True
+    return mask
+
+
+#: Where a published floor came from, and how it relates to the camera pose (FloorEstimate.decision).
+FLOOR_RANSAC = "ransac"  # RANSAC, no camera pose to check it against
+FLOOR_RANSAC_CONFIRMED = "ransac_confirmed"  # RANSAC, within the tolerance of the camera-pose floor
+FLOOR_POSE_REFUSED_RANSAC = "camera_pose_refused_ransac"  # RANSAC disagreed with the pose: the pose's floor
+FLOOR_POSE_NO_RANSAC = "camera_pose_no_ransac"  # RANSAC found none: the pose's floor
+FLOOR_NONE = "none"  # neither
+
+
+@dataclass
+class FloorEstimate:
+    """The floor a frame is given: RANSAC's, the camera pose's, or none, with its quality.
+
+    Attributes:
+        valid: a floor was found.
+        normal: (3,) unit up normal (zeros when not valid).
+        offset: camera height above it, metres.
+        from_pose: True when normal/offset are the camera pose's floor.
+        decision: one of the FLOOR_* names (for diagnostics).
+        quality: 0..1, how far the floor can be trusted (:func:`floor_quality`).
+        angle_to_pose_deg: angle between RANSAC's and the pose's normals (NaN without both).
+        height_to_pose_m: |d_ransac - d_pose| (NaN without both).
+    """
+
+    valid: bool
+    normal: np.ndarray
+    offset: float
+    from_pose: bool
+    decision: str
+    quality: float
+    angle_to_pose_deg: float = float("nan")
+    height_to_pose_m: float = float("nan")
+
+
+def floor_quality(decision: str, inlier_ratio: float, full_support_ratio: float = 0.2) -> float:
+    """A 0..1 trust figure of a floor (the GroundPlane ``quality`` field).
+
+    s = min(1, inlier_ratio / full_support_ratio) is how much of the view supports the RANSAC
+    plane. A RANSAC plane no pose could check scores 0.5 s (at most 0.5: one source only); the
+    camera pose's floor alone scores 0.5 (the robot's localization, not seen in this view); a
+    RANSAC plane confirmed by the pose scores 0.5 + 0.5 s (two sources agree: above 0.5). No
+    floor scores 0.
+    """
+    support = float(np.clip(inlier_ratio / max(full_support_ratio, 1e-9), 0.0, 1.0)) if inlier_ratio > 0 else 0.0
+    if decision == FLOOR_RANSAC:
+        return 0.5 * support
+    if decision == FLOOR_RANSAC_CONFIRMED:
+        return 0.5 + 0.5 * support
+    if decision in (FLOOR_POSE_REFUSED_RANSAC, FLOOR_POSE_NO_RANSAC):
+        return 0.5
+    return 0.0
+
+
+def fuse_floor(
+    ransac: GroundPlaneResult,
+    pose_floor: Optional[Tuple[np.ndarray, float]],
+    max_angle_deg: float = 2.0,
+    max_height_m: float = 0.05,
+    full_support_ratio: float = 0.2,
+) -> FloorEstimate:
+    """RANSAC's floor checked against the camera pose's floor (docs/ALGORITHMS.md §5).
+
+    With a pose, a valid RANSAC plane is kept only when its normal is within ``max_angle_deg``
+    of the pose floor's and its offset within ``max_height_m``; otherwise it is refused and the
+    pose's floor is used. A wrong RANSAC plane (an occluder's top, a wall's bottom, a slice
+    through furniture when little floor is in view) is what this catches; a RANSAC plane that
+    agrees measures the floor actually in view (small localization errors of the pose stay out).
+    Without a pose, RANSAC's plane is used as it is.
+
+    Args:
+        ransac: the fit on this frame.
+        pose_floor: (normal, offset) of the camera pose of this frame's stamp, or None.
+        max_angle_deg: largest normal disagreement of an accepted RANSAC plane.
+        max_height_m: largest offset disagreement of an accepted RANSAC plane.
+        full_support_ratio: inlier ratio at which the quality's support figure saturates.
+
+    Returns:
+        The FloorEstimate.
+    """
+    angle = height = float("nan")
+    if pose_floor is None:
+        decision = FLOOR_RANSAC if ransac.valid else FLOOR_NONE
+    else:
+        pose_normal = np.asarray(pose_floor[0], dtype=np.float64)
+        pose_offset = float(pose_floor[1])
+        if ransac.valid:
+            cosine = float(np.clip(np.asarray(ransac.normal) @ pose_normal, -1.0, 1.0))
+            angle = float(np.degrees(np.arccos(cosine)))
+            height = abs(float(ransac.offset) - pose_offset)
+            agrees = angle <= max_angle_deg and height <= max_height_m
+            decision = FLOOR_RANSAC_CONFIRMED if agrees else FLOOR_POSE_REFUSED_RANSAC
+        else:
+            decision = FLOOR_POSE_NO_RANSAC
+    quality = floor_quality(decision, ransac.inlier_ratio, full_support_ratio)
+    if decision in (FLOOR_RANSAC, FLOOR_RANSAC_CONFIRMED):
+        return FloorEstimate(True, np.asarray(ransac.normal, dtype=np.float64), float(ransac.offset), False,
+                             decision, quality, angle, height)
+    if decision == FLOOR_NONE:
+        return FloorEstimate(False, np.zeros(3), 0.0, False, decision, 0.0, angle, height)
+    return FloorEstimate(True, pose_normal, pose_offset, True, decision, quality, angle, height)

@@ -38,6 +38,7 @@ class FeasibilityReason(enum.IntEnum):
     OK = 0
     OUT_OF_TRAVEL_RANGE = 1
     OBSTACLE = 2
+    UNREACHABLE = 3  # no free path of at most max_path_length (leapnbv_planner.reachability)
 
 
 @dataclass
@@ -174,6 +175,25 @@ def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarr
     return np.stack([x_axis, y_axis, z_axis], axis=1)
 
 
+def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray) -> np.ndarray:
+    """camera_look_at for (C, 3) positions at once (the same arithmetic row by row); degenerate rows
+    (looking along up, or at the target itself) go through camera_look_at."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    unit_up = unit_up / float(np.linalg.norm(unit_up))  # as camera_look_at does, for the same bits
+    targets = np.broadcast_to(np.asarray(target, dtype=np.float64), positions.shape)
+    view = targets - positions
+    distance = np.linalg.norm(view, axis=1)
+    z_axis = view / np.where(distance > 0, distance, 1.0)[:, None]
+    x_axis = np.cross(z_axis, unit_up[None, :])
+    x_length = np.linalg.norm(x_axis, axis=1)
+    x_axis = x_axis / np.where(x_length > 0, x_length, 1.0)[:, None]
+    y_axis = np.cross(z_axis, x_axis)
+    rotations = np.stack([x_axis, y_axis, z_axis], axis=2)
+    for index in np.flatnonzero((distance < _DEGENERATE_NORM) | (x_length < _DEGENERATE_NORM)):
+        rotations[index] = camera_look_at(positions[index], targets[index], unit_up)
+    return rotations
+
+
 def _ring_start_direction(
     ring_center: np.ndarray, current_foot: np.ndarray, unit_normal: np.ndarray
 ) -> np.ndarray:
@@ -194,6 +214,14 @@ def _ring_start_direction(
     raise CandidateGenerationError("cannot find an in-plane start direction for the ring")
 
 
+def ring_radii(params: CandidateRingParams) -> np.ndarray:
+    """The ring radii, innermost first: ``radius`` alone, or num_rings radii evenly from min_radius to radius."""
+    rings = int(getattr(params, "num_rings", 1))
+    if rings <= 1:
+        return np.array([float(params.radius)])
+    return np.linspace(float(params.min_radius), float(params.radius), rings)
+
+
 def generate_candidates(
     centroid: np.ndarray,
     plane_normal: np.ndarray,
@@ -211,7 +239,8 @@ def generate_candidates(
     is generally not the current distance); the ring then runs counter-clockwise seen from
     above (right-hand rule about n).
     With include_current the current view (identity rotation, origin) is prepended as
-    index 0, so ring candidate k has index k + 1.
+    index 0, so ring candidate k has index k + 1. With num_rings > 1 there are num_rings such
+    rings (radii from :func:`ring_radii`, innermost first), N candidates each, the same angles.
 
     Args:
         centroid: (3,) target centroid.
@@ -245,15 +274,26 @@ def generate_candidates(
     start = _ring_start_direction(ring_center, current_foot, unit_normal)
     side = np.cross(unit_normal, start)
     angles = 2.0 * np.pi * np.arange(num_ring) / max(num_ring, 1)
-    ring_feet = (
+    feet_per_ring = [
         ring_center[None, :]
-        + float(params.radius) * np.cos(angles)[:, None] * start[None, :]
-        + float(params.radius) * np.sin(angles)[:, None] * side[None, :]
-    )
-    ring_positions = ring_feet + camera_height * unit_normal[None, :]
-    ring_rotations = np.array(
-        [camera_look_at(position, centroid, unit_normal) for position in ring_positions]
-    ).reshape(num_ring, 3, 3)
+        + float(radius) * np.cos(angles)[:, None] * start[None, :]
+        + float(radius) * np.sin(angles)[:, None] * side[None, :]
+        for radius in ring_radii(params)
+    ]
+    ring_feet = np.concatenate(feet_per_ring, axis=0) if feet_per_ring else np.zeros((0, 3))
+    num_ring = ring_feet.shape[0]
+    mounting = float(getattr(params, "camera_height", 0.0))
+    ring_positions = ring_feet + (mounting if mounting > 0.0 else camera_height) * unit_normal[None, :]
+    aim = centroid
+    if getattr(params, "camera_tilt", "look_at") == "fixed":
+        # A head without tilt: aim along the level bearing to the target, pitched as the current camera is
+        # (sin(pitch) = -z.n for the current optical axis z = (0, 0, 1)).
+        sin_pitch = float(np.clip(-unit_normal[2], -0.999, 0.999))
+        level = centroid[None, :] - ring_positions
+        level -= (level @ unit_normal)[:, None] * unit_normal[None, :]
+        level /= np.maximum(np.linalg.norm(level, axis=1), 1e-12)[:, None]
+        aim = ring_positions + np.sqrt(1.0 - sin_pitch ** 2) * level - sin_pitch * unit_normal[None, :]
+    ring_rotations = _look_at_many(ring_positions, aim, unit_normal)
 
     if params.include_current:
         rotations = np.concatenate([np.eye(3)[None], ring_rotations], axis=0)

@@ -24,8 +24,13 @@ def count_visible_targets(
     width: int,
     height: int,
     half_window: int,
+    target_normals: np.ndarray,
 ) -> Tuple[np.ndarray, np.ndarray]:
     """Count, per candidate, the target points in view and those not hidden.
+
+    With ``target_normals`` of N rows (outward surface normals, e.g. a body mesh's vertex normals),
+    a target point whose normal faces away from the candidate camera (n . (t_c - p) <= 0: the body's
+    far side) is neither in view nor counted; with 0 rows every point counts.
 
     For candidate c a point p has camera coordinates (x, y, z) = R_c^T (p - t_c) and,
     when z > 0, image coordinates u = fx (x/z) + skew (y/z) + cx, v = fy (y/z) + cy and
@@ -51,6 +56,7 @@ def count_visible_targets(
         fx, skew, cx, fy, cy: intrinsics (K[0,0], K[0,1], K[0,2], K[1,1], K[1,2]).
         width, height: image size in pixels.
         half_window: neighbourhood half-width in pixels (>= 0).
+        target_normals: (N, 3) float64 outward normals, or (0, 3) for none.
 
     Returns:
         (in_view (C,) int64, not_hidden (C,) int64) counts.
@@ -58,6 +64,7 @@ def count_visible_targets(
     num_candidates = rotations.shape[0]
     num_targets = target_points.shape[0]
     num_background = background_points.shape[0]
+    facing = target_normals.shape[0] == num_targets and num_targets > 0
     window = 2 * half_window + 1
     in_view = np.zeros(num_candidates, dtype=np.int64)
     not_hidden = np.zeros(num_candidates, dtype=np.int64)
@@ -93,6 +100,9 @@ def count_visible_targets(
             dx = target_points[n, 0] - tx
             dy = target_points[n, 1] - ty
             dz = target_points[n, 2] - tz
+            if facing and not (target_normals[n, 0] * dx + target_normals[n, 1] * dy
+                               + target_normals[n, 2] * dz) < 0.0:
+                continue  # the far side of the surface
             z = r02 * dx + r12 * dy + r22 * dz
             if not z > 0.0:
                 continue
@@ -115,6 +125,9 @@ def count_visible_targets(
             farthest_target = max(farthest_target, z)
         in_view[c] = count
         if count == 0:
+            continue
+        if num_background == 0:  # nothing can hide anything (S_v's projection-only call)
+            not_hidden[c] = count
             continue
 
         # Region of the min-depth image that can influence a target pixel.

@@ -41,6 +41,23 @@ class CandidateRingParams:
     robot_radius: float = param(0.3, "metres: footprint radius checked for obstacles", min=0.0, max=5.0)
     floor_clearance: float = param(0.05, "metres: background points higher than this above the floor are obstacles",
                                    min=0.0, max=2.0)
+    camera_height: float = param(0.0, "metres: the candidates' camera height above the floor (the robot's mounting); "
+                                 "0 = the current camera's, from the ground plane (or the camera pose)", min=0.0,
+                                 max=10.0)
+    camera_tilt: str = param("look_at", "look_at: each candidate camera aims at the target (a pan-tilt head); fixed: "
+                             "it turns toward the target and keeps the current camera's pitch", choices=("look_at",
+                                                                                                       "fixed"))
+    num_rings: int = param(1, "rings of candidates, radii evenly from min_radius to radius (1: radius only)",
+                           min=1, max=8)
+    min_radius: float = param(1.5, "metres: radius of the innermost ring when num_rings > 1", min=0.1, max=20.0)
+    reachability: bool = param(False, "a candidate must be reached by a free path on the floor grid (obstacles "
+                               "inflated by robot_radius) of at most max_path_length")
+    max_path_length: float = param(6.0, "metres: longest path to a reachable candidate (also the travel term's "
+                                   "scale)", min=0.1, max=100.0)
+    grid_resolution: float = param(0.1, "metres: cell edge of the floor grid of the path search", min=0.02,
+                                   max=1.0)
+    unknown_space: str = param("free", "floor cells outside the current view's field of view: free or occupied "
+                               "for the path search", choices=("free", "occupied"))
 
 
 @dataclass
@@ -72,6 +89,9 @@ class PlannerParams(CandidateRingParams):
     camera_pose_wait_s: float = param(0.1, "s: a frame planned with the obstacle map waits this long for its camera"
                                       " pose (DDS does not order topics); then it is planned without the map",
                                       min=0.0, max=10.0)
+    body_mesh_wait_s: float = param(1.0, "s: with body_occlusion scored, a frame waits this long for its metric body "
+                                    "mesh (human_mesh_metric), then is scored on the observed points", min=0.0,
+                                    max=10.0)
     camera_pose_source: str = param("topic", "where the camera pose of each frame comes from (a key of"
                                     " leapnbv_common.camera_pose.CAMERA_POSE_SOURCES)", read_only=True)
     camera_pose_cache: int = param(150, "camera poses remembered by stamp, to find the pose of each planned frame"
@@ -79,7 +99,10 @@ class PlannerParams(CandidateRingParams):
                                    min=1, max=10_000, read_only=True)
 
     def check(self) -> None:
-        """Rules between fields: the score terms are registered, distinct, and each has its weight."""
+        """Rules between fields: the score terms are registered, distinct, and each has its weight; the rings."""
+        if self.num_rings > 1 and not self.min_radius < self.radius:
+            raise ParamsError(f"min_radius ({self.min_radius}) must be below radius ({self.radius}) with "
+                              f"num_rings = {self.num_rings}")
         if not self.score_terms:
             raise ParamsError("score_terms must name at least one score term")
         known = {term.name for term in registered_terms()}

@@ -19,9 +19,17 @@ from typing import TYPE_CHECKING, Any, Optional, Tuple
 
 import numpy as np
 
-from leapnbv_planner.candidates import CandidateSet, FeasibilityResult, check_feasibility, generate_candidates
+from leapnbv_planner.candidates import (
+    CandidateSet,
+    FeasibilityReason,
+    FeasibilityResult,
+    check_feasibility,
+    generate_candidates,
+    normalize_plane,
+)
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
+from leapnbv_planner.reachability import Reachability, build_occupancy_grid, reachability
 from leapnbv_planner.scoring import CandidateScores, choose_best, score_candidates
 
 if TYPE_CHECKING:  # the core needs no ROS; only the conversion to the message arrays imports it
@@ -48,6 +56,11 @@ class Plan:
         up: (3,) the ground normal n as the plane gives it (pointing up, not necessarily unit length).
         base_goal: (rotation, position) of the robot base at the chosen view, None when none is chosen.
         line_of_sight_clear: (C,) the obstacle map's clear share per candidate, None without the map.
+        path_lengths: (C,) metres of the robot's shortest free path to each candidate (0 for the current
+            view, inf: none), None when reachability is off.
+        base_path: (P, 3) floor points of the path to the chosen candidate (the robot's foot point first,
+            the goal's last), None when reachability is off or nothing is chosen.
+        reach: the path search (grid, parents), None when reachability is off.
     """
 
     candidates: CandidateSet
@@ -59,6 +72,9 @@ class Plan:
     up: np.ndarray
     base_goal: Optional[Frame]
     line_of_sight_clear: Optional[np.ndarray] = None
+    path_lengths: Optional[np.ndarray] = None
+    base_path: Optional[np.ndarray] = None
+    reach: Optional[Reachability] = None
 
     @property
     def used_obstacle_map(self) -> bool:
@@ -69,6 +85,18 @@ class Plan:
         if self.chosen_index < 0:
             return None
         return self.candidates.rotations[self.chosen_index], self.candidates.positions[self.chosen_index]
+
+    def base_path_frames(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """((P, 3, 3), (P, 3)) poses along the path to the base goal: level, x along the path (the goal's own
+        orientation last); None without a path."""
+        if self.base_path is None or self.base_goal is None:
+            return None
+        points = np.asarray(self.base_path, dtype=np.float64)
+        rotations = np.empty((len(points), 3, 3))
+        for index in range(len(points) - 1):
+            rotations[index] = base_goal_frame(points[index], points[index + 1], self.up)[0]
+        rotations[-1] = self.base_goal[0]
+        return rotations, points
 
     def ring_centre_frame(self) -> Frame:
         """A level frame on the ring centre (the ring marker's pose): z up, x toward the last candidate."""
@@ -107,8 +135,37 @@ def _pose_arrays(camera_pose: Any) -> Frame:
     return np.asarray(rotation, dtype=np.float64), np.asarray(position, dtype=np.float64)
 
 
+def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit outward vertex normals of a triangle mesh (area-weighted face normals summed per vertex).
+
+    The faces' winding decides the sign; a closed body's normals are turned outward when they point, on
+    the whole, toward its centre. A vertex in no face gets a zero normal (it never faces a camera).
+
+    Raises:
+        ValueError: vertices not (V, 3) or faces not (F, 3) indices into them.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
+    corners = vertices[faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(vertices)
+    flat = faces.reshape(-1)
+    for axis in range(3):  # bincount sums per vertex (np.add.at is far slower)
+        normals[:, axis] = np.bincount(flat, weights=np.repeat(face_normals[:, axis], 3), minlength=len(vertices))
+    lengths = np.linalg.norm(normals, axis=1)
+    normals = np.where(lengths[:, None] > 0, normals / np.maximum(lengths, 1e-300)[:, None], 0.0)
+    if float(np.sum(normals * (vertices - vertices.mean(axis=0)))) < 0.0:
+        normals = -normals
+    return normals
+
+
 def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
-               obstacle_map: Optional[VoxelObstacleMap] = None, camera_pose: Any = None) -> Plan:
+               obstacle_map: Optional[VoxelObstacleMap] = None, camera_pose: Any = None,
+               body_mesh: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Plan:
     """Plan the next-best view of one frame.
 
     Args:
@@ -122,6 +179,8 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
         camera_pose: the frame's camera in the map's frame: a StampedCameraPose (rotation,
             position attributes) or a (rotation, position) pair; the caller checks that its frame
             is the map's.
+        body_mesh: optional (vertices (V, 3), faces (F, 3)) of the person's metric body mesh in the
+            frame's optical frame (the raster node's human_mesh_metric): the body_occlusion term scores it.
 
     Returns:
         The Plan.
@@ -142,21 +201,56 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     target_points = target.target_points
     background = target.background_points
     candidates = generate_candidates(centroid, normal, offset, params)
-    obstacles, line_of_sight_clear = background, None
+    obstacles, line_of_sight_clear, mesh_clear = background, None, None
+    mesh_vertices = mesh_normals = None
+    if body_mesh is not None and "body_occlusion" in params.score_terms:
+        mesh_vertices = np.asarray(body_mesh[0], dtype=np.float64)
+        mesh_normals = mesh_vertex_normals(mesh_vertices, body_mesh[1])
     if obstacle_map is not None and camera_pose is not None:
         rotation, position = _pose_arrays(camera_pose)
         obstacles = np.concatenate([background, centres_in_observation(obstacle_map, rotation, position)])
         line_of_sight_clear = line_of_sight_clear_fraction(
             obstacle_map, rotation, position, candidates.positions, target_points,
             params.map_max_target_points, params.map_target_margin)
+        if mesh_vertices is not None:
+            mesh_clear = line_of_sight_clear_fraction(
+                obstacle_map, rotation, position, candidates.positions, mesh_vertices,
+                params.map_max_target_points, params.map_target_margin)
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
+    reach, path_lengths = None, None
+    if getattr(params, "reachability", False):
+        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, normal, offset, params)
+        path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
     scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, target.k,
                               target.width, target.height, params.term_weights(), delta_px=params.delta_px,
-                              line_of_sight_clear=line_of_sight_clear)
+                              line_of_sight_clear=line_of_sight_clear, path_lengths=path_lengths,
+                              travel_scale=float(getattr(params, "max_path_length", 6.0)),
+                              mesh_vertices=mesh_vertices, mesh_normals=mesh_normals,
+                              mesh_line_of_sight_clear=mesh_clear)
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
-    base_goal = None
+    base_goal, base_path = None, None
     if chosen >= 0:
         base_goal = base_goal_frame(candidates.foot_points[chosen], candidates.ring_center, normal)
+        if reach is not None:
+            base_path = reach.path_to(candidates.foot_points[chosen])
     return Plan(candidates=candidates, feasibility=feasibility, scores=scores, chosen_index=int(chosen),
                 includes_current_view=bool(params.include_current), ring_radius=float(params.radius),
-                up=normal, base_goal=base_goal, line_of_sight_clear=line_of_sight_clear)
+                up=normal, base_goal=base_goal, line_of_sight_clear=line_of_sight_clear,
+                path_lengths=path_lengths, base_path=base_path, reach=reach)
+
+
+def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles: np.ndarray, target: Any,
+                 normal: np.ndarray, offset: float, params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
+    """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
+    unit_normal, unit_offset = normalize_plane(normal, offset)
+    current_foot = -unit_offset * unit_normal
+    grid = build_occupancy_grid(obstacles, target.target_points, unit_normal, unit_offset,
+                                np.vstack([candidates.foot_points, current_foot[None]]), params.grid_resolution,
+                                params.robot_radius, params.floor_clearance, params.unknown_space,
+                                camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),
+                                        int(target.height)))
+    reach = reachability(grid, current_foot, candidates.foot_points, params.max_path_length, params.robot_radius)
+    reasons = np.asarray(feasibility.reasons).copy()
+    unreachable = (reasons == int(FeasibilityReason.OK)) & ~reach.reachable & ~np.asarray(candidates.is_current)
+    reasons[unreachable] = int(FeasibilityReason.UNREACHABLE)
+    return FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons), reach

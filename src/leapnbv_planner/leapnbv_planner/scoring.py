@@ -60,6 +60,11 @@ def score_candidates(
     terms: Optional[Sequence[Tuple[str, float]]] = None,
     delta_px: float = 4.0,
     line_of_sight_clear: Optional[np.ndarray] = None,
+    path_lengths: Optional[np.ndarray] = None,
+    travel_scale: float = 6.0,
+    mesh_vertices: Optional[np.ndarray] = None,
+    mesh_normals: Optional[np.ndarray] = None,
+    mesh_line_of_sight_clear: Optional[np.ndarray] = None,
 ) -> CandidateScores:
     """Score C candidate views of the target.
 
@@ -80,6 +85,10 @@ def score_candidates(
         delta_px: occlusion neighbourhood half-width in pixels (floored to an integer).
         line_of_sight_clear: optional (C,) factors in [0, 1] applied to S_o (the obstacle map's
             line-of-sight share, see :mod:`leapnbv_planner.obstacle_map`).
+        path_lengths: optional (C,) metres of the robot's path to each candidate (the travel term).
+        travel_scale: metres of travel that cost the whole travel term.
+        mesh_vertices, mesh_normals: optional (V, 3) body mesh vertices and outward normals (body_occlusion).
+        mesh_line_of_sight_clear: optional (C,) obstacle-map clear share of the mesh vertices.
 
     Returns:
         CandidateScores with (C,) score and (C, T) term values.
@@ -90,8 +99,12 @@ def score_candidates(
     """
     terms = default_terms() if terms is None else list(terms)
     context = ScoringContext(target_points, background_points, rotations, positions, K, width, height,
-                             delta_px=delta_px, line_of_sight_clear=line_of_sight_clear)
+                             delta_px=delta_px, line_of_sight_clear=line_of_sight_clear,
+                             path_lengths=path_lengths, travel_scale=travel_scale, mesh_vertices=mesh_vertices,
+                             mesh_normals=mesh_normals, mesh_line_of_sight_clear=mesh_line_of_sight_clear)
     computes = [get_term(name).compute for name, _ in terms]
+    if any(name == "occlusion" for name, _ in terms):
+        context.visible_counts()  # S_o's kernel call gives S_v's counts too: one call, whatever the term order
     columns = []
     score = np.zeros(context.num_candidates)
     for index, ((_, weight), compute) in enumerate(zip(terms, computes)):

@@ -56,7 +56,7 @@ def ring_poses(count=6):
 
 def test_built_in_terms_have_todays_names_and_default_weights():
     assert {term.name: term.default_weight for term in registered_terms()} == {
-        "visibility": 0.03, "area": 0.14, "occlusion": 0.83}
+        "visibility": 0.03, "area": 0.14, "occlusion": 0.83, "travel": 0.05, "body_occlusion": 0.83}
     defaults = nbv_params_class()()
     assert defaults.term_weights() == [("visibility", 0.03), ("area", 0.14), ("occlusion", 0.83)]
     assert defaults.score_terms == DEFAULT_SCORE_TERMS == ["visibility", "area", "occlusion"]
@@ -75,11 +75,19 @@ def test_visibility_and_occlusion_share_one_kernel_call():
     assert context.kernel_calls == 0  # lazily: area alone never runs the kernel
     get_term("area").compute(context)
     assert context.kernel_calls == 0
-    visibility = get_term("visibility").compute(context)
     occlusion = get_term("occlusion").compute(context)
+    visibility = get_term("visibility").compute(context)
     assert context.kernel_calls == 1
     in_view, not_hidden = context.visible_counts()
     np.testing.assert_array_equal(visibility, in_view / len(person))
+    # S_v alone (S_o not scored) projects the targets only: the same counts, without the background.
+    alone = ScoringContext(person, clutter, *ring_poses(), K, WIDTH, HEIGHT)
+    np.testing.assert_array_equal(get_term("visibility").compute(alone), visibility)
+    assert alone.kernel_calls == 1 and alone._counts is None
+    # score_candidates runs S_o's kernel first whatever the order of the terms: one call.
+    scores = score_candidates(person, clutter, *ring_poses(), K, WIDTH, HEIGHT, [("visibility", 1.0),
+                                                                                  ("occlusion", 1.0)])
+    np.testing.assert_array_equal(scores.term("visibility"), visibility)
     np.testing.assert_array_equal(occlusion, np.where(in_view > 0, not_hidden / np.maximum(in_view, 1), 0.0))
     assert 0.0 < occlusion.min() < occlusion.max()  # the clutter hides the person from some views only
 

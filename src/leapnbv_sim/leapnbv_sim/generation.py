@@ -73,6 +73,12 @@ class SceneConfig:
             nor touch the body or the camera), the occluders, the walls and the other clutter.
         clutter_max_tries: Placements drawn per clutter box; a box that finds no free spot in as
             many draws is left out (so a scene may hold fewer boxes than drawn).
+        room_layout: The walls (with ``walls``): "default" (a back wall 2-3 m behind the person, a
+            side wall 2.5-3.5 m beside it half of the time), "corridor" (two long walls along the
+            camera's line, 1.6-2.4 m apart, the person and camera between them), "corner" (a back
+            and a side wall 0.6-1.0 m from the person) or "near_wall" (a back wall 0.4-0.7 m behind
+            the person). The layouts other than "default" draw from their own random stream, so the
+            rest of the scene is the default layout's.
     """
 
     seed: int = 0
@@ -99,6 +105,7 @@ class SceneConfig:
     clutter_depth_range: Tuple[float, float] = (0.3, 0.6)
     clutter_clearance: float = 0.15
     clutter_max_tries: int = 100
+    room_layout: str = "default"
 
     @property
     def K(self) -> np.ndarray:
@@ -169,7 +176,14 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
     # Wall planes (x of the back wall, y of the side wall) that clutter must stay inside.
     wall_back_x: Optional[float] = None
     wall_side_y: Optional[float] = None
-    if config.walls:
+    if config.room_layout not in ROOM_LAYOUTS:
+        raise SceneError(f"room_layout must be one of {ROOM_LAYOUTS}, got {config.room_layout!r}")
+    if config.walls and config.room_layout != "default":
+        rng.uniform(2.0, 3.0)  # the default layout's draws, so the rest of the scene does not change
+        if rng.random() < 0.5:
+            rng.choice([-1.0, 1.0]) * rng.uniform(2.5, 3.5)
+        walls, wall_back_x, wall_side_y = _layout_walls(config, distance)
+    elif config.walls:
         back = rng.uniform(2.0, 3.0)
         wall_back_x = float(back)
         walls.append(
@@ -279,6 +293,41 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
         f"seed {config.seed}: no occluder layout reached an occluder share in [{low}, {high}] "
         f"in {config.max_attempts} attempts"
     )
+
+
+ROOM_LAYOUTS = ("default", "corridor", "corner", "near_wall")
+_LAYOUT_STREAM = 11
+
+
+def _layout_walls(config: SceneConfig, distance: float) -> Tuple[List[SceneObject], Optional[float], Optional[float]]:
+    """The walls of a room layout other than "default" (own random stream); (walls, back x, side y)."""
+    rng = np.random.default_rng([int(config.seed) & 0xFFFFFFFF, _LAYOUT_STREAM])
+    far_x = -distance - 8.0  # behind the start camera
+
+    def wall(name: str, corners: np.ndarray, shade: float = 1.0) -> SceneObject:
+        return (name, *quad_mesh(corners), _WALL_COLOUR * shade)
+
+    if config.room_layout == "corridor":
+        half = 0.5 * rng.uniform(1.6, 2.4)
+        offset = rng.uniform(-0.15, 0.15) * half  # the person is not always on the centre line
+        left, right = offset - half, offset + half
+        end = 8.0
+        walls = [wall("wall_side", np.array([[far_x, left, 0.0], [end, left, 0.0], [end, left, 3.0],
+                                             [far_x, left, 3.0]]), 0.92),
+                 wall("wall_side_2", np.array([[far_x, right, 0.0], [end, right, 0.0], [end, right, 3.0],
+                                               [far_x, right, 3.0]]), 0.88)]
+        return walls, None, float(left if abs(left) < abs(right) else right)
+    if config.room_layout == "corner":
+        back = rng.uniform(0.6, 1.0)
+        side = rng.choice([-1.0, 1.0]) * rng.uniform(0.6, 1.0)
+        back_wall = np.array([[back, -8.0, 0.0], [back, 8.0, 0.0], [back, 8.0, 3.0], [back, -8.0, 3.0]])
+        walls = [wall("wall_back", back_wall),
+                 wall("wall_side", np.array([[far_x, side, 0.0], [back, side, 0.0], [back, side, 3.0],
+                                             [far_x, side, 3.0]]), 0.92)]
+        return walls, float(back), float(side)
+    back = rng.uniform(0.4, 0.7)  # near_wall
+    walls = [wall("wall_back", np.array([[back, -8.0, 0.0], [back, 8.0, 0.0], [back, 8.0, 3.0], [back, -8.0, 3.0]]))]
+    return walls, float(back), None
 
 
 def _clutter_rng(seed: int) -> np.random.Generator:

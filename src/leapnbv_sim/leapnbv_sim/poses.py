@@ -129,3 +129,91 @@ def camera_pose_from_base_goal(
     )
     position = np.array([base[0], base[1], float(camera_height)])
     return look_at_pose(position, position + direction)
+
+
+#: How the simulated robot reaches a goal: "base" drives its base and carries the camera at its
+#: mounting height; "free" puts the camera at the goal's 6-DoF pose (no robot: the older evaluation).
+ROBOT_MOTIONS: Tuple[str, ...] = ("base", "free")
+#: The camera head: "pan_tilt" turns and tilts toward the goal's viewing direction; "fixed" turns with
+#: the base only and keeps the mounting pitch.
+HEAD_MODES: Tuple[str, ...] = ("pan_tilt", "fixed")
+
+
+def camera_pitch(camera: CameraPose) -> float:
+    """Downward pitch (rad) of a camera's optical axis below the horizon (world z up)."""
+    forward = np.asarray(camera.rotation, dtype=np.float64)[:, 2]
+    return float(np.arcsin(np.clip(-forward[2], -1.0, 1.0)))
+
+
+def camera_heading(camera: CameraPose) -> float:
+    """Heading (rad about world z) of a camera's optical axis; from its x axis when it looks straight down/up."""
+    rotation = np.asarray(camera.rotation, dtype=np.float64)
+    forward = rotation[:, 2]
+    if np.hypot(forward[0], forward[1]) > 1e-6:
+        return float(np.arctan2(forward[1], forward[0]))
+    right = rotation[:, 0]  # forward is up x right, projected: heading = right turned +90 deg about z
+    return float(np.arctan2(right[0], -right[1]))
+
+
+def mounted_camera_pose(goal: CameraPose, camera_height: float, head: str = "pan_tilt",
+                        pitch_rad: float = 0.0) -> CameraPose:
+    """Where a wheeled robot's camera ends up when the robot is sent to a camera goal.
+
+    The base drives to the goal's point on the floor (x, y of the goal's optical centre) and turns
+    to the goal's heading; the camera sits ``camera_height`` above the floor with no roll. With a
+    ``pan_tilt`` head it tilts to the goal's pitch; with a ``fixed`` head it keeps ``pitch_rad``
+    (the mounting pitch). A goal the robot can reach exactly (at the mounting height, level x axis)
+    gives the goal itself.
+
+    Args:
+        goal: The requested T_world_camera.
+        camera_height: The camera's mounting height above the floor (m), > 0.
+        head: One of HEAD_MODES.
+        pitch_rad: Downward pitch of a fixed head (rad).
+
+    Returns:
+        The camera pose the robot reaches.
+
+    Raises:
+        ValueError: an unknown head or a non-positive height.
+    """
+    if head not in HEAD_MODES:
+        raise ValueError(f"head must be one of {HEAD_MODES}, got {head!r}")
+    if not camera_height > 0.0:
+        raise ValueError(f"the camera's mounting height must be > 0, got {camera_height}")
+    pitch = camera_pitch(goal) if head == "pan_tilt" else float(pitch_rad)
+    return camera_pose_from_base_goal(np.asarray(goal.position, dtype=np.float64)[:2], camera_heading(goal),
+                                      float(camera_height), pitch)
+
+
+@dataclass
+class RobotModel:
+    """The simulated robot: how it moves to a camera goal (see ROBOT_MOTIONS, HEAD_MODES).
+
+    Attributes:
+        motion: "base" (default: the base drives, the camera stays at its mounting) or "free".
+        head: "pan_tilt" (default) or "fixed".
+        camera_height: Mounting height (m); 0 takes the height of the camera that observed the goal's frame.
+    """
+
+    motion: str = "base"
+    head: str = "pan_tilt"
+    camera_height: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.motion not in ROBOT_MOTIONS:
+            raise ValueError(f"robot motion must be one of {ROBOT_MOTIONS}, got {self.motion!r}")
+        if self.head not in HEAD_MODES:
+            raise ValueError(f"robot head must be one of {HEAD_MODES}, got {self.head!r}")
+        if not self.camera_height >= 0.0:
+            raise ValueError(f"robot camera_height must be >= 0, got {self.camera_height}")
+
+    def reach(self, observer: CameraPose, goal: CameraPose) -> CameraPose:
+        """The camera pose after the robot, whose camera is at ``observer`` now, is sent to ``goal``.
+
+        The mounting height (when 0) and a fixed head's pitch are the observer's: the same robot.
+        """
+        if self.motion == "free":
+            return goal.copy()
+        height = self.camera_height if self.camera_height > 0.0 else float(observer.position[2])
+        return mounted_camera_pose(goal, height, self.head, camera_pitch(observer))

@@ -15,7 +15,7 @@ from leapnbv_common.params import param
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
-from leapnbv_sim.poses import CameraPose
+from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS, CameraPose, RobotModel
 from leapnbv_sim.scene import Scene
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
@@ -44,6 +44,18 @@ class SimulatorParams:
     obstacle_map_resolution: float = param(0.1, "metres: voxel edge of the published obstacle map", min=0.01, max=2.0)
     publish_obstacle_map: bool = param(True, "publish the scene's static obstacles as a voxel map, as a robot's "
                                        "mapping stack would")
+    robot_motion: str = param("base", "base: a goal drives the robot's base there and the camera stays at its "
+                              "mounting height; free: the camera jumps to the goal's 6-DoF pose",
+                              choices=ROBOT_MOTIONS)
+    robot_head: str = param("pan_tilt", "pan_tilt: the camera tilts to the goal's pitch; fixed: it keeps its "
+                            "mounting pitch (the start camera's)", choices=HEAD_MODES)
+    robot_camera_height: float = param(0.0, "metres: the camera's mounting height; 0 = the height of the camera "
+                                       "that observed the goal's frame", min=0.0, max=10.0)
+
+
+def robot_model(params: SimulatorParams) -> RobotModel:
+    """The robot the parameters describe (how a goal is reached)."""
+    return RobotModel(motion=params.robot_motion, head=params.robot_head, camera_height=params.robot_camera_height)
 
 
 def load_scene(params: SimulatorParams) -> Scene:

@@ -261,3 +261,25 @@ def test_configs_are_plain_dataclasses() -> None:
     config = dataclasses.replace(SceneConfig(), seed=5, walls=False)
     assert config.seed == 5 and not config.walls
     np.testing.assert_allclose(config.K, [[615.0, 0, 320.0], [0, 615.0, 240.0], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("layout, walls", [("corridor", {"wall_side", "wall_side_2"}),
+                                           ("corner", {"wall_back", "wall_side"}), ("near_wall", {"wall_back"})])
+def test_room_layouts_put_their_walls_round_the_person_and_keep_the_rest(layout, walls, body_model):
+    config = SceneConfig(seed=4)
+    default = generate_scene(config, body_model)
+    scene = generate_scene(dataclasses.replace(config, room_layout=layout), body_model)
+    names = set(scene.object_names.values())
+    assert walls <= names and not ({"wall_back", "wall_side", "wall_side_2"} - walls) & names
+    # The rest of the scene (camera, body) is the default layout's.
+    np.testing.assert_array_equal(scene.start_camera.position, default.start_camera.position)
+    np.testing.assert_array_equal(scene.body_vertices_world, default.body_vertices_world)
+    camera_xy = scene.start_camera.position[:2]
+    ids = {name: object_id for object_id, name in scene.object_names.items()}
+    for name in walls:
+        vertices = scene.vertices_world[np.unique(scene.faces[scene.face_object_id == ids[name]])]
+        x, y = vertices[:, 0], vertices[:, 1]  # noqa: F841
+        if np.ptp(y) < 1e-9:  # a wall along x at this y: the person (y = 0) and the camera are on one side
+            assert np.sign(y[0]) == np.sign(y[0] - camera_xy[1]) and 0.6 <= abs(y[0]) <= 1.5, name
+        else:  # a back wall at this x, behind the person (x = 0)
+            assert 0.4 <= x[0] <= 1.0, name

@@ -167,7 +167,8 @@ def test_bag_writer_records_raw_cdr_of_a_custom_type(tmp_path: Path) -> None:
         valid=True,
         compute_time_ms=1.5,
         source=1,
-        inputs=[],  # the InputStamp list (issue 12): empty here
+        quality=0.5,
+        inputs=[],  # the InputStamp list: empty here
     )
     cdr = bytes(typestore.serialize_cdr(ground, "leapnbv_msgs/msg/GroundPlane"))
     text = (bag_io.find_leapnbv_msg_dir() / "GroundPlane.msg").read_text()

@@ -8,12 +8,14 @@ counted on /diagnostics (``dropped.<reason>``). The plane carries the depth fram
 lists what it used (``inputs``): the depth frame, its camera_info, the detections, and the
 previous frame's person mask (an exclusion hint of bounded age, ``mask_max_age_s``).
 
-When RANSAC finds no floor (occluders hide it), the floor z = 0 of the camera's pose of the
-same stamp (T_fixed_cameraOptical in a floor-aligned fixed frame, from the robot's localization /
-TF or the simulator, through the shared camera-pose source: :mod:`leapnbv_common.camera_pose`,
-today the PoseStamped topic ``camera_pose``) is published instead, marked
-``source = SOURCE_CAMERA_POSE``. A pose of the frame's stamp is waited for briefly (DDS does not
-order topics); without one the invalid plane goes out as before.
+The camera's pose of the same stamp (T_fixed_cameraOptical in a floor-aligned fixed frame, from the
+robot's localization / TF or the simulator, through the shared camera-pose source:
+:mod:`leapnbv_common.camera_pose`, today the PoseStamped topic ``camera_pose``) checks RANSAC's
+plane: one that disagrees with the pose's floor z = 0 beyond the tolerance is refused, and the
+pose's floor is published instead, as when RANSAC finds none (``source = SOURCE_CAMERA_POSE``;
+:func:`leapnbv_geometry.ground.fuse_floor`). A pose of the frame's stamp is waited for briefly (DDS
+does not order topics); until a first pose has come, a RANSAC plane goes out at once. A frame with
+no recent person mask (the first of a scene) leaves out its own person boxes (its detections).
 
 Parameters: :class:`leapnbv_geometry.params.GroundParams`; all but the camera-pose source and
 its switch change at runtime (``ros2 param set``).
@@ -41,6 +43,7 @@ from leapnbv_common.conversions import (
     camera_info_to_k,
     check_image,
     depth_to_metres,
+    detections_to_boxes,
     image_size,
     image_to_numpy,
     stamp_to_ns,
@@ -52,7 +55,15 @@ from leapnbv_common.pulled_input import HOUSEKEEPING_PERIOD_S, PulledInput
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import STAMP_RESTART_NS, CompanionWait, StampCache
 from leapnbv_common.topics import DETECTIONS, GROUND_PLANE, PERSON_MASK
-from leapnbv_geometry.ground import fit_ground_plane, floor_plane_from_camera_pose, ground_points_from_depth
+from leapnbv_geometry.ground import (
+    FLOOR_NONE,
+    box_exclusion_mask,
+    expected_up,
+    fit_ground_plane,
+    floor_plane_from_camera_pose,
+    fuse_floor,
+    ground_points_from_depth,
+)
 from leapnbv_geometry.params import GroundParams
 from leapnbv_msgs.msg import GroundPlane, InputStamp, PersonDetections
 
@@ -69,26 +80,35 @@ class FittedFrame(NamedTuple):
     compute_time_ms: float
     point_count: int  # the points RANSAC was fitted on
     inputs: list  # (name, stamp ns[, relation]) of what the fit used (GroundPlane.inputs)
+    ransac: object = None  # the GroundPlaneResult (fused with the pose's floor when it is published)
 
 
 class GroundDiagnostics(StageDiagnostics):
     """StageDiagnostics plus which estimate the published planes were (``planes.ransac``,
-    ``planes.camera_pose``, ``planes.none`` for invalid ones): a floor taken from the camera pose is
-    served, not rejected, so it is counted apart from the rejections (the status stays OK)."""
+    ``planes.camera_pose``, ``planes.none`` for invalid ones) and why (``floor.<decision>``: the
+    FLOOR_* names of leapnbv_geometry.ground, e.g. ``floor.camera_pose_refused_ransac``): a floor
+    taken from the camera pose is served, not rejected, so it is counted apart from the rejections
+    (the status stays OK)."""
 
     def __init__(self, node) -> None:
         super().__init__(node)
         self.plane_sources: Dict[str, int] = collections.Counter()
         self.last_plane_source = ""
+        self.last_floor_decision = ""
 
-    def plane_out(self, source: str) -> None:
+    def plane_out(self, source: str, decision: str = "") -> None:
         self.plane_sources[source] += 1
         self.last_plane_source = source
+        if decision:
+            self.plane_sources[f"floor.{decision}"] += 1
+            self.last_floor_decision = decision
 
     def status(self) -> DiagnosticStatus:
         status = super().status()
         status.values.append(KeyValue(key="last_plane_source", value=self.last_plane_source))
-        status.values.extend(KeyValue(key=f"planes.{k}", value=str(v)) for k, v in sorted(self.plane_sources.items()))
+        status.values.append(KeyValue(key="last_floor_decision", value=self.last_floor_decision))
+        status.values.extend(KeyValue(key=k if k.startswith("floor.") else f"planes.{k}", value=str(v))
+                             for k, v in sorted(self.plane_sources.items()))
         return status
 
 
@@ -110,6 +130,8 @@ class GroundNode(Node):
         self.camera_infos: StampCache = StampCache(p.depth_cache_size, "camera_info_evicted")
         self.latest_camera_info: Optional[CameraInfo] = None
         self.person_mask: Optional[Image] = None
+        # A frame with no recent mask (a scene's first) leaves out its own person boxes: its detections.
+        self.detection_boxes: StampCache = StampCache(POSE_CACHE)
         self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
         self.publisher = self.create_publisher(GroundPlane, GROUND_PLANE, stage_output_qos())
         # Camera infos, depth frames and camera poses are pulled when a frame is fitted (they do not wake
@@ -127,6 +149,8 @@ class GroundNode(Node):
         else:
             self.depth_input = None
             self.create_subscription(Image, "depth", self.on_depth, camera_input_qos(1), raw=True)
+            # Only for the first frame's exclusion: the boxes that came before their depth frame.
+            self.create_subscription(PersonDetections, DETECTIONS, self.keep_detection_boxes, stage_input_qos(5))
         # The mask excluded from frame t is the previous fitted frame's. Waiting briefly for it (when
         # masks are flowing) makes the fit independent of message timing, so replays repeat.
         self.previous_fit_stamp: Optional[int] = None
@@ -136,6 +160,7 @@ class GroundNode(Node):
         self.pose_floors = CompanionWait(int(p.camera_pose_wait_s * 1e9), capacity=POSE_CACHE, frame_name="plane",
                                          companion_name="camera_pose", on_drop=drop)
         self.fallback_count = 0
+        self.poses_seen = False  # until a first camera pose has come, a RANSAC plane goes out unchecked
         self.camera_pose = None
         self.pose_input: Optional[PulledInput] = None
         if p.use_camera_pose_fallback:
@@ -171,6 +196,7 @@ class GroundNode(Node):
             GroundPlaneError: the camera is not above the floor (the source counts it as bad_camera_pose).
         """
         normal, offset = floor_plane_from_camera_pose(pose.rotation, pose.position)
+        self.poses_seen = True
         ready = self.pose_floors.add_companion(pose.stamp_ns, (pose.stamp_ns, normal, offset))
         if ready is not None:
             self.publish_plane(ready[0], ready[1])
@@ -209,8 +235,17 @@ class GroundNode(Node):
         if not msg.detections:
             self.diagnostics.drop("no_person")  # nobody downstream works on this frame
             return
+        if not self.keep_detection_boxes(msg):
+            return
         self.pull_companions()
         self.start_frame(stamp_to_ns(msg.header.stamp))
+
+    def keep_detection_boxes(self, msg: PersonDetections) -> bool:
+        """Keep the frame's person boxes by stamp (a first frame leaves them out); False: refused as bad."""
+        if refused(self.diagnostics, "bad_detections", detections_to_boxes, msg):
+            return False
+        self.detection_boxes.put(stamp_to_ns(msg.header.stamp), detections_to_boxes(msg))
+        return True
 
     @rejects_bad_input("bad_depth")
     def on_depth(self, msg: bytes, info) -> None:
@@ -306,16 +341,25 @@ class GroundNode(Node):
         if self.pending is None and not self.pose_floors.waiting():
             self.wait_timer.cancel()
 
-    def exclusion_mask(self, depth_msg: Image, shape) -> Tuple[Optional[np.ndarray], Optional[tuple]]:
-        """The latest person mask, if recent and of the same size (the person is not floor), and its input entry."""
+    def exclusion_mask(self, depth_msg: Image, shape, key_stamp: int) -> Tuple[Optional[np.ndarray], Optional[tuple]]:
+        """The latest person mask, if recent and of the same size (the person is not floor), and its input
+        entry; without one (the first frame of a scene), the frame's own person boxes."""
         mask = self.person_mask
         if mask is None or (mask.height, mask.width) != shape:
-            return None, None
+            return self.detection_mask(shape, key_stamp), None
         age_ns = stamp_to_ns(depth_msg.header.stamp) - stamp_to_ns(mask.header.stamp)
         if abs(age_ns) > self.params.value.mask_max_age_s * 1e9:
-            return None, None
+            return self.detection_mask(shape, key_stamp), None
         relation = InputStamp.SAME_FRAME if abs(age_ns) <= self.slop_ns() else InputStamp.EXCLUSION_HINT
         return image_to_numpy(mask) > 0, ("person_mask", stamp_to_ns(mask.header.stamp), relation)
+
+    def detection_mask(self, shape, key_stamp: int) -> Optional[np.ndarray]:
+        """The frame's own person boxes (its detections: already among the plane's inputs), or None."""
+        p = self.params.value
+        boxes = self.detection_boxes.get_exact(key_stamp) if p.exclude_detections else None
+        if boxes is None or len(boxes) == 0:
+            return None
+        return box_exclusion_mask(shape, boxes, p.detection_grow_px, p.detection_top_share)
 
     def frame_camera_info(self, stamp: int) -> Tuple[CameraInfo, tuple]:
         """The depth frame's own camera_info, else the latest one (calibration: recorded as STATIC)."""
@@ -344,7 +388,7 @@ class GroundNode(Node):
                         "depth camera_info", camera_info.header.frame_id)):
             return
         depth = depth_to_metres(msg)
-        exclude, mask_input = self.exclusion_mask(msg, depth.shape)
+        exclude, mask_input = self.exclusion_mask(msg, depth.shape, key_stamp)
         inputs = [("depth", stamp), info_input]
         if p.fit_detected_frames_only:
             inputs.append(("detections", key_stamp))
@@ -355,7 +399,7 @@ class GroundNode(Node):
         result = fit_ground_plane(points, max_tilt_deg=p.max_tilt_deg, inlier_threshold=p.inlier_threshold,
                                   iterations=p.iterations, min_inliers=p.min_inliers,
                                   min_inlier_ratio=p.min_inlier_ratio, seed=p.seed, max_points=p.max_points,
-                                  depth_noise_coeff=p.depth_noise_coeff,
+                                  depth_noise_coeff=p.depth_noise_coeff, up=expected_up(p.camera_pitch_deg),
                                   camera_height_range=(p.min_camera_height, p.max_camera_height))
         plane = GroundPlaneArrays(normal=result.normal, offset=result.offset, valid=result.valid,
                                   source=GroundPlane.SOURCE_RANSAC, inlier_count=result.inlier_count,
@@ -366,12 +410,12 @@ class GroundNode(Node):
         if p.fit_detected_frames_only:
             header.stamp.sec, header.stamp.nanosec = divmod(key_stamp, 1_000_000_000)
         frame_stamp = stamp_to_ns(header.stamp)
-        frame = FittedFrame(plane, header, (time.perf_counter() - started) * 1e3, len(points), inputs)
-        if result.valid or not p.use_camera_pose_fallback:
-            self.publish_plane(frame, None)
-            return
-        # No floor in view: the floor of this frame's camera pose, once it is here (or the wait ran out).
+        frame = FittedFrame(plane, header, (time.perf_counter() - started) * 1e3, len(points), inputs, result)
         self.pull_poses()
+        if not p.use_camera_pose_fallback or (result.valid and not self.poses_seen):
+            self.publish_plane(frame, None)  # no pose to check it against (none has come so far)
+            return
+        # The floor of this frame's camera pose checks RANSAC's, once it is here (or the wait ran out).
         ready = self.pose_floors.add_frame(frame_stamp, frame, self.now_ns())
         if ready is None:
             self.camera_pose.expect(frame_stamp, msg.header.frame_id)
@@ -380,34 +424,40 @@ class GroundNode(Node):
             self.publish_plane(ready[0], ready[1])
 
     def publish_plane(self, frame: FittedFrame, pose_floor: Optional[Tuple[int, np.ndarray, float]]) -> None:
-        """Publish a fitted plane; a RANSAC failure becomes the pose's floor when the pose has its stamp.
+        """Publish the frame's floor: RANSAC's, checked against the pose's floor when the pose has its stamp.
 
         Args:
             frame: the plane as RANSAC gave it, with its frame's header.
             pose_floor: (stamp ns, normal, offset) of a camera pose, or None.
         """
-        plane = frame.plane
+        p = self.params.value
         inputs = list(frame.inputs)
-        if not plane.valid and pose_floor is not None and pose_floor[0] == stamp_to_ns(frame.header.stamp):
-            _, normal, offset = pose_floor
+        matching = pose_floor is not None and pose_floor[0] == stamp_to_ns(frame.header.stamp)
+        if matching:
             inputs.append(("camera_pose", pose_floor[0]))
-            plane = dataclasses.replace(plane, normal=normal, offset=offset, valid=True,
+        floor = fuse_floor(frame.ransac, (pose_floor[1], pose_floor[2]) if matching else None,
+                           max_angle_deg=p.pose_max_angle_deg, max_height_m=p.pose_max_height_m,
+                           full_support_ratio=p.quality_full_support)
+        plane = dataclasses.replace(frame.plane, quality=floor.quality)
+        if floor.from_pose:
+            plane = dataclasses.replace(plane, normal=floor.normal, offset=floor.offset, valid=True,
                                         source=GroundPlane.SOURCE_CAMERA_POSE)
             self.fallback_count += 1
             if (self.fallback_count - 1) % FALLBACK_LOG_EVERY == 0:
                 self.get_logger().warning(
-                    f"no floor in view ({plane.inlier_count} RANSAC inliers of {frame.point_count} points): "
-                    f"published the floor of the camera pose (height {offset:.3f} m); {self.fallback_count} such "
-                    "frames so far")
+                    f"{floor.decision} ({plane.inlier_count} RANSAC inliers of {frame.point_count} points): "
+                    f"published the floor of the camera pose (height {floor.offset:.3f} m); {self.fallback_count} "
+                    "such frames so far")
         elif not plane.valid:
             detail = f"{plane.inlier_count} inliers of {frame.point_count} points"
-            if self.params.value.use_camera_pose_fallback:
+            if p.use_camera_pose_fallback:
                 detail += "; no camera pose of this stamp"
             self.diagnostics.reject("no_ground_plane", detail)
         if not plane.valid:
-            self.diagnostics.plane_out("none")
+            self.diagnostics.plane_out("none", FLOOR_NONE)
         else:
-            self.diagnostics.plane_out("camera_pose" if plane.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac")
+            self.diagnostics.plane_out("camera_pose" if plane.source == GroundPlane.SOURCE_CAMERA_POSE else "ransac",
+                                       floor.decision)
         self.publisher.publish(arrays_to_ground_plane(plane, frame.header, frame.compute_time_ms, inputs=inputs))
         self.diagnostics.frame_out(frame.header.stamp, frame.compute_time_ms)
 

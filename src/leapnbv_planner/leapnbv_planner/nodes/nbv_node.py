@@ -35,10 +35,12 @@ for its pose; without one (or without a map) the node plans from the frame alone
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from typing import List, NamedTuple, Optional, Set, Tuple
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -51,7 +53,9 @@ from leapnbv_common.conversions import (
     GroundPlaneArrays,
     arrays_to_view_candidates,
     ground_plane_to_arrays,
+    human_mesh_to_arrays,
     obstacle_map_to_points,
+    path_msg,
     point_msg,
     pose_msg,
     stamp_to_ns,
@@ -63,7 +67,7 @@ from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.pulled_input import HOUSEKEEPING_PERIOD_S, PulledInput
 from leapnbv_common.qos import latched_goal_qos, latched_map_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stamp_cache import CompanionWait
-from leapnbv_msgs.msg import GoalStatus, GroundPlane, InputStamp, TargetGeometry, ViewCandidates
+from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, InputStamp, TargetGeometry, ViewCandidates
 from leapnbv_planner.obstacle_map import voxel_map_from_centres, warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
 from leapnbv_planner.plan import Plan, base_goal_frame, plan_views
@@ -72,6 +76,7 @@ from leapnbv_planner.scoring import warm_up_scoring
 WAIT_CHECK_PERIOD_S = 0.02  # how often waiting targets are checked (the timer runs only while one waits)
 GOAL_AGE_CHECK_PERIOD_S = 0.1  # how often the latched goal's age is checked (only while a goal is current)
 PLANE_CACHE = 30  # ground planes remembered by stamp (to pair, and to carry an older one)
+BODY_MESH_CACHE = 30  # body meshes (and frames waiting for theirs) remembered by stamp
 
 
 def carry_plane(normal: np.ndarray, offset: float, pose_from: StampedCameraPose,
@@ -114,6 +119,7 @@ class NbvNode(Node):
         self.goal_pub = self.create_publisher(PoseStamped, topics.NEXT_BEST_VIEW, latched_goal_qos())
         self.base_goal_pub = self.create_publisher(PoseStamped, topics.BASE_GOAL, latched_goal_qos())
         self.status_pub = self.create_publisher(GoalStatus, topics.GOAL_STATUS, latched_goal_qos())
+        self.base_path_pub = self.create_publisher(Path, topics.BASE_PATH, latched_goal_qos())
         self.markers_pub = self.create_publisher(MarkerArray, topics.MARKERS, stage_output_qos())
         self.goal_stamp: Optional[int] = None  # frame stamp of the last goal published
         self.goal_frame = ""
@@ -133,6 +139,10 @@ class NbvNode(Node):
         self.pose_input = PulledInput.adopt(self, self.camera_poses)  # None for a source without a subscription
         if p.use_obstacle_map:
             self.create_subscription(PointCloud2, topics.OBSTACLE_MAP, self.on_obstacle_map, latched_map_qos())
+        # The person's metric body mesh by stamp (the body_occlusion term), and frames waiting for theirs.
+        self.body_meshes: OrderedDict[int, tuple] = OrderedDict()
+        self.waiting_for_mesh: OrderedDict[int, ReadyFrame] = OrderedDict()
+        self.create_subscription(HumanMesh, topics.HUMAN_MESH_METRIC, self.on_body_mesh, stage_input_qos(5))
         self.create_subscription(TargetGeometry, topics.TARGET_GEOMETRY, self.on_target, stage_input_qos(1))
         self.create_subscription(GroundPlane, topics.GROUND_PLANE, self.on_ground, stage_input_qos(PLANE_CACHE))
         # Ready once the stages before are connected.
@@ -244,8 +254,42 @@ class NbvNode(Node):
                 self.now_ns() - self.pose_wait.since_ns >= self.params.value.camera_pose_wait_s * 1e9:
             frame, self.pose_wait = self.pose_wait, None
             self.plan(frame)  # without the map (counted as no_camera_pose)
-        if not self.ground.waiting() and self.pose_wait is None:
+        wait_ns = self.params.value.body_mesh_wait_s * 1e9
+        for stamp in [s for s, f in self.waiting_for_mesh.items() if self.now_ns() - f.since_ns >= wait_ns]:
+            self.plan(self.waiting_for_mesh.pop(stamp), mesh_waited=True)
+        if not self.ground.waiting() and self.pose_wait is None and not self.waiting_for_mesh:
             self.wait_timer.cancel()
+
+    @rejects_bad_input("bad_body_mesh")
+    def on_body_mesh(self, msg: HumanMesh) -> None:
+        mesh = human_mesh_to_arrays(msg)
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.body_meshes[stamp] = (mesh.vertices.astype(np.float64), mesh.faces.reshape(-1, 3))
+        while len(self.body_meshes) > BODY_MESH_CACHE:
+            self.body_meshes.popitem(last=False)
+        waiting = self.waiting_for_mesh.pop(stamp, None)
+        if waiting is not None:
+            self.plan(waiting)
+
+    def body_mesh_for(self, frame: ReadyFrame, mesh_waited: bool):
+        """(found, mesh): the frame's body mesh when body_occlusion is scored; (False, None) puts the frame on
+        hold until its mesh comes or body_mesh_wait_s runs out (then it is planned without: the paper's S_o)."""
+        p = self.params.value
+        if "body_occlusion" not in p.score_terms:
+            return True, None
+        stamp = stamp_to_ns(frame.target.header.stamp)
+        mesh = self.body_meshes.get(stamp)
+        if mesh is not None:
+            return True, mesh
+        if not mesh_waited and p.body_mesh_wait_s > 0:
+            self.waiting_for_mesh[stamp] = frame._replace(since_ns=self.now_ns())
+            while len(self.waiting_for_mesh) > BODY_MESH_CACHE:
+                self.waiting_for_mesh.popitem(last=False)
+            self.start_wait_timer()
+            return False, None
+        self.diagnostics.reject("no_body_mesh", "no metric body mesh of this frame: body_occlusion scored the "
+                                "observed points")
+        return True, None
 
     def carried_plane(self, target: TargetGeometry) -> Optional[Tuple[GroundPlaneArrays, List[tuple]]]:
         """The newest valid plane of an older frame (at most ground_max_age_s older), moved into this
@@ -323,13 +367,18 @@ class NbvNode(Node):
         self.plan(frame)
 
     @rejects_bad_input("bad_target")
-    def plan(self, frame: ReadyFrame) -> None:
+    def plan(self, frame: ReadyFrame, mesh_waited: bool = False) -> None:
         started = time.perf_counter()
         target, inputs = frame.target, list(frame.inputs)
         stamp = stamp_to_ns(target.header.stamp)
         if self.too_old(stamp):
             self.diagnostics.drop("too_old_to_plan")
             return
+        found, body_mesh = self.body_mesh_for(frame, mesh_waited)
+        if not found:
+            return  # planned when the frame's body mesh comes (or the wait runs out)
+        if body_mesh is not None:
+            inputs.append((topics.HUMAN_MESH_METRIC, stamp))
         target_arrays = target_geometry_to_arrays(target)
         camera_pose = self.camera_pose_for_frame(stamp, target.header.frame_id)
         if camera_pose is not None:
@@ -337,7 +386,7 @@ class NbvNode(Node):
                 inputs.append(("camera_pose", stamp))
             inputs.append(("obstacle_map", self.obstacle_map_stamp, InputStamp.STATIC))
         plan = plan_views(target_arrays, frame.floor, self.params.value,
-                          self.obstacle_map if camera_pose is not None else None, camera_pose)
+                          self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh)
         out = arrays_to_view_candidates(plan.to_arrays(), target.header, (time.perf_counter() - started) * 1e3,
                                         inputs=inputs)
         self.candidates_pub.publish(out)
@@ -348,6 +397,9 @@ class NbvNode(Node):
         else:
             self.goal_pub.publish(PoseStamped(header=target.header, pose=out.poses[plan.chosen_index]))
             self.base_goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.base_goal)))
+            path = plan.base_path_frames()
+            if path is not None:
+                self.base_path_pub.publish(path_msg(*path, target.header))
             self.goal_stamp, self.goal_frame = stamp, target.header.frame_id
             self.publish_status(GoalStatus.STATE_CURRENT, "goal published")
             if self.params.value.max_goal_age_s > 0 and self.age_timer.is_canceled():
@@ -369,6 +421,7 @@ class NbvNode(Node):
         cleared = Header(frame_id="", stamp=self.get_clock().now().to_msg())
         self.goal_pub.publish(PoseStamped(header=cleared))
         self.base_goal_pub.publish(PoseStamped(header=cleared))
+        self.base_path_pub.publish(Path(header=cleared))  # an empty path: no way to a current goal
         self.diagnostics.drop("goal_withdrawn_stale")
         self.publish_status(GoalStatus.STATE_STALE, f"no goal from a frame younger than {limit:g} s: the last one"
                             f" is {age_s:.2f} s old and was withdrawn")

@@ -93,6 +93,12 @@ class ScoringContext:
         line_of_sight_clear: optional (C,) factors in [0, 1]: the share of target points each
             candidate sees through free space of the robot's obstacle map (the occlusion term
             multiplies by it).
+        path_lengths: optional (C,) metres the robot drives to each candidate (inf: no path); None:
+            the straight distance between the camera centres.
+        travel_scale: metres of travel that cost the whole travel term.
+        mesh_vertices: optional (V, 3) vertices of the person's metric body mesh (the whole body, the hidden
+            parts included), observation frame; with mesh_normals (V, 3) outward vertex normals.
+        mesh_line_of_sight_clear: optional (C,) obstacle-map clear share of the mesh vertices per candidate.
 
     Raises:
         ScoringInputError: a shape, intrinsic, image size, delta_px or line_of_sight_clear is invalid.
@@ -100,7 +106,10 @@ class ScoringContext:
 
     def __init__(self, target_points: np.ndarray, background_points: np.ndarray, rotations: np.ndarray,
                  positions: np.ndarray, K: np.ndarray, width: int, height: int, delta_px: float = 4.0,
-                 line_of_sight_clear: Optional[np.ndarray] = None) -> None:
+                 line_of_sight_clear: Optional[np.ndarray] = None, path_lengths: Optional[np.ndarray] = None,
+                 travel_scale: float = 6.0, mesh_vertices: Optional[np.ndarray] = None,
+                 mesh_normals: Optional[np.ndarray] = None,
+                 mesh_line_of_sight_clear: Optional[np.ndarray] = None) -> None:
         self.targets = finite_points(target_points, "target_points")
         self.background = finite_points(background_points, "background_points")
         self.rotations, self.positions = check_poses(rotations, positions)
@@ -115,6 +124,35 @@ class ScoringContext:
                 raise ScoringInputError(f"line_of_sight_clear must be {self.num_candidates} values in [0, 1],"
                                         f" got shape {clear.shape}")
             self.line_of_sight_clear = clear
+        self.path_lengths: Optional[np.ndarray] = None
+        if path_lengths is not None:
+            lengths = np.asarray(path_lengths, dtype=np.float64).reshape(-1)
+            if lengths.shape != (self.num_candidates,) or np.any(np.isnan(lengths)) or np.any(lengths < 0.0):
+                raise ScoringInputError(f"path_lengths must be {self.num_candidates} values >= 0, got shape "
+                                        f"{lengths.shape}")
+            self.path_lengths = lengths
+        if not (np.isfinite(travel_scale) and travel_scale > 0.0):
+            raise ScoringInputError(f"travel_scale must be a finite number > 0, got {travel_scale}")
+        self.travel_scale = float(travel_scale)
+        self.mesh_vertices: Optional[np.ndarray] = None
+        self.mesh_normals: Optional[np.ndarray] = None
+        self.mesh_line_of_sight_clear: Optional[np.ndarray] = None
+        if mesh_vertices is not None:
+            vertices = np.ascontiguousarray(mesh_vertices, dtype=np.float64)
+            normals = np.ascontiguousarray(mesh_normals, dtype=np.float64) if mesh_normals is not None else None
+            if vertices.ndim != 2 or vertices.shape[1] != 3 or normals is None or normals.shape != vertices.shape:
+                raise ScoringInputError(f"mesh_vertices must be (V, 3) with mesh_normals of the same shape, got "
+                                        f"{vertices.shape} and {None if normals is None else normals.shape}")
+            keep = np.all(np.isfinite(vertices), axis=1) & np.all(np.isfinite(normals), axis=1)
+            self.mesh_vertices, self.mesh_normals = vertices[keep], normals[keep]
+            if mesh_line_of_sight_clear is not None:
+                clear = np.asarray(mesh_line_of_sight_clear, dtype=np.float64).reshape(-1)
+                if clear.shape != (self.num_candidates,) or not np.all((clear >= 0.0) & (clear <= 1.0)):
+                    raise ScoringInputError(f"mesh_line_of_sight_clear must be {self.num_candidates} values in "
+                                            f"[0, 1], got shape {clear.shape}")
+                self.mesh_line_of_sight_clear = clear
+        self._mesh_counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        self._in_view: Optional[np.ndarray] = None
         self._counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
         self.kernel_calls = 0
 
@@ -138,10 +176,49 @@ class ScoringContext:
             fx, skew, cx, fy, cy, width, height = self.camera
             self._counts = count_visible_targets(
                 self.targets, self.background, self.rotations, self.positions,
-                fx, skew, cx, fy, cy, width, height, self.half_window,
+                fx, skew, cx, fy, cy, width, height, self.half_window, np.zeros((0, 3)),
             )
             self.kernel_calls += 1
         return self._counts
+
+    def in_view_counts(self) -> np.ndarray:
+        """(C,) int64 target points in view: from visible_counts when it ran, else from a kernel call without
+        the background (projection only, no occlusion test: what S_v needs when S_o is not scored)."""
+        if self._counts is not None:
+            return self._counts[0]
+        if self._in_view is None:
+            fx, skew, cx, fy, cy, width, height = self.camera
+            self._in_view, _ = count_visible_targets(
+                self.targets, np.zeros((0, 3)), self.rotations, self.positions,
+                fx, skew, cx, fy, cy, width, height, self.half_window, np.zeros((0, 3)),
+            )
+            self.kernel_calls += 1
+        return self._in_view
+
+    def mesh_counts(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(facing (C,) int64, not_hidden (C,) int64) over the body mesh's vertices, once per context.
+
+        Facing: vertices whose outward normal faces the candidate camera (n . (t_c - p) > 0), in view or
+        not (the body's near side from there). Not hidden: facing vertices in view and not hidden by the
+        background (the same window test as S_o's, :func:`count_visible_targets`).
+
+        Raises:
+            ScoringInputError: the context has no mesh.
+        """
+        if self.mesh_vertices is None:
+            raise ScoringInputError("no body mesh in the scoring context")
+        if self._mesh_counts is None:
+            fx, skew, cx, fy, cy, width, height = self.camera
+            _, not_hidden = count_visible_targets(
+                self.mesh_vertices, self.background, self.rotations, self.positions,
+                fx, skew, cx, fy, cy, width, height, self.half_window, self.mesh_normals,
+            )
+            # n . (t_c - v) > 0  <=>  n . t_c > n . v: one (C, 3) x (3, V) product.
+            facing = np.count_nonzero(self.positions @ self.mesh_normals.T
+                                      > np.einsum("vk,vk->v", self.mesh_normals, self.mesh_vertices), axis=1)
+            self._mesh_counts = (facing.astype(np.int64), not_hidden)
+            self.kernel_calls += 1
+        return self._mesh_counts
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,11 @@ transient-local (a node that starts late still gets the current map).
 It remembers the world camera pose of every stamp it published (a bounded memory) and
 subscribes to the next-best-view goal (``goal``, remapped to ``/leapnbv/next_best_view`` by
 default): a camera pose in the optical frame of the observation whose stamp the goal carries.
-That pose goes to the world with ``pose_in_world(T_world_observation, R, p)``, and the camera
-moves there:
+That pose goes to the world with ``pose_in_world(T_world_observation, R, p)``; the robot
+(``robot_motion`` = base, the default) drives its base to the goal's point on the floor and its
+camera stays at the mounting height, tilted to the goal's pitch or at its mounting pitch
+(``robot_head``; :class:`leapnbv_sim.poses.RobotModel`), or (``robot_motion`` = free) the camera
+takes the goal's 6-DoF pose. The camera moves there:
 
 * ``move_speed_m_s`` = 0: at once (the next frame is rendered from the goal);
 * ``move_speed_m_s`` > 0: along the straight line from where the camera is at the goal's
@@ -81,7 +84,7 @@ from leapnbv_sim.frame_messages import camera_frame_messages
 from leapnbv_sim.poses import CameraPose, pose_in_world
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
-from leapnbv_sim.simulator import CameraMotion, SimulatorParams, load_scene
+from leapnbv_sim.simulator import CameraMotion, SimulatorParams, load_scene, robot_model
 
 DEFAULT_GOAL_TOPIC = NEXT_BEST_VIEW_TOPIC
 # Local remap of the relative goal topic applied unless the caller remaps it itself.
@@ -281,7 +284,7 @@ class SimulatorNode(Node):
         rotation, position = pose_to_numpy(msg.pose)
         if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(position))):
             raise ConversionError("goal pose is not finite")
-        self.move_to(pose_in_world(observation, rotation, position))
+        self.move_to(robot_model(self.params).reach(observation, pose_in_world(observation, rotation, position)))
         self.last_goal_stamp_ns = stamp
         self.goals_accepted += 1
 

@@ -1,0 +1,77 @@
+"""Compiled shortest paths on a 2-D occupancy grid (Dijkstra, 8-connected)."""
+
+from __future__ import annotations
+
+import heapq
+
+import numpy as np
+
+from leapnbv_planner.jit import njit
+
+_SQRT2 = float(np.sqrt(2.0))
+
+
+@njit(cache=True)
+def grid_distances(free: np.ndarray, start_row: int, start_col: int, cell: float):
+    """Path length from the start cell to every cell over free cells (8-connected, diagonals sqrt(2) cells).
+
+    A diagonal step needs both cells it cuts past to be free too (no corner cutting through an obstacle).
+
+    Args:
+        free: (R, C) bool, True where the robot's centre may be.
+        start_row, start_col: the start cell (it is taken as free).
+        cell: cell edge in metres.
+
+    Returns:
+        (distances (R, C) float64 metres, inf where unreachable; parents (R, C) int64 flat index of the
+        previous cell on the shortest path, -1 for the start and unreachable cells).
+    """
+    rows, cols = free.shape
+    distances = np.full((rows, cols), np.inf)
+    parents = np.full((rows, cols), -1, dtype=np.int64)
+    distances[start_row, start_col] = 0.0
+    heap = [(0.0, start_row * cols + start_col)]
+    d_rows = (-1, -1, -1, 0, 0, 1, 1, 1)
+    d_cols = (-1, 0, 1, -1, 1, -1, 0, 1)
+    while len(heap) > 0:
+        distance, index = heapq.heappop(heap)
+        r = index // cols
+        c = index - r * cols
+        if distance > distances[r, c]:
+            continue
+        for k in range(8):
+            nr = r + d_rows[k]
+            nc = c + d_cols[k]
+            if nr < 0 or nr >= rows or nc < 0 or nc >= cols or not free[nr, nc]:
+                continue
+            diagonal = d_rows[k] != 0 and d_cols[k] != 0
+            if diagonal and not (free[r, nc] and free[nr, c]):
+                continue
+            step = cell * (1.4142135623730951 if diagonal else 1.0)
+            candidate = distance + step
+            if candidate < distances[nr, nc]:
+                distances[nr, nc] = candidate
+                parents[nr, nc] = index
+                heapq.heappush(heap, (candidate, nr * cols + nc))
+    return distances, parents
+
+
+@njit(cache=True)
+def mark_occupied(points: np.ndarray, unit_normal: np.ndarray, offset: float, min_height: float, axes: np.ndarray,
+                  origin: np.ndarray, cell: float, occupied: np.ndarray) -> None:
+    """Mark the grid cell of every finite point higher than ``min_height`` above the floor (in place).
+
+    A point p falls in cell (floor((p.e2 - o_v) / cell), floor((p.e1 - o_u) / cell)); points off the grid
+    are skipped. ``min_height`` = -inf marks every finite point.
+    """
+    rows, cols = occupied.shape
+    for k in range(points.shape[0]):
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        height = unit_normal[0] * x + unit_normal[1] * y + unit_normal[2] * z + offset
+        if not height > min_height:  # also drops NaN
+            continue
+        u = (axes[0, 0] * x + axes[0, 1] * y + axes[0, 2] * z - origin[0]) / cell
+        v = (axes[1, 0] * x + axes[1, 1] * y + axes[1, 2] * z - origin[1]) / cell
+        if not (u >= 0.0 and v >= 0.0 and u < cols and v < rows):
+            continue
+        occupied[int(v), int(u)] = True

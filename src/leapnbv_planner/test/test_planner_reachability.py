@@ -1,0 +1,141 @@
+"""Tests of leapnbv_planner.reachability: the floor grid, shortest free paths, and plan_views with reachability."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from leapnbv_planner.candidates import FeasibilityReason
+from leapnbv_planner.params import default_nbv_params
+from leapnbv_planner.path_kernel import grid_distances
+from leapnbv_planner.plan import plan_views
+from leapnbv_planner.reachability import ReachabilityError, build_occupancy_grid, reachability
+
+UP = np.array([0.0, -1.0, 0.0])  # the floor's up normal of a level camera 1.2 m above it: the floor is y = 1.2
+HEIGHT = 1.2
+K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def foot(x: float, z: float) -> np.ndarray:
+    return np.array([x, HEIGHT, z])
+
+
+def wall(x0: float, x1: float, z: float, step: float = 0.05) -> np.ndarray:
+    """Points of a 1 m high wall along x at depth z (heights 0.1-1.0 m above the floor)."""
+    xs, hs = np.meshgrid(np.arange(x0, x1 + 1e-9, step), np.arange(0.1, 1.0, 0.1))
+    return np.column_stack([xs.ravel(), HEIGHT - hs.ravel(), np.full(xs.size, z)])
+
+
+def grid_for(obstacles, feet, unknown="free", camera=None, cell=0.1):
+    return build_occupancy_grid(obstacles, np.zeros((0, 3)), UP, HEIGHT, np.vstack([feet, foot(0, 0)[None]]),
+                                cell, 0.3, 0.05, unknown, camera)
+
+
+def test_open_floor_paths_are_straight_distances():
+    distances, parents = grid_distances(np.ones((5, 7), dtype=bool), 2, 0, 0.1)
+    assert distances[2, 6] == pytest.approx(0.6)
+    assert distances[0, 2] == pytest.approx(0.2 * np.sqrt(2.0))
+    assert parents[2, 0] == -1 and parents[2, 1] == 2 * 7 + 0
+    feet = np.array([foot(0.0, 3.0), foot(2.0, 0.0)])
+    reach = reachability(grid_for(np.zeros((0, 3)), feet), foot(0, 0), feet, 6.0, 0.3)
+    assert reach.reachable.all()
+    np.testing.assert_allclose(reach.path_lengths, [3.0, 2.0], atol=0.1)
+
+
+def test_a_wall_makes_the_path_go_round_it_and_a_closed_room_blocks_it():
+    feet = np.array([foot(0.0, 4.0)])
+    reach = reachability(grid_for(wall(-1.0, 1.0, 2.0), feet), foot(0, 0), feet, 8.0, 0.3)
+    assert reach.reachable[0]
+    around = 2.0 * np.hypot(1.3, 2.0)  # past the wall's end, kept 0.3 m (the robot radius) away
+    assert around - 0.1 <= reach.path_lengths[0] <= around + 0.6
+    path = reach.path_to(feet[0])
+    np.testing.assert_allclose(path[0], foot(0, 0), atol=0.08)
+    np.testing.assert_array_equal(path[-1], feet[0])
+    near_wall = (np.abs(path[:, 2] - 2.0) < 0.3)
+    assert np.all(np.abs(path[near_wall, 0]) > 1.0)  # it passes beyond the wall's ends, not through it
+    # The same goal with a hard limit below the detour: unreachable.
+    short = reachability(grid_for(wall(-1.0, 1.0, 2.0), feet), foot(0, 0), feet, 4.5, 0.3)
+    assert not short.reachable[0] and np.isfinite(short.path_lengths[0])
+    # Walled in: no path at all.
+    room = np.vstack([wall(-6, 6, 2.0), wall(-6, 6, -2.0)] + [
+        np.column_stack([np.full(200, x), np.full(200, HEIGHT - 0.5), np.linspace(-2, 2, 200)]) for x in (-1.0, 1.0)])
+    boxed = reachability(grid_for(room, feet), foot(0, 0), feet, 20.0, 0.3)
+    assert not boxed.reachable[0] and np.isinf(boxed.path_lengths[0]) and boxed.path_to(feet[0]) is None
+
+
+def test_unknown_space_outside_the_view_is_a_parameter():
+    feet = np.array([foot(0.0, -2.0), foot(0.0, 3.0)])  # behind the camera (unseen), in front (seen)
+    free = reachability(grid_for(np.zeros((0, 3)), feet, "free", (K, 640, 480)), foot(0, 0), feet, 6.0, 0.3)
+    assert free.reachable.tolist() == [True, True]
+    blocked = reachability(grid_for(np.zeros((0, 3)), feet, "occupied", (K, 640, 480)), foot(0, 0), feet, 6.0, 0.3)
+    assert blocked.reachable.tolist() == [False, True]
+    with pytest.raises(ReachabilityError, match="unknown_space"):
+        grid_for(np.zeros((0, 3)), feet, "maybe")
+
+
+def test_plan_views_marks_candidates_behind_a_wall_unreachable_and_returns_the_path():
+    # Person at 3 m in a corridor along z (walls at x = +-1.2): ring candidates beside the person are in the walls
+    # or behind them; a candidate beyond the person along the corridor is reached past the person.
+    rng = np.random.default_rng(0)
+    person = np.column_stack([rng.uniform(-0.2, 0.2, 800), rng.uniform(-0.5, 1.1, 800), rng.uniform(2.9, 3.1, 800)])
+    side = [np.column_stack([np.full(3000, x), rng.uniform(-0.5, 1.1, 3000), rng.uniform(-4.0, 9.0, 3000)])
+            for x in (-1.2, 1.2)]
+    background = np.vstack(side).astype(np.float32)
+    target = SimpleNamespace(valid=True, centroid=np.array([0.0, 0.3, 3.0]), target_points=person.astype(np.float32),
+                             background_points=background, k=K, width=640, height=480)
+    ground = SimpleNamespace(valid=True, normal=UP, offset=HEIGHT)
+    params = default_nbv_params()
+    params.reachability = True
+    params.num_rings, params.min_radius, params.radius = 3, 1.0, 2.5
+    plan = plan_views(target, ground, params)
+    reasons = plan.feasibility.reasons
+    assert plan.path_lengths.shape == (len(plan.candidates),) and plan.path_lengths[0] == 0.0
+    assert np.count_nonzero(reasons == int(FeasibilityReason.UNREACHABLE)) >= 6
+    outside = np.abs(plan.candidates.foot_points[:, 0]) > 1.2 - 0.3
+    assert not plan.feasibility.feasible[outside].any()  # nothing in or behind the corridor's walls
+    assert plan.chosen_index >= 0 and plan.base_path is not None
+    np.testing.assert_array_equal(plan.base_path[-1], plan.candidates.foot_points[plan.chosen_index])
+    assert np.all(np.abs(plan.base_path[:, 0]) < 1.2 - 0.2)  # the path stays in the corridor
+    # Travel: the term is in the registry; scored when listed, from the path lengths.
+    params.score_terms = ["visibility", "area", "occlusion", "travel"]
+    plan = plan_views(target, ground, params)
+    travel = plan.scores.term("travel")
+    finite = np.isfinite(plan.path_lengths)
+    np.testing.assert_allclose(travel[finite], 1.0 - np.minimum(1.0, plan.path_lengths[finite] / 6.0))
+    assert travel[0] == 1.0 and np.all(travel[~finite] == 0.0)
+
+
+def test_the_ring_rotations_are_camera_look_at_bit_for_bit():
+    from leapnbv_planner.candidates import camera_look_at, generate_candidates
+
+    params = default_nbv_params()
+    params.num_rings, params.min_radius = 3, 1.5
+    normal = np.array([0.0, -0.98, 0.2]) / np.linalg.norm([0.0, -0.98, 0.2])
+    centroid = np.array([0.3, 0.2, 3.1])
+    candidates = generate_candidates(centroid, normal, 1.25, params)
+    for rotation, position in zip(candidates.rotations[1:], candidates.positions[1:]):
+        np.testing.assert_array_equal(rotation, camera_look_at(position, centroid, normal))
+
+
+def test_mounting_height_and_a_fixed_head():
+    from leapnbv_planner.candidates import generate_candidates
+
+    params = default_nbv_params()
+    pitch = np.radians(12.0)
+    up = np.array([0.0, -np.cos(pitch), -np.sin(pitch)])  # the current camera looks 12 deg down
+    centroid = np.array([0.2, 0.6, 3.0])
+    params.camera_height = 0.9
+    candidates = generate_candidates(centroid, up, 1.3, params)
+    heights = candidates.positions[1:] @ up + 1.3
+    np.testing.assert_allclose(heights, 0.9, atol=1e-12)  # the mounting height, not the current 1.3 m
+    params.camera_tilt = "fixed"
+    fixed = generate_candidates(centroid, up, 1.3, params)
+    axes = fixed.rotations[1:, :, 2]
+    np.testing.assert_allclose(np.degrees(np.arcsin(-(axes @ up))), 12.0, atol=1e-9)  # the current pitch
+    bearing = centroid - fixed.positions[1:]
+    bearing -= (bearing @ up)[:, None] * up
+    level_axes = axes - (axes @ up)[:, None] * up
+    cosine = np.sum(bearing * level_axes, axis=1) / np.linalg.norm(bearing, axis=1) / np.linalg.norm(level_axes, axis=1)
+    np.testing.assert_allclose(cosine, 1.0, atol=1e-12)  # turned toward the target
+    np.testing.assert_allclose(fixed.rotations[1:, :, 0] @ up, 0.0, atol=1e-12)  # no roll
