@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from typing import List, NamedTuple, Optional, Set, Tuple
+from typing import Dict, List, NamedTuple, Optional, Set, Tuple
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -140,8 +140,8 @@ class NbvNode(Node):
         if p.use_obstacle_map:
             self.create_subscription(PointCloud2, topics.OBSTACLE_MAP, self.on_obstacle_map, latched_map_qos())
         # The person's metric body mesh by stamp (the body_occlusion term), and frames waiting for theirs.
-        self.body_meshes: OrderedDict[int, tuple] = OrderedDict()
-        self.waiting_for_mesh: OrderedDict[int, ReadyFrame] = OrderedDict()
+        self.body_meshes: Dict[int, tuple] = OrderedDict()  # oldest first
+        self.waiting_for_mesh: Dict[int, ReadyFrame] = OrderedDict()  # oldest first
         self.create_subscription(HumanMesh, topics.HUMAN_MESH_METRIC, self.on_body_mesh, stage_input_qos(5))
         self.create_subscription(TargetGeometry, topics.TARGET_GEOMETRY, self.on_target, stage_input_qos(1))
         self.create_subscription(GroundPlane, topics.GROUND_PLANE, self.on_ground, stage_input_qos(PLANE_CACHE))
