@@ -32,7 +32,7 @@ from leapnbv_stand_ins.files import ensure_stand_in_body_model  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-# Issue 12's goal is goals again within 3 s of a kill -9. That is a speed figure, and this suite does not
+# The goal is goals again within 3 s of a kill -9. That is a speed figure, and this suite does not
 # time things on a shared CI machine: it checks recovery within a bound that only a broken restart
 # misses, and LEAPNBV_STRICT_TIMING=1 (a quiet machine) asserts the 3 s itself.
 RECOVERY_LIMIT_S = 3.0 if os.environ.get("LEAPNBV_STRICT_TIMING") == "1" else 15.0

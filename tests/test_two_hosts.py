@@ -235,10 +235,8 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     b = json.loads((tmp_path / "b.json").read_text())
     frames = set(a["frames"])
     goals = [g for g in b["goals"] if g[2]]  # an empty frame_id is an explicit "no goal"
-    planes = set(b["planes"])
     diag = b["diagnostics"]
     ground = diag.get("/leapnbv/ground_node", {})
-    nbv = diag.get("/leapnbv/nbv_node", {})
     ground_in = int(ground.get("frames_in", 0))
     lat = sorted((r - s) * 1e-9 for s, r, _ in goals)
     summary = (f"A: {HOST_A_NODES}; B: {HOST_B_NODES}; discovery {DISCOVERY}: {len(frames)} frames published on A, "
@@ -257,25 +255,15 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     depth_readers_on_b = len({"raster_node", "ground_node"} & set(HOST_B_NODES.split(",")))
     assert rx_bytes >= depth_readers_on_b * 0.9 * len(frames) * DEPTH_FRAME_BYTES, summary
     assert ground_in >= 0.9 * len(frames), summary
-    # One frame per goal. Where view candidates list their inputs (InputStamp, issue 12 deliverable 1),
-    # no SAME_FRAME input may carry another stamp and the floor is the frame's own or a CARRIED one.
+    # One frame per goal: the view candidates list their inputs (InputStamp); no SAME_FRAME input may carry
+    # another stamp, and the floor is the frame's own or one CARRIED into it by the camera-pose delta.
     with_inputs = [c for c in b["candidates"] if c[2]]
-    if with_inputs:
-        mixed = [c for c in with_inputs if any(rel == 0 and stamp != c[0] for _, stamp, rel in c[2])]
-        assert not mixed, f"view candidates with a SAME_FRAME input of another stamp: {mixed[:5]}"
-        floors = [c for c in with_inputs if c[1] >= 0 and not any(
-            name == "ground_plane" and (stamp == c[0] or rel == 1) for name, stamp, rel in c[2])]
-        assert not floors, f"goals whose floor is neither the frame's own nor carried: {floors[:5]}"
-    else:
-        # Without the inputs: the mixing nbv_node does today is its fallback to the latest floor of
-        # any stamp (counted as ground_plane_late), which shows as a goal whose frame has no floor.
-        late = int(nbv.get("rejected.ground_plane_late", "0"))
-        floorless = [g[0] for g in goals if g[0] not in planes]
-        if late or floorless:
-            pytest.xfail(f"{late} frames fell back to another frame's floor (nbv_node's ground_plane_late), "
-                         f"{len(floorless)} goals have no floor of their own frame: the known defect of issue 12 "
-                         "deliverable 1, fixed in parallel; " + summary)
-
+    assert with_inputs and len(with_inputs) == len(b["candidates"]), summary
+    mixed = [c for c in with_inputs if any(rel == 0 and stamp != c[0] for _, stamp, rel in c[2])]
+    assert not mixed, f"view candidates with a SAME_FRAME input of another stamp: {mixed[:5]}"
+    floors = [c for c in with_inputs if c[1] >= 0 and not any(
+        name == "ground_plane" and (stamp == c[0] or rel == 1) for name, stamp, rel in c[2])]
+    assert not floors, f"goals whose floor is neither the frame's own nor carried: {floors[:5]}"
 
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "record":

@@ -26,7 +26,7 @@ ROBOT_VALUES = {
     "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 150,
     "max_goal_age_s": 1.0, "camera_pose_wait_s": 0.1,
 }
-# Changed for issue 12 (one frame per output, no stale goal): the frame's own plane is waited for 0.5 s, an older
+# One frame per output and no stale goal: the frame's own plane is waited for 0.5 s, an older
 # plane is carried (by the camera-pose delta) from at most 0.5 s back, goals are at most 1 s old, and the pose
 # cache covers 5 s at 30 Hz.
 
