@@ -51,23 +51,12 @@ def rendered_frames(count: int, offset: int):
 
 
 def hmr_inputs(frames, input_hw) -> List[Dict[str, np.ndarray]]:
-    from leapnbv_perception.hmr_crop import (
-        CROP_H,
-        CROP_W,
-        DEFAULT_ASPECT,
-        DEFAULT_BOX_SCALE,
-        crop_for_hmr,
-        fit_to_engine_input,
-        process_box,
-        xyxy_to_xywh,
-    )
+    from leapnbv_perception.hmr_crop import engine_input_for_box
     from leapnbv_perception.model_contracts import HMR_INPUT_NAME
 
     feeds = []
     for rgb, box in frames:
-        processed = process_box(xyxy_to_xywh(box), rgb.shape[1], rgb.shape[0], DEFAULT_ASPECT, DEFAULT_BOX_SCALE)
-        crop, _, _ = crop_for_hmr(rgb, processed, CROP_H, CROP_W)
-        feeds.append({HMR_INPUT_NAME: fit_to_engine_input(crop, input_hw)})
+        feeds.append({HMR_INPUT_NAME: engine_input_for_box(rgb, box, input_hw)[0]})
     return feeds
 
 

@@ -120,24 +120,13 @@ def make_crop(sample: Sample, input_hw: Tuple[int, int]) -> np.ndarray:
     """(3, H, W) float32: the inference crop of the person box."""
     import cv2
 
-    from leapnbv_perception.hmr_crop import (
-        CROP_H,
-        CROP_W,
-        DEFAULT_ASPECT,
-        DEFAULT_BOX_SCALE,
-        crop_for_hmr,
-        fit_to_engine_input,
-        process_box,
-        xyxy_to_xywh,
-    )
+    from leapnbv_perception.hmr_crop import engine_input_for_box
 
     bgr = cv2.imread(sample.image, cv2.IMREAD_COLOR)
     if bgr is None:
         raise DistillError(f"image unreadable: '{sample.image}'")
     rgb = np.ascontiguousarray(bgr[:, :, ::-1])
-    box = process_box(xyxy_to_xywh(sample.box), rgb.shape[1], rgb.shape[0], DEFAULT_ASPECT, DEFAULT_BOX_SCALE)
-    crop, _, _ = crop_for_hmr(rgb, box, CROP_H, CROP_W)
-    return fit_to_engine_input(crop, input_hw)[0]
+    return engine_input_for_box(rgb, sample.box, input_hw)[0][0]
 
 
 def crop_sha256(crop: np.ndarray) -> str:

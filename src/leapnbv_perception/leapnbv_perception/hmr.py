@@ -9,16 +9,7 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple
 import numpy as np
 
 from leapnbv_perception.backends.base import EngineBackend
-from leapnbv_perception.hmr_crop import (
-    CROP_H,
-    CROP_W,
-    DEFAULT_ASPECT,
-    DEFAULT_BOX_SCALE,
-    crop_for_hmr,
-    fit_to_engine_input,
-    process_box,
-    xyxy_to_xywh,
-)
+from leapnbv_perception.hmr_crop import DEFAULT_BOX_SCALE, engine_input_for_box
 from leapnbv_perception.hmr_tail import camera_translation, unmirror_left_hand, virtual_intrinsics
 from leapnbv_perception.model_contracts import (
     HMR_INPUT_NAME,
@@ -186,10 +177,8 @@ class HumanMeshEstimator:
             InvalidBoxError: when the box has no area inside the image.
             HMROutputError: when the engine returns non-finite or missing outputs.
         """
-        image_h, image_w = rgb.shape[:2]
-        processed_box = process_box(xyxy_to_xywh(box_xyxy), image_w, image_h, DEFAULT_ASPECT, self.box_scale)
-        crop, affine, _ = crop_for_hmr(rgb, processed_box, CROP_H, CROP_W)
-        outputs = self.backend.run({HMR_INPUT_NAME: fit_to_engine_input(crop, self.input_hw)})
+        engine_input, processed_box, affine = engine_input_for_box(rgb, box_xyxy, self.input_hw, self.box_scale)
+        outputs = self.backend.run({HMR_INPUT_NAME: engine_input})
         values = self._read_outputs(outputs)
 
         root = rot6d_to_matrix(values["root_pose"].reshape(1, 6))[0]

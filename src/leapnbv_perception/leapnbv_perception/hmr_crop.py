@@ -179,3 +179,27 @@ def fit_to_engine_input(tensor: np.ndarray, input_hw: Tuple[int, int]) -> np.nda
         "the HMR engine input is %dx%d; supported: %dx%d or %dx%d"
         % (height, width, tensor.shape[2], tensor.shape[3], tensor.shape[2] // 2, tensor.shape[3] // 2)
     )
+
+
+def engine_input_for_box(rgb: np.ndarray, box_xyxy, input_hw: Tuple[int, int],
+                         box_scale: float = DEFAULT_BOX_SCALE) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The HMR engine's input for one person box, as inference makes it (the node, the INT8 calibration
+    and the distillation data all use this): SMPLer-X's box processing (process_box), the 512x384
+    affine crop, then the engine's input size (fit_to_engine_input).
+
+    Args:
+        rgb: (H, W, 3) uint8 RGB image.
+        box_xyxy: [x_min, y_min, x_max, y_max, ...] in source pixels.
+        input_hw: (H, W) the engine declares.
+        box_scale: enlargement about the box centre (SMPLer-X: 1.25).
+
+    Returns:
+        (engine input (1, 3, H, W) float32, processed box (4,) xywh, affine (2, 3) source -> crop).
+
+    Raises:
+        InvalidBoxError: when the box has no area inside the image.
+    """
+    image_h, image_w = rgb.shape[:2]
+    processed = process_box(xyxy_to_xywh(box_xyxy), image_w, image_h, DEFAULT_ASPECT, box_scale)
+    crop, affine, _ = crop_for_hmr(rgb, processed, CROP_H, CROP_W)
+    return fit_to_engine_input(crop, input_hw), processed, affine
