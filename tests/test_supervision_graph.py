@@ -20,7 +20,7 @@ import pytest
 pytest.importorskip("rclpy")
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from node_harness import Probe, diag_value  # noqa: E402
+from node_harness import Probe, diag_value, stop_node  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 
 from leapnbv_bringup.graph import NAMESPACE, node_names  # noqa: E402
@@ -79,16 +79,6 @@ def start_monitor(log_path: str) -> subprocess.Popen:
     return proc
 
 
-def stop_process(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 @pytest.fixture(scope="module")
 def supervised_graph(tmp_path_factory):
     """(runner, probe, goals): the supervised ground-truth graph, the simulator, goals flowing."""
@@ -112,8 +102,7 @@ def supervised_graph(tmp_path_factory):
     finally:
         for proc in (sim, monitor):
             if proc is not None:
-                stop_process(proc)
-                proc.log_handle.close()
+                stop_node(proc)
         runner.stop()
         if probe is not None:
             probe.close()

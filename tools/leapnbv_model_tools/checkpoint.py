@@ -11,7 +11,6 @@ tensor's shape must match: otherwise one error lists what is missing, unexpected
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Dict, List, Tuple
@@ -31,14 +30,6 @@ class CheckpointError(ValueError):
 
 def checkpoint_file_name(variant: str) -> str:
     return f"smpler_x_{variant}.pth.tar"
-
-
-def sha256_of(path: str) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def normalize_key(key: str) -> str:

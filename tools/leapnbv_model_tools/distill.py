@@ -60,6 +60,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from leapnbv_model_tools.file_hash import sha256_of
+
 PARAM_SIZES = {"root": 3, "body": 63, "lhand": 45, "rhand": 45, "jaw": 3, "betas": 10, "expression": 10}
 CONFIG_KEYS = ("train", "targets", "teacher_variant", "student_variant", "student_checkpoint", "input", "batch_size",
                "lr", "seed", "teacher_sha256", "body_model_sha256")
@@ -74,14 +76,6 @@ class Sample:
     image: str
     box: Tuple[float, float, float, float]
     params: Optional[Dict[str, np.ndarray]]
-
-
-def sha256_file(path: str) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def read_manifest(path: str) -> List[Sample]:
@@ -338,8 +332,8 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     for path, what in checks:
         if not os.path.isfile(path):
             raise DistillError(f"{what} not found: '{path}'")
-    config.teacher_sha256 = sha256_file(config.teacher) if use_teacher else ""
-    config.body_model_sha256 = sha256_file(config.body_model)
+    config.teacher_sha256 = sha256_of(config.teacher) if use_teacher else ""
+    config.body_model_sha256 = sha256_of(config.body_model)
     try:
         body = SMPLXModel.load(config.body_model)
         teacher = load_smplerx(config.teacher, config.teacher_variant) if use_teacher else None
@@ -474,7 +468,7 @@ def export_student(student: nn.Module, config: DistillConfig, out: Path, input_h
     student.eval()
     checkpoint = save_official(student, str(out / "student.pth.tar"))
     onnx_path = str(out / "student.onnx")
-    export_onnx(student, onnx_path, input_hw, export_metadata(config.student_variant, sha256_file(checkpoint),
+    export_onnx(student, onnx_path, input_hw, export_metadata(config.student_variant, sha256_of(checkpoint),
                                                                input_hw))
     crops = np.random.default_rng(0).uniform(0.0, 1.0, size=(1, 3) + input_hw).astype(np.float32)
     difference = parity(student, onnx_path, crops)

@@ -13,7 +13,8 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from leapnbv_model_tools.checkpoint import CheckpointError, load_smplerx, sha256_of
+from leapnbv_model_tools.checkpoint import CheckpointError, load_smplerx
+from leapnbv_model_tools.file_hash import sha256_of
 from leapnbv_model_tools.smplerx import VARIANTS, SMPLerX
 
 OUTPUT_NAMES = ("root_pose", "body_pose", "lhand_pose", "rhand_pose", "jaw_pose", "betas", "expression", "cam_param")

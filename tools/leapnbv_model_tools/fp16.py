@@ -52,7 +52,6 @@ Errors are one line on stderr.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 import sys
 from dataclasses import dataclass, field
@@ -60,6 +59,8 @@ from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
+
+from leapnbv_model_tools.file_hash import sha256_of
 
 FP16_MAX = 65504.0
 EMULATED_ROWS = 32  # calibration rows (largest sums of squares) each normalization is emulated on
@@ -590,14 +591,6 @@ class CheckResult:
     verification: Optional[Dict[str, float]]
 
 
-def sha256_file(path: str) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def load_model(path: str):
     import onnx
 
@@ -638,7 +631,7 @@ def fp16_check(model_path: str, crops: np.ndarray, out_dir: str, headroom: float
     fp16_path = str(out / f"{stem}.fp16.onnx")
     onnx.save(fp16_model, fp16_path)
     plan_path = write_precision_plan(
-        str(out / f"{stem}.precision_plan.json"), plan_entries, sha256_file(model_path), tool=TOOL,
+        str(out / f"{stem}.precision_plan.json"), plan_entries, sha256_of(model_path), tool=TOOL,
         notes="normalizations predicted to overflow or lose precision in FP16: "
               + (", ".join(f"{n.name} ({n.verdict})" for n in flagged) or "none"))
     verification = None
