@@ -223,6 +223,37 @@ def test_hmr_survives_a_detection_paired_with_an_undecodable_image(graph):
     assert graph["procs"][name].poll() is None
 
 
+def test_hmr_waits_briefly_for_an_image_that_comes_after_its_detections(graph):
+    """A fast detector (the simulator's boxes, a carried box) can publish before hmr_node has the image:
+    the detections wait for it (IMAGE_WAIT_S); without one they are refused and counted."""
+    probe, pub = graph["probe"], graph["image_pub"]
+    name = f"{NS}/hmr_node"
+    det_pub = probe.node.create_publisher(PersonDetections, f"{NS}/detections", stage_output_qos(5))
+    assert probe.spin_until(lambda: det_pub.get_subscription_count() >= 1, 10.0)
+
+    def detections(sec: int) -> PersonDetections:
+        msg = PersonDetections(header=make_header(sec), image_width=WIDTH, image_height=HEIGHT, backend="test")
+        msg.detections = [PersonDetection(x_min=140.0, y_min=80.0, x_max=260.0, y_max=400.0, score=0.9)]
+        return msg
+
+    det_pub.publish(detections(3500))
+    probe.spin_for(0.05)  # the detections are at hmr_node before their image is sent
+    pub.publish(numpy_to_image(person_blob_image(150, 90)[0], "rgb8", make_header(3500)))
+    assert probe.spin_until(lambda: by_stamp(graph["meshes"], (3500, 0)), 10.0), "no mesh for the late image"
+    mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (3500, 0))[0])
+    np.testing.assert_allclose(mesh.detection[:4], (140.0, 80.0, 260.0, 400.0), atol=1e-4)  # these detections
+
+    def refused() -> int:
+        status = probe.status_where(name, lambda s: True)
+        return int(diag_value(status, "rejected.no_matching_image")) if status else 0
+
+    before = refused()
+    det_pub.publish(detections(3501))  # its image never comes
+    assert probe.spin_until(lambda: refused() >= before + 1, 10.0)
+    assert not by_stamp(graph["meshes"], (3501, 0))
+    probe.node.destroy_publisher(det_pub)
+
+
 def test_missing_model_file_keeps_the_detector_running_with_an_error(graph):
     probe = graph["probe"]
     name = f"{MISSING_NS}/detector_node"

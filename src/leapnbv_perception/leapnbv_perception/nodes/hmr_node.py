@@ -47,6 +47,9 @@ from leapnbv_perception.params import HmrParams
 from leapnbv_perception.target_selection import select_target
 
 CAMERA_INFO_WAIT_S = 0.2  # ground truth: how long a frame waits for the camera_info of its stamp
+# How long detections wait for their colour image: DDS does not order topics, and a fast detector (the
+# simulator's boxes, a carried box) can publish before this node has the image it was made from.
+IMAGE_WAIT_S = 0.2
 
 
 class HmrNode(Node):
@@ -66,6 +69,7 @@ class HmrNode(Node):
         self.latest_camera_info: Optional[CameraInfo] = None
         self.info_wait: Optional[tuple] = None  # (stamp, (detections, truth), since): waits for its camera_info
         self.truth_wait: Optional[tuple] = None  # (stamp, since): detections waiting for their ground truth
+        self.image_wait: Optional[tuple] = None  # (stamp, detections, since): detections waiting for their image
         self.info_timer = self.create_timer(0.02, self.expire_info_wait)
         self.info_timer.cancel()  # runs only while a frame waits
         self.engine = RetryingLoader(self, self.diagnostics, f"HMR engine {p.model_file_path!r} with body "
@@ -158,7 +162,13 @@ class HmrNode(Node):
         image = SerializedImage(msg)  # read in place: pixels are converted only for the frame worked on
         if refused(self.diagnostics, "bad_image", self.stamps.check, "image", image):
             return
-        self.images.put(stamp_to_ns(image.header.stamp), image)
+        stamp = stamp_to_ns(image.header.stamp)
+        if self.image_wait is not None and self.image_wait[0] == stamp:
+            detections = self.image_wait[1]
+            self.image_wait = None
+            self.estimate(detections, image)
+            return
+        self.images.put(stamp, image)
 
     @rejects_bad_input("bad_ground_truth")
     def on_ground_truth(self, msg: SceneGroundTruth, info) -> None:
@@ -189,15 +199,19 @@ class HmrNode(Node):
             self.info_timer.reset()
 
     def expire_info_wait(self) -> None:
-        if self.info_wait is not None or self.truth_wait is not None:
+        if self.waiting():
             self.pull_companions()
+        if self.image_wait is not None and time.monotonic() - self.image_wait[2] >= IMAGE_WAIT_S:
+            stamp = self.image_wait[0]
+            self.image_wait = None
+            self.diagnostics.reject("no_matching_image", f"no image with stamp {stamp} ns within {IMAGE_WAIT_S} s")
         if self.truth_wait is not None and time.monotonic() - self.truth_wait[1] >= CAMERA_INFO_WAIT_S:
             self.truth_wait = None  # its detections stay in the pairer until evicted (detections_unpaired)
         if self.info_wait is not None and time.monotonic() - self.info_wait[2] >= CAMERA_INFO_WAIT_S:
             _, pair, _ = self.info_wait
             self.info_wait = None
             self.estimate(*pair)  # with the latest camera_info (recorded as STATIC), or refused without one
-        if self.info_wait is None and self.truth_wait is None:
+        if not self.waiting():
             self.info_timer.cancel()
 
     @rejects_bad_input("bad_detections")
@@ -223,10 +237,19 @@ class HmrNode(Node):
             return
         image = self.images.pop(stamp)
         self.images.drop_older_than(stamp, "image_superseded")
-        if image is None:
-            self.diagnostics.reject("no_matching_image", f"no cached image with stamp {stamp} ns")
+        if self.image_wait is not None:
+            self.image_wait = None
+            self.diagnostics.drop("detections_superseded")  # an older frame still waiting for its image
+        if image is None:  # its image may still be on the way: pulled again shortly (IMAGE_WAIT_S)
+            self.image_wait = (stamp, msg, time.monotonic())
+            if self.info_timer.is_canceled():
+                self.info_timer.reset()
             return
         self.estimate(msg, image)
+
+    def waiting(self) -> bool:
+        """A frame waits for a companion message (its camera_info, ground truth or image)."""
+        return self.info_wait is not None or self.truth_wait is not None or self.image_wait is not None
 
     @rejects_bad_input("bad_frame")
     def estimate(self, detections: PersonDetections, source) -> None:
