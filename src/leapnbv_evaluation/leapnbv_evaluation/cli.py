@@ -96,6 +96,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help=f"ROS domain of worker 0 (worker k: base + k); default ${DOMAIN_BASE_ENV}, else free "
                              "domains claimed with locks (see leapnbv_evaluation.parallel)")
     parser.add_argument("--perception", choices=["ground_truth", "onnxruntime", "tensorrt"], default="ground_truth")
+    parser.add_argument("--detector-backend", choices=["ground_truth", "onnxruntime", "tensorrt"], default=None,
+                        help="the detector's backend when it differs from --perception: ground_truth gives a real "
+                        "HMR model the simulator's person boxes (no trained detector needed)")
     parser.add_argument("--detector-model", default=None, help="YOLOv8 ONNX file (real perception)")
     parser.add_argument("--hmr-model", default=None, help="SMPLer-X student ONNX file (real perception)")
     parser.add_argument("--body-model", default=None,
@@ -122,7 +125,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="a further move is made only when the graph's pick scores this much above staying")
     args = parser.parse_args(argv)
 
-    options = EvaluationOptions(perception=args.perception, detector_model=args.detector_model,
+    options = EvaluationOptions(perception=args.perception, detector_backend=args.detector_backend,
+                                detector_model=args.detector_model,
                                 hmr_model=args.hmr_model, body_model=args.body_model,
                                 scene_body_model=args.scene_body_model, params_file=args.params,
                                 set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,

@@ -114,6 +114,9 @@ class EvaluationOptions:
 
     Attributes:
         perception: "ground_truth" (default) or "onnxruntime" / "tensorrt" (real models).
+        detector_backend: The detector's backend when it differs from ``perception``: "ground_truth"
+            runs a real HMR model on the simulator's person boxes (no detector model needed: a learned
+            HMR with no trained detector). None: as ``perception``.
         detector_model: YOLOv8 ONNX file (real perception).
         hmr_model: SMPLer-X student ONNX file (real perception).
         body_model: SMPL-X .npz of the HMR node (default with ground truth: the small stand-in).
@@ -142,6 +145,7 @@ class EvaluationOptions:
     """
 
     perception: str = "ground_truth"
+    detector_backend: Optional[str] = None
     detector_model: Optional[str] = None
     hmr_model: Optional[str] = None
     body_model: Optional[str] = None
@@ -167,6 +171,18 @@ class EvaluationOptions:
     @property
     def real_models(self) -> bool:
         return self.perception != "ground_truth"
+
+    @property
+    def detector_truth(self) -> bool:
+        """The detector publishes the simulator's boxes while the HMR runs a model."""
+        return self.real_models and self.detector_backend == "ground_truth"
+
+    @property
+    def perception_label(self) -> str:
+        """The perception as the reports name it."""
+        if self.detector_backend and self.detector_backend != self.perception:
+            return f"{self.perception} (detector: {self.detector_backend})"
+        return self.perception
 
 
 @dataclass
@@ -278,12 +294,18 @@ class ClosedLoopEvaluator:
     def _graph_overrides(self) -> Dict[str, Dict[str, str]]:
         o = self.options
         body = o.body_model or (ensure_stand_in_body_model("small") if not o.real_models else None)
-        if o.real_models and not (o.detector_model and o.hmr_model and o.body_model):
-            raise EvaluationError("real perception needs --detector-model, --hmr-model and --body-model")
+        if o.detector_backend not in (None, o.perception, "ground_truth"):
+            raise EvaluationError(f"--detector-backend {o.detector_backend!r}: the perception's "
+                                  f"({o.perception!r}) or ground_truth")
+        needs_detector = o.real_models and not o.detector_truth
+        if o.real_models and not ((o.detector_model or not needs_detector) and o.hmr_model and o.body_model):
+            raise EvaluationError("real perception needs --detector-model (unless --detector-backend ground_truth), "
+                                  "--hmr-model and --body-model")
         map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
         map_switch.append("nbv_node.max_goal_age_s=0.0")  # simulated stamps, not the clock's: no goal age limit
         robot = FAMILY_GRAPH_PARAMETERS.get(o.room, [])  # the family's robot (camera mounting), before --set
-        return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body),
+        detector = {"detector_node": {"backend": o.detector_backend}} if o.detector_backend else {}
+        return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body), detector,
                                parse_set_arguments(map_switch + robot + list(o.set_parameters)))
 
     def start(self) -> None:
@@ -484,7 +506,7 @@ class ClosedLoopEvaluator:
                                     for method in methods}
         o = self.options
         return EvaluationRun(methods=methods, default_method=DEFAULT_METHOD, stages=list(STAGES), scenes=scenes,
-                             perception=o.perception, room=o.room, obstacle_map=o.obstacle_map, workers=1,
+                             perception=o.perception_label, room=o.room, obstacle_map=o.obstacle_map, workers=1,
                              ready_s=self.ready_s, scenes_wall_s=time.monotonic() - started)
 
     def _evaluate_scene(self, scene: Scene, seed: int, scene_index: int, stamp_base: int) -> SceneResult:
