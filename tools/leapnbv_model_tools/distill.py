@@ -4,11 +4,14 @@
         --teacher T.pth.tar --teacher-variant l32 --student-variant s32 [--student-checkpoint S.pth.tar]
         --body-model SMPLX_NEUTRAL.npz --out DIR [--input 512x384|256x192] [--epochs 10]
         [--batch-size 8] [--lr 1e-4] [--cache DIR] [--max-steps N] [--no-export] [--targets teacher|gt]
+        [--init-mean]
     torchrun --nproc_per_node 2 -m leapnbv_model_tools distill ...   (DistributedDataParallel)
 
 Manifest (JSON lines): ``{"image": "a.png", "box": [x1, y1, x2, y2], "params": {...}}``; the
 image path relative to the manifest's folder; ``params`` optional ground truth (axis-angle
-``root`` 3, ``body`` 63, ``lhand`` 45, ``rhand`` 45, ``jaw`` 3, ``betas`` 10, ``expression`` 10).
+``root`` 3, ``body`` 63, ``lhand`` 45, ``rhand`` 45, ``jaw`` 3, ``betas`` 10, ``expression`` 10) and
+optional ``"camera": {"K": [fx, fy, cx, cy], "translation": [x, y, z]}`` (the image's intrinsics and
+the body's translation in the camera frame: camera-frame vertices = SMPL-X(params) + translation).
 Every crop is made as inference makes it (leapnbv_perception.hmr_crop: the box enlarged by 1.25
 to 3:4, the affine crop to 512 x 384, then ``fit_to_engine_input``).
 
@@ -32,6 +35,20 @@ from it (the configuration must match) and continues at the next step, in the sa
 
 ``--targets gt`` trains on the manifest's ground-truth meshes instead (same loss, no teacher):
 the baseline a distilled student is compared with, and how a teacher is trained on synthetic data.
+
+``--projection-weight W`` (default 0: the paper's loss alone) adds W times the mean distance between
+the student's mesh projected as the HMR tail projects it (its ``cam_param`` translation, the virtual
+camera of the crop) and the ground-truth mesh projected by the real camera, both in units of the crop
+box (x / width, y / height of the processed box). The vertex loss is centroid-relative, so it never
+teaches the camera head; a network whose mesh the graph places in the image (the raster stage)
+needs this signal. It needs ``camera`` on every training sample.
+
+``--init-mean`` (for a network trained from scratch): before the first step, the last linear layer
+of every pose, shape and expression head is scaled by 0.01 and its bias set to the training
+manifest's mean parameters (rotations as the 6-D the heads output; the hand head, which serves both
+hands, the mean of the right hand and the mirrored left), so the network starts at the mean body
+instead of at random rotations, the usual start of a body-model regressor. It needs the manifest's
+ground-truth parameters.
 
 Validation (each epoch, process 0): PA-MPVPE (mm, Procrustes-aligned mean vertex distance) of
 the student to the teacher's mesh, and to the ground-truth mesh where the manifest gives it.
@@ -64,7 +81,7 @@ from leapnbv_model_tools.file_hash import sha256_of
 
 PARAM_SIZES = {"root": 3, "body": 63, "lhand": 45, "rhand": 45, "jaw": 3, "betas": 10, "expression": 10}
 CONFIG_KEYS = ("train", "targets", "teacher_variant", "student_variant", "student_checkpoint", "input", "batch_size",
-               "lr", "seed", "teacher_sha256", "body_model_sha256")
+               "lr", "seed", "teacher_sha256", "body_model_sha256", "init_mean", "projection_weight")
 
 
 class DistillError(ValueError):
@@ -76,6 +93,8 @@ class Sample:
     image: str
     box: Tuple[float, float, float, float]
     params: Optional[Dict[str, np.ndarray]]
+    camera_k: Optional[np.ndarray] = None  # (fx, fy, cx, cy)
+    translation: Optional[np.ndarray] = None  # (3,) camera-frame body translation
 
 
 def read_manifest(path: str) -> List[Sample]:
@@ -100,11 +119,18 @@ def read_manifest(path: str) -> List[Sample]:
                     if values.size != size:
                         raise ValueError(f"params.{key} has {values.size} values, expected {size}")
                     params[key] = values
+            camera_k = translation = None
+            if entry.get("camera") is not None:
+                camera_k = np.asarray(entry["camera"]["K"], dtype=np.float64).reshape(-1)
+                translation = np.asarray(entry["camera"]["translation"], dtype=np.float64).reshape(-1)
+                if camera_k.size != 4 or translation.size != 3 or not np.all(np.isfinite(camera_k)) \
+                        or not np.all(np.isfinite(translation)) or not np.all(camera_k[:2] > 0):
+                    raise ValueError("camera needs K [fx > 0, fy > 0, cx, cy] and translation [x, y, z], finite")
         except (ValueError, KeyError, TypeError) as error:
             raise DistillError(f"manifest '{path}' line {number}: {error}") from error
         if not os.path.isfile(image):
             raise DistillError(f"manifest '{path}' line {number}: image not found: '{image}'")
-        samples.append(Sample(image, box, params))
+        samples.append(Sample(image, box, params, camera_k, translation))
     if not samples:
         raise DistillError(f"manifest '{path}' has no samples")
     return samples
@@ -112,6 +138,11 @@ def read_manifest(path: str) -> List[Sample]:
 
 def make_crop(sample: Sample, input_hw: Tuple[int, int]) -> np.ndarray:
     """(3, H, W) float32: the inference crop of the person box."""
+    return crop_and_box(sample, input_hw)[0]
+
+
+def crop_and_box(sample: Sample, input_hw: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray]:
+    """(the inference crop (3, H, W) float32, the processed box [x, y, w, h] in image pixels)."""
     import cv2
 
     from leapnbv_perception.hmr_crop import engine_input_for_box
@@ -120,7 +151,31 @@ def make_crop(sample: Sample, input_hw: Tuple[int, int]) -> np.ndarray:
     if bgr is None:
         raise DistillError(f"image unreadable: '{sample.image}'")
     rgb = np.ascontiguousarray(bgr[:, :, ::-1])
-    return engine_input_for_box(rgb, sample.box, input_hw)[0][0]
+    engine_input, processed, _ = engine_input_for_box(rgb, sample.box, input_hw)
+    return engine_input[0], processed
+
+
+def box_projection(vertices_camera: torch.Tensor, camera_k: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """(B, V, 2) camera-frame vertices projected with K (B, 4: fx, fy, cx, cy), in units of the processed
+    boxes (B, 4: x, y, w, h): (u - x) / w, (v - y) / h."""
+    z = vertices_camera[..., 2].clamp(min=1e-3)
+    u = camera_k[:, None, 0] * vertices_camera[..., 0] / z + camera_k[:, None, 2]
+    v = camera_k[:, None, 1] * vertices_camera[..., 1] / z + camera_k[:, None, 3]
+    return torch.stack([(u - boxes[:, None, 0]) / boxes[:, None, 2], (v - boxes[:, None, 1]) / boxes[:, None, 3]],
+                       dim=-1)
+
+
+def student_box_projection(vertices_model: torch.Tensor, cam_param: torch.Tensor) -> torch.Tensor:
+    """(B, V, 2): the student's mesh as the HMR tail places it (translation from ``cam_param``, the crop's
+    virtual camera; leapnbv_perception.hmr_tail), in units of the processed box."""
+    from leapnbv_perception.hmr_tail import BODY_INPUT_SHAPE, VIRTUAL_FOCAL, depth_scale
+
+    height, width = BODY_INPUT_SHAPE
+    t = torch.stack([cam_param[:, 0], cam_param[:, 1], depth_scale() * torch.sigmoid(cam_param[:, 2])], dim=1)
+    placed = vertices_model + t[:, None, :]
+    z = placed[..., 2].clamp(min=1e-3)
+    return torch.stack([VIRTUAL_FOCAL[0] / width * placed[..., 0] / z + 0.5,
+                        VIRTUAL_FOCAL[1] / height * placed[..., 1] / z + 0.5], dim=-1)
 
 
 def crop_sha256(crop: np.ndarray) -> str:
@@ -273,6 +328,49 @@ class DistillConfig:
     targets: str = "teacher"
     teacher_sha256: str = ""
     body_model_sha256: str = ""
+    init_mean: bool = False
+    projection_weight: float = 0.0
+
+
+INIT_OUTPUT_WEIGHT_SCALE = 0.01
+
+
+def init_from_mean(student: nn.Module, samples: List[Sample]) -> Dict[str, np.ndarray]:
+    """Start the student's output heads at the samples' mean parameters (see ``--init-mean``).
+
+    Returns:
+        The biases set, by head ("root", "body", "hand", "jaw", "betas", "expression").
+    """
+    from leapnbv_model_tools.torch_smplx import axis_angle_to_matrix, unmirror
+
+    if not samples or any(s.params is None for s in samples):
+        raise DistillError("--init-mean needs the training manifest's ground-truth params on every sample")
+    mean = {k: torch.from_numpy(np.mean([s.params[k] for s in samples], axis=0)).float().reshape(-1, 3)
+            for k in ("root", "body", "lhand", "rhand", "jaw")}
+
+    def six_d(axis_angle: torch.Tensor) -> torch.Tensor:
+        # The heads' 6-D layout: x[0::2] the first column, x[1::2] the second (torch_smplx.rot6d_to_matrix).
+        return axis_angle_to_matrix(axis_angle)[..., :2].reshape(-1)
+
+    left_as_output = unmirror(axis_angle_to_matrix(mean["lhand"]))[..., :2].reshape(-1)  # the head sees it mirrored
+    biases = {
+        "root": six_d(mean["root"]), "body": six_d(mean["body"]), "jaw": six_d(mean["jaw"]),
+        "hand": 0.5 * (six_d(mean["rhand"]) + left_as_output),
+        "betas": torch.from_numpy(np.mean([s.params["betas"] for s in samples], axis=0)).float(),
+        "expression": torch.from_numpy(np.mean([s.params["expression"] for s in samples], axis=0)).float(),
+    }
+    heads = {"root": student.body_regressor.root_pose_out, "body": student.body_regressor.body_pose_out,
+             "betas": student.body_regressor.shape_out, "hand": student.hand_regressor.hand_pose_out,
+             "jaw": student.face_regressor.jaw_pose_out, "expression": student.face_regressor.expr_out}
+    with torch.no_grad():
+        for name, head in heads.items():
+            last = head[-1]
+            if last.bias.shape != biases[name].shape:
+                raise DistillError(f"--init-mean: head {name} has {tuple(last.bias.shape)} outputs, the mean "
+                                   f"{tuple(biases[name].shape)}")
+            last.weight.mul_(INIT_OUTPUT_WEIGHT_SCALE)
+            last.bias.copy_(biases[name])
+    return {name: bias.numpy() for name, bias in biases.items()}
 
 
 def _distributed() -> Tuple[int, int]:
@@ -352,7 +450,8 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    train_crops = np.stack([make_crop(s, input_hw) for s in train])
+    train_cropped = [crop_and_box(s, input_hw) for s in train]
+    train_crops = np.stack([crop for crop, _ in train_cropped])
     val_crops = np.stack([make_crop(s, input_hw) for s in val]) if val else np.zeros((0, 3) + input_hw, np.float32)
     train_hashes = [crop_sha256(c) for c in train_crops]
     val_hashes = [crop_sha256(c) for c in val_crops]
@@ -376,6 +475,19 @@ def distill(config: DistillConfig) -> Dict[str, object]:
                                                   for k in PARAM_SIZES}).numpy()
     del teacher
 
+    if config.init_mean:
+        init_from_mean(student, train)
+    train_projection = None
+    if config.projection_weight > 0:
+        if any(s.params is None or s.camera_k is None for s in train):
+            raise DistillError(f"--projection-weight: manifest '{config.train}' has samples without params or camera")
+        with torch.no_grad():
+            camera_vertices = mesh_from_axis_angle(
+                layer, {k: torch.from_numpy(np.stack([s.params[k] for s in train])).float() for k in PARAM_SIZES}) \
+                + torch.from_numpy(np.stack([s.translation for s in train])).float()[:, None, :]
+            intrinsics = torch.from_numpy(np.stack([s.camera_k for s in train])).float()
+            boxes = torch.from_numpy(np.stack([box for _, box in train_cropped])).float()
+            train_projection = box_projection(camera_vertices, intrinsics, boxes)
     model = _Batched(student)
     optimizer = torch.optim.AdamW(student.parameters(), lr=config.lr)
     history: Dict[str, list] = {"loss": [], "val": []}
@@ -431,7 +543,11 @@ def distill(config: DistillConfig) -> Dict[str, object]:
         model.train()
         freeze_batchnorm(student)
         outputs = model(torch.from_numpy(train_crops[mine.numpy()]))
-        loss = vertex_loss(mesh_from_outputs(layer, outputs), train_targets[mine]).mean()
+        meshes = mesh_from_outputs(layer, outputs)
+        loss = vertex_loss(meshes, train_targets[mine]).mean()
+        if train_projection is not None:
+            projected = student_box_projection(meshes, outputs["cam_param"])
+            loss = loss + config.projection_weight * (projected - train_projection[mine]).norm(dim=-1).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -500,6 +616,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--save-every", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch threads per process")
     parser.add_argument("--no-export", action="store_true")
+    parser.add_argument("--projection-weight", type=float, default=0.0,
+                        help="weight of the projected-mesh loss that trains the camera head (needs camera in the "
+                        "manifest; default 0)")
+    parser.add_argument("--init-mean", action="store_true",
+                        help="start the output heads at the training manifest's mean parameters (from scratch)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = DistillConfig(train=args.train, val=args.val, teacher=args.teacher, teacher_variant=args.teacher_variant,
@@ -507,7 +628,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            body_model=args.body_model, out=args.out, input=args.input, epochs=args.epochs,
                            batch_size=args.batch_size, lr=args.lr, seed=args.seed, cache=args.cache,
                            max_steps=args.max_steps, save_every=args.save_every, export=not args.no_export,
-                           targets=args.targets)
+                           targets=args.targets, init_mean=args.init_mean, projection_weight=args.projection_weight)
     try:
         result = distill(config)
     except DistillError as error:

@@ -45,8 +45,11 @@ def make_dataset(folder: Path, counts: Dict[str, int], body_path: str, seed: int
             p = truth.body_params_camera
             params = {"root": p.root_pose, "body": p.body_pose, "lhand": p.left_hand_pose, "rhand": p.right_hand_pose,
                       "jaw": p.jaw_pose, "betas": p.betas, "expression": p.expression}
+            fx, fy, cx, cy = (float(frame.K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
             lines.append(json.dumps({"image": name, "box": [float(v) for v in truth.person_box_xyxy],
                                      "params": {k: np.asarray(v, dtype=float).tolist() for k, v in params.items()},
+                                     "camera": {"K": [fx, fy, cx, cy],
+                                                "translation": [float(v) for v in truth.translation_camera]},
                                      "occluder_share": float(truth.occluder_share)}))
         manifests[split] = str(folder / f"{split}.jsonl")
         Path(manifests[split]).write_text("\n".join(lines) + "\n")

@@ -147,3 +147,71 @@ def test_ground_truth_targets(setup, tmp_path: Path) -> None:
     assert result["step"] == 1 and result["teacher_computed"] == 0
     assert np.isfinite(result["history"]["loss"][0][1]) and "val_teacher" not in result["history"]["val"][0]
     assert result["history"]["val"][0]["val_gt"] > 0
+
+
+def test_init_mean_starts_the_student_at_the_mean_body(setup) -> None:
+    """After --init-mean every crop gives (about) the mesh of the manifest's mean parameters."""
+    from leapnbv_model_tools.distill import init_from_mean, make_crop, read_manifest
+    from leapnbv_model_tools.torch_smplx import TorchSMPLX, mesh_from_axis_angle, mesh_from_outputs
+
+    from leapnbv_perception.smplx_layer import SMPLXModel
+
+    root, _, body = setup
+    samples = read_manifest(str(root / "val.jsonl"))
+    with pytest.raises(DistillError, match="ground-truth params"):
+        init_from_mean(random_smplerx("t32", seed=3), read_manifest(str(root / "train.jsonl")))
+    student = random_smplerx("t32", seed=3)
+    layer = TorchSMPLX(SMPLXModel.load(body))
+    crops = torch.from_numpy(np.stack([make_crop(s, (256, 192)) for s in samples]))
+    mean_params = {k: torch.from_numpy(np.mean([s.params[k] for s in samples], axis=0)[None]).float()
+                   for k in ("root", "body", "lhand", "rhand", "jaw", "betas", "expression")}
+    with torch.no_grad():
+        mean_mesh = mesh_from_axis_angle(layer, mean_params)[0].numpy()
+        before = [mesh_from_outputs(layer, student(crops[i:i + 1]))[0].numpy() for i in range(len(samples))]
+        init_from_mean(student, samples)
+        after = [mesh_from_outputs(layer, student(crops[i:i + 1]))[0].numpy() for i in range(len(samples))]
+    # Hands: one head serves both, so each starts at the average of the two means (small hand poses here).
+    for mesh in after:
+        assert np.abs(mesh - mean_mesh).max() < 0.02
+    assert min(np.abs(mesh - mean_mesh).max() for mesh in before) > 0.05
+
+
+def test_student_projection_is_the_hmr_tails_placement() -> None:
+    """The projection the camera head is trained with equals the graph's: vertices + camera_translation
+    through virtual_intrinsics(processed box), in units of the box."""
+    from leapnbv_model_tools.distill import box_projection, student_box_projection
+
+    from leapnbv_perception.hmr_tail import camera_translation, virtual_intrinsics
+
+    rng = np.random.default_rng(4)
+    vertices = rng.normal(scale=0.4, size=(2, 50, 3))
+    cam = np.array([[0.05, -0.1, 0.3], [-0.02, 0.08, -0.5]])
+    boxes = np.array([[100.0, 40.0, 150.0, 200.0], [300.0, 10.0, 90.0, 120.0]])
+    got = student_box_projection(torch.from_numpy(vertices).float(), torch.from_numpy(cam).float()).numpy()
+    for b in range(2):
+        placed = vertices[b] + camera_translation(cam[b])
+        fx, fy, cx, cy = virtual_intrinsics(boxes[b])
+        u, v = fx * placed[:, 0] / placed[:, 2] + cx, fy * placed[:, 1] / placed[:, 2] + cy
+        expected = np.stack([(u - boxes[b, 0]) / boxes[b, 2], (v - boxes[b, 1]) / boxes[b, 3]], axis=1)
+        np.testing.assert_allclose(got[b], expected, atol=1e-5)
+        # The same points through box_projection with the virtual camera's K give the same units.
+        again = box_projection(torch.from_numpy(placed[None]).float(), torch.tensor([[fx, fy, cx, cy]]).float(),
+                               torch.from_numpy(boxes[b:b + 1]).float()).numpy()[0]
+        np.testing.assert_allclose(again, expected, atol=1e-5)
+
+
+def test_projection_weight_needs_the_camera_and_trains_the_camera_head(setup, tmp_path: Path) -> None:
+    root = setup[0]
+    with pytest.raises(DistillError, match="without params or camera"):
+        distill(_config(setup, str(tmp_path / "a"), train=str(root / "val.jsonl"), targets="gt", teacher="",
+                        projection_weight=1.0))
+    lines = [json.loads(line) for line in (root / "val.jsonl").read_text().splitlines()]
+    for line in lines:
+        line["camera"] = {"K": [500.0, 500.0, 40.0, 48.0], "translation": [0.0, 0.2, 3.0]}
+    (root / "val_camera.jsonl").write_text("\n".join(json.dumps(line) for line in lines) + "\n")
+    plain = distill(_config(setup, str(tmp_path / "b"), train=str(root / "val_camera.jsonl"), targets="gt",
+                            teacher="", epochs=1))
+    with_projection = distill(_config(setup, str(tmp_path / "c"), train=str(root / "val_camera.jsonl"), targets="gt",
+                                      teacher="", epochs=1, projection_weight=1.0))
+    # Same weights and batch: the step's loss is the vertex loss plus the projection term (> 0).
+    assert with_projection["history"]["loss"][0][1] > plain["history"]["loss"][0][1] + 1e-3
