@@ -307,7 +307,7 @@ def _crafted_run() -> EvaluationRun:
         return SceneResult(
             seed=seed, scene_index=seed - 11, stamp_ns=seed, start_occlusion=occlusion,
             start_pose=PoseRecord([0.0, 0.0, 1.2], 0.0, 5.0), graph_failure=None, graph_area_before_px=9000,
-            before=leap.before, pa_mpvpe_before_mm=None, graph_vs_truth=GraphVsTruth([0.0] * 3, [0.0] * 3, [0.0] * 3,
+            before=leap.before, pa_mpvpe_before_mm=float(seed) * 5.0, graph_vs_truth=GraphVsTruth([0.0] * 3, [0.0] * 3, [0.0] * 3,
                                                                                      1.2),
             candidates=None, candidate_views=None, per_method={"leap_nbv": leap, "stay": stay}, latency_ms=latency)
 
@@ -339,10 +339,12 @@ def test_task_table_aggregates_match_hand_computed(tmp_path):
     assert leap["area_before_kpx"] == pytest.approx(12.0)
     assert leap["area_after_kpx"] == pytest.approx(20.0)
     assert leap["pa_mpvpe_mm"] == pytest.approx(45.0) and leap["pa_mpvpe_scenes"] == 2
+    # Before: the start views' meshes of the same two scenes (seeds 11 and 12: 55 and 60 mm).
+    assert leap["pa_mpvpe_before_mm"] == pytest.approx(57.5)
     assert leap["successes"] == 3 and leap["success_rate_pct"] == pytest.approx(100.0)
     stay = payload["per_method"]["stay"]
     assert stay["successes"] == 0 and stay["success_rate_pct"] == 0.0
-    assert stay["pa_mpvpe_mm"] is None  # NaN becomes null: plain JSON
+    assert stay["pa_mpvpe_mm"] is None and stay["pa_mpvpe_before_mm"] is None  # NaN becomes null: plain JSON
     assert stay["coverage_after_pct"] == pytest.approx((50 + 51 + 86) / 3.0)
     assert [scene["per_method"]["leap_nbv"]["success"] for scene in payload["scenes"]] == [True, True, True]
     # Latency: numpy linear percentiles over every scene's samples.
@@ -351,7 +353,7 @@ def test_task_table_aggregates_match_hand_computed(tmp_path):
     assert payload["latency_ms"]["end_to_end"]["p95"] == pytest.approx(155.0)
 
     text = open(path, encoding="utf-8").read()
-    assert "| leap_nbv | 3 | 61.7 -> 69.7 | 12.0 -> 20.0 | 45.0 | 100.0 |" in text
+    assert "| leap_nbv | 3 | 61.7 -> 69.7 | 12.0 -> 20.0 | 57.5 -> 45.0 | 100.0 |" in text
     assert "| stay | 3 | 61.7 -> 62.3 | 12.0 -> 12.0 | n/a | 0.0 |" in text
     assert "| detector | 25.0 | 38.5 | 39.7 | 25.0 | 4 |" in text
     assert "| 12 | 55 | 50.0 -> 59.0 ok | 50.0 -> 51.0 |" in text
