@@ -46,16 +46,20 @@ import numpy as np
 PAPER_ENGINE_MS = 12.0  # the student, FP16, TensorRT 8.5 on the Xavier NX (the paper's figure)
 
 
-def timed(function: Callable[[], object], runs: int, warmup: int) -> Tuple[float, float]:
-    """Median and p95 wall time in ms."""
+def timed(function: Callable[[], object], runs: int, warmup: int) -> Tuple[float, float, float]:
+    """Median and p95 wall time and median process CPU time (all threads), in ms.
+
+    On a busy machine the wall time grows with the others' load; the CPU time much less."""
     for _ in range(warmup):
         function()
     samples: List[float] = []
+    cpu: List[float] = []
     for _ in range(runs):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         function()
         samples.append((time.perf_counter() - start) * 1e3)
-    return float(np.median(samples)), float(np.percentile(samples, 95))
+        cpu.append((time.process_time() - start_cpu) * 1e3)
+    return float(np.median(samples)), float(np.percentile(samples, 95)), float(np.median(cpu))
 
 
 def main(argv=None) -> int:
@@ -89,7 +93,8 @@ def main(argv=None) -> int:
     frame = rng.integers(0, 255, size=(480, 640, 3), dtype=np.uint8)
     box = [220.0, 60.0, 420.0, 460.0, 0.9]
     print(f"HMR engines on this CPU (onnxruntime, {os.cpu_count()} cores, load average "
-          f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}); median / p95 ms over {args.runs} runs")
+          f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}); median / p95 ms over {args.runs} runs, "
+          "CPU: median process CPU time (all threads) ms")
     print(f"body model for the tail: {body_path} ({body.num_vertices} vertices)")
     reference: Dict[Tuple[str, int], float] = {}
     for index, path in enumerate(args.models):
@@ -106,20 +111,23 @@ def main(argv=None) -> int:
                 return 2
             load_s = time.perf_counter() - started
             feed = {name: np.zeros(spec.shape, dtype=spec.dtype) for name, spec in backend.input_specs.items()}
-            median, p95 = timed(functools.partial(backend.run, feed), args.runs, args.warmup)
+            median, p95, cpu = timed(functools.partial(backend.run, feed), args.runs, args.warmup)
             key = ("engine", threads)
             if index == 0:
                 reference[key] = median
             print(f"  engine, {threads} thread(s)         {median:8.1f} / {p95:8.1f}   "
-                  f"x{median / reference[key]:5.2f} of the first model   (session load {load_s:.1f} s)")
+                  f"x{median / reference[key]:5.2f} of the first model   CPU {cpu:6.1f}   "
+                  f"(session load {load_s:.1f} s)")
             if threads == max(args.threads):
                 estimator = HumanMeshEstimator(backend, body)
-                median, p95 = timed(functools.partial(estimator.estimate, frame, box), args.runs, args.warmup)
+                median, p95, cpu = timed(functools.partial(estimator.estimate, frame, box), args.runs, args.warmup)
                 key = ("estimate", threads)
                 if index == 0:
                     reference[key] = median
                 print(f"  whole estimate, {threads} thread(s) {median:8.1f} / {p95:8.1f}   "
-                      f"x{median / reference[key]:5.2f} of the first model   (crop + engine + SMPL-X tail)")
+                      f"x{median / reference[key]:5.2f} of the first model   CPU {cpu:6.1f}   "
+                      "(crop + engine + SMPL-X tail)")
+    print(f"load average now {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"\npaper: the 32 M student, FP16, TensorRT 8.5, Jetson Xavier NX: engine {PAPER_ENGINE_MS:.0f} ms")
     if args.hand_cost:
         return print_hand_cost(args, body)
