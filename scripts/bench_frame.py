@@ -40,6 +40,13 @@ from typing import Dict, List, Tuple
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
+# The next frame is admitted once the previous one is planned: the mesh it carries a box from is
+# one whole frame old, so the age limit must exceed the frame time. The random HMR network's mesh
+# is no person (much of it outside the image): this timing run carries its box whatever the
+# confidence (carry_min_confidence 0), to show the time a detection-free frame takes.
+DETECT_EVERY_3RD = ["detector_node.detect_every_n_frames=3", "detector_node.carry_max_age_s=3.0",
+                    "detector_node.carry_min_confidence=0.0"]
+
 # name -> parameter overrides (node.param=value) on top of the engines' own settings
 CONFIGURATIONS: Dict[str, List[str]] = {
     "1 thread each": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1"],
@@ -53,16 +60,10 @@ CONFIGURATIONS: Dict[str, List[str]] = {
                                                        "hmr_node.parallel_execution=true",
                                                        "detector_node.inter_op_threads=2",
                                                        "hmr_node.inter_op_threads=2"],
-    # The next frame is admitted once the previous one is planned: the mesh it carries a box from is
-    # one whole frame old, so the age limit must exceed the frame time. The random HMR network's mesh
-    # is no person (much of it outside the image): this timing run carries its box whatever the
-    # confidence (carry_min_confidence 0), to show the time a detection-free frame takes.
+    # One frame in three detected, the box carried by the mesh in between (DETECT_EVERY_3RD).
     "1 thread each, detect every 3rd frame": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1",
-                                              "detector_node.detect_every_n_frames=3",
-                                              "detector_node.carry_max_age_s=3.0",
-                                              "detector_node.carry_min_confidence=0.0"],
+                                              *DETECT_EVERY_3RD],
 }
-DETECT_EVERY_3RD = CONFIGURATIONS["1 thread each, detect every 3rd frame"][2:]
 
 # The same graph with the body-only HMR engine (--hmr-body-only): the hand branch, about half of the s32
 # engine's CPU time, is not run; the planner uses the body mesh, whose hands then have the mean pose.
@@ -71,7 +72,7 @@ BODY_ONLY_CONFIGURATIONS: Dict[str, List[str]] = {
     "body-only HMR, 2 threads each": ["detector_node.intra_op_threads=2", "hmr_node.intra_op_threads=2"],
     # The detector runs on one frame in 3 only, so the HMR engine, which runs on every frame, gets both cores.
     "body-only HMR 2 threads, detector 1 thread, detect every 3rd frame": [
-        "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2"] + DETECT_EVERY_3RD,
+        "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_3RD],
 }
 
 
