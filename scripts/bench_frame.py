@@ -9,6 +9,14 @@ The networks are the real architectures with random weights, built in the tools 
     tools/run.sh python -m leapnbv_model_tools export-hmr --checkpoint s32.pth.tar --variant s32 --out s32.onnx
     scripts/env.sh python scripts/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx [--duration 60]
 
+The body-only configurations (names starting "body-only HMR") run a body-only export of the same
+checkpoint (``export-hmr ... --without-hands --out s32_body_only.onnx``: no hand branch, the hands
+at the SMPL-X hand mean pose), given with ``--hmr-body-only s32_body_only.onnx``; without it they
+are skipped. ``--only NAME ...`` runs some configurations, e.g.
+
+    scripts/env.sh python scripts/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx \
+        --hmr-body-only s32_body_only.onnx --only "body-only HMR, 1 thread each"
+
 A random-weight detector finds nobody, so the detector runs as a timing stand-in
 (``detector_node.timing_stand_in``): the network runs on every admitted frame and its boxes are
 discarded; the simulator's boxes go on. The HMR network's (random) mesh goes through the rest of
@@ -17,7 +25,8 @@ the graph. The camera is scripts/bench_load.py's (640x480 RGB-D, moving between 
 end-to-end latency (goal received - frame stamp) p50 / p95, each engine's compute p50, the CPU
 time per goal of each node, and the machine's load before and after.
 
-Exit codes: 0 done; 2 a model file is missing; 3 a configuration's run failed (its bench_load exit code).
+Exit codes: 0 done; 2 a model file is missing, --hmr-body-only is not a body-only export, or an
+--only name is unknown; 3 a configuration's run failed (its bench_load exit code).
 """
 
 from __future__ import annotations
@@ -30,6 +39,13 @@ import sys
 from typing import Dict, List, Tuple
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+
+# The next frame is admitted once the previous one is planned: the mesh it carries a box from is
+# one whole frame old, so the age limit must exceed the frame time. The random HMR network's mesh
+# is no person (much of it outside the image): this timing run carries its box whatever the
+# confidence (carry_min_confidence 0), to show the time a detection-free frame takes.
+DETECT_EVERY_3RD = ["detector_node.detect_every_n_frames=3", "detector_node.carry_max_age_s=3.0",
+                    "detector_node.carry_min_confidence=0.0"]
 
 # name -> parameter overrides (node.param=value) on top of the engines' own settings
 CONFIGURATIONS: Dict[str, List[str]] = {
@@ -44,20 +60,25 @@ CONFIGURATIONS: Dict[str, List[str]] = {
                                                        "hmr_node.parallel_execution=true",
                                                        "detector_node.inter_op_threads=2",
                                                        "hmr_node.inter_op_threads=2"],
-    # The next frame is admitted once the previous one is planned: the mesh it carries a box from is
-    # one whole frame old, so the age limit must exceed the frame time. The random HMR network's mesh
-    # is no person (much of it outside the image): this timing run carries its box whatever the
-    # confidence (carry_min_confidence 0), to show the time a detection-free frame takes.
+    # One frame in three detected, the box carried by the mesh in between (DETECT_EVERY_3RD).
     "1 thread each, detect every 3rd frame": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1",
-                                              "detector_node.detect_every_n_frames=3",
-                                              "detector_node.carry_max_age_s=3.0",
-                                              "detector_node.carry_min_confidence=0.0"],
+                                              *DETECT_EVERY_3RD],
+}
+
+# The same graph with the body-only HMR engine (--hmr-body-only): the hand branch, about half of the s32
+# engine's CPU time, is not run; the planner uses the body mesh, whose hands then have the mean pose.
+BODY_ONLY_CONFIGURATIONS: Dict[str, List[str]] = {
+    "body-only HMR, 1 thread each": ["detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=1"],
+    "body-only HMR, 2 threads each": ["detector_node.intra_op_threads=2", "hmr_node.intra_op_threads=2"],
+    # The detector runs on one frame in 3 only, so the HMR engine, which runs on every frame, gets both cores.
+    "body-only HMR 2 threads, detector 1 thread, detect every 3rd frame": [
+        "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_3RD],
 }
 
 
-def run_configuration(name: str, settings: List[str], args, out: str) -> Tuple[int, Dict]:
+def run_configuration(name: str, settings: List[str], args, out: str, hmr: str) -> Tuple[int, Dict]:
     base = ["detector_node.timing_stand_in=true", f"detector_node.model_file_path={os.path.abspath(args.detector)}",
-            "hmr_node.backend=onnxruntime", f"hmr_node.model_file_path={os.path.abspath(args.hmr)}",
+            "hmr_node.backend=onnxruntime", f"hmr_node.model_file_path={os.path.abspath(hmr)}",
             f"hmr_node.body_model_path={os.path.abspath(args.body_model)}",
             # a whole frame takes longer than the ground-truth graph's 1 s goal age limit on this CPU
             f"nbv_node.max_goal_age_s={args.max_goal_age_s}"]
@@ -65,7 +86,7 @@ def run_configuration(name: str, settings: List[str], args, out: str) -> Tuple[i
            str(args.fps), "--out", out, "--window-s", str(args.duration / 2)]
     for item in base + settings:
         cmd += ["--set", item]
-    print(f"[bench_frame] {name}: {' '.join(settings)}", flush=True)
+    print(f"[bench_frame] {name} ({os.path.basename(hmr)}): {' '.join(settings)}", flush=True)
     result = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     with open(os.path.join(out, "bench_load.log"), "w") as log:
         log.write(result.stdout)
@@ -80,6 +101,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--detector", required=True, help="YOLOv8-architecture ONNX (random-yolov8)")
     parser.add_argument("--hmr", required=True, help="exported SMPLer-X ONNX (export-hmr)")
+    parser.add_argument("--hmr-body-only", default=None,
+                        help="body-only export of the same checkpoint (export-hmr --without-hands), for the "
+                             "'body-only HMR' configurations (skipped without it)")
     parser.add_argument("--body-model", default=None, help="SMPL-X .npz (default: the dense stand-in)")
     parser.add_argument("--duration", type=float, default=60.0)
     parser.add_argument("--fps", type=float, default=30.0)
@@ -91,15 +115,32 @@ def main(argv=None) -> int:
         from leapnbv_stand_ins.files import ensure_stand_in_smplx_dense
 
         args.body_model = ensure_stand_in_smplx_dense()
-    for path in (args.detector, args.hmr, args.body_model):
+    for path in (args.detector, args.hmr, args.body_model) + ((args.hmr_body_only,) if args.hmr_body_only else ()):
         if not os.path.isfile(path):
             print(f"bench_frame: model file not found: {path}", file=sys.stderr)
             return 2
+    if args.hmr_body_only:
+        from leapnbv_perception.hmr import hands_estimated, read_export_metadata
+
+        if hands_estimated(read_export_metadata(args.hmr_body_only)):
+            print(f"bench_frame: --hmr-body-only {args.hmr_body_only} is not a body-only export (its metadata has "
+                  "no leapnbv.hands=not_estimated; export it with export-hmr --without-hands)", file=sys.stderr)
+            return 2
+    known = list(CONFIGURATIONS) + list(BODY_ONLY_CONFIGURATIONS)
+    unknown = [name for name in args.only or () if name not in known]
+    if unknown:
+        print(f"bench_frame: unknown configuration(s) {unknown}; known: {known}", file=sys.stderr)
+        return 2
     rows = []
-    for index, (name, settings) in enumerate(CONFIGURATIONS.items()):
+    everything = [(name, settings, args.hmr) for name, settings in CONFIGURATIONS.items()]
+    everything += [(name, settings, args.hmr_body_only) for name, settings in BODY_ONLY_CONFIGURATIONS.items()]
+    for index, (name, settings, hmr) in enumerate(everything):
         if args.only and name not in args.only:
             continue
-        code, r = run_configuration(name, settings, args, os.path.join(args.out, f"config_{index}"))
+        if hmr is None:
+            print(f"[bench_frame] {name}: skipped (no --hmr-body-only)", flush=True)
+            continue
+        code, r = run_configuration(name, settings, args, os.path.join(args.out, f"config_{index}"), hmr)
         if code:
             print(f"bench_frame: '{name}' failed (bench_load exit {code}); log in {args.out}/config_{index}",
                   file=sys.stderr)

@@ -125,6 +125,8 @@ def test_every_frame_gets_detections_and_mesh_with_its_header(graph):
                     f"meshes {len(by_stamp(graph['meshes'], key))}; hmr_node: " \
                     f"{probe.statuses[NS + '/hmr_node'][-1]}\n{read_log(graph['procs'][NS + '/hmr_node'])[-2000:]}"
         frames.append((key, blob_box))
+    # The engine says whether it estimates the hands (a contract model has no export metadata: it does).
+    assert diag_value(probe.statuses[NS + "/hmr_node"][-1], "info.hands", "") == "estimated"
 
     for key, blob_box in frames:
         det = by_stamp(graph["detections"], key)[0]

@@ -22,18 +22,26 @@ DEFAULT_OPSET = 16  # RoiAlign/GridSample-free graph; 17 only adds LayerNormaliz
 PARITY_TOLERANCE = 1e-4
 
 
+# "leapnbv.hands": whether the engine estimates the hand poses. "not_estimated" (export-hmr --without-hands):
+# the hand branch is left out and lhand_pose / rhand_pose are the identity rotation (6D) for every hand joint,
+# which the tail decodes to axis-angle 0: the SMPL-X hand mean pose (leapnbv_perception.hmr reads it).
+HANDS_KEY = "leapnbv.hands"
+HANDS_ESTIMATED, HANDS_NOT_ESTIMATED = "estimated", "not_estimated"
+
+
 class _Exported(torch.nn.Module):
-    def __init__(self, model: SMPLerX) -> None:
+    def __init__(self, model: SMPLerX, hands: bool = True) -> None:
         super().__init__()
         self.model = model
+        self.hands = hands
 
     def forward(self, img: torch.Tensor):
-        outputs = self.model(img)
+        outputs = self.model(img, hands=self.hands)
         return tuple(outputs[name] for name in OUTPUT_NAMES)
 
 
 def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, int], box_ratio: float = 1.25,
-                    unmirror_left_hand: bool = True) -> Dict[str, str]:
+                    unmirror_left_hand: bool = True, hands: bool = True) -> Dict[str, str]:
     """The metadata the export writes (leapnbv_perception.hmr.EXPORT_METADATA_KEYS reads it)."""
     return {
         "leapnbv.producer": "leapnbv_model_tools export-hmr",
@@ -42,6 +50,7 @@ def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, i
         "leapnbv.input_size": f"{input_hw[0]}x{input_hw[1]}",
         "leapnbv.unmirror_left_hand": "true" if unmirror_left_hand else "false",
         "leapnbv.box_ratio": repr(float(box_ratio)),
+        HANDS_KEY: HANDS_ESTIMATED if hands else HANDS_NOT_ESTIMATED,
     }
 
 
@@ -55,9 +64,10 @@ def weight_bytes(model: torch.nn.Module) -> int:
 
 
 def export_onnx(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
-                opset: int = DEFAULT_OPSET) -> str:
+                opset: int = DEFAULT_OPSET, hands: bool = True) -> str:
     """Write the ONNX graph to ``path`` (and ``path.data`` when the weights exceed
-    EXTERNAL_DATA_ABOVE_BYTES), checked by onnx.checker.
+    EXTERNAL_DATA_ABOVE_BYTES), checked by onnx.checker. ``hands=False``: the body-only graph
+    (SMPLerX.forward(hands=False); the hand branch's weights are not in it).
 
     Everything is written and checked in a folder beside ``path`` first and then moved into place,
     so a failed or interrupted export never replaces a good file.
@@ -74,7 +84,7 @@ def export_onnx(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: 
             # The wrapper in eval mode too: the exporter restores the wrapper's mode on every submodule
             # afterwards (a fresh wrapper is in training mode, which would leave BatchNorm on batch statistics).
             # A graph over 2 GiB is written by the exporter with its tensors in files beside `raw`.
-            torch.onnx.export(_Exported(model).eval(), (example,), raw, input_names=["img"],
+            torch.onnx.export(_Exported(model, hands).eval(), (example,), raw, input_names=["img"],
                               output_names=list(OUTPUT_NAMES), opset_version=opset, dynamo=False)
         model.eval()
         proto = onnx.load(raw)  # with any external tensors the exporter wrote
@@ -108,7 +118,7 @@ def operator_types(path: str) -> Sequence[str]:
     return sorted({node.op_type for node in onnx.load(path, load_external_data=False).graph.node})
 
 
-def parity(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1) -> float:
+def parity(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1, hands: bool = True) -> float:
     """Largest |onnxruntime - PyTorch| over all outputs and crops (N, 3, H, W) float32."""
     import onnxruntime
 
@@ -119,7 +129,7 @@ def parity(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1) -> fl
     for crop in crops:
         batch = crop[None].astype(np.float32)
         with torch.no_grad():
-            expected = model(torch.from_numpy(batch))
+            expected = model(torch.from_numpy(batch), hands=hands)
         got = dict(zip(OUTPUT_NAMES, session.run(list(OUTPUT_NAMES), {"img": batch})))
         for name in OUTPUT_NAMES:
             worst = max(worst, float(np.abs(got[name] - expected[name].numpy()).max()))
@@ -135,6 +145,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET)
     parser.add_argument("--box-ratio", type=float, default=1.25)
     parser.add_argument("--parity-crops", type=int, default=2, help="random crops compared with onnxruntime")
+    parser.add_argument("--without-hands", action="store_true",
+                        help="body-only engine: the hand branch is not computed, lhand_pose / rhand_pose are the "
+                             "identity rotation (the SMPL-X hand mean pose); metadata leapnbv.hands=not_estimated")
     args = parser.parse_args(argv)
     input_hw = tuple(int(v) for v in args.input.split("x"))
     try:
@@ -142,14 +155,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except CheckpointError as error:
         print(f"export-hmr: {error}", file=sys.stderr)
         return 2
-    metadata = export_metadata(args.variant, sha256_of(args.checkpoint), input_hw, args.box_ratio)
-    export_onnx(model, args.out, input_hw, metadata, args.opset)
+    hands = not args.without_hands
+    metadata = export_metadata(args.variant, sha256_of(args.checkpoint), input_hw, args.box_ratio, hands=hands)
+    export_onnx(model, args.out, input_hw, metadata, args.opset, hands=hands)
     from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
     from leapnbv_perception.model_contracts import SMPLERX_CONTRACT, check_backend_contract
 
     check_backend_contract(OnnxRuntimeBackend(args.out), SMPLERX_CONTRACT)
     crops = np.random.default_rng(0).uniform(0.0, 1.0, size=(args.parity_crops, 3) + input_hw).astype(np.float32)
-    difference = parity(model, args.out, crops)
-    print(f"{args.out}: opset {args.opset}, operators {', '.join(operator_types(args.out))}")
+    difference = parity(model, args.out, crops, hands=hands)
+    print(f"{args.out}: opset {args.opset}, hands {metadata[HANDS_KEY]}, "
+          f"operators {', '.join(operator_types(args.out))}")
     print(f"parity onnxruntime vs PyTorch: max |diff| = {difference:.3g} (tolerance {PARITY_TOLERANCE})")
     return 0 if difference <= PARITY_TOLERANCE else 1

@@ -370,6 +370,11 @@ class FaceRegressor(nn.Module):
         return self.expr_out(expression_token), self.jaw_pose_out(jaw_token)
 
 
+# The identity rotation in the 6D representation (columns a1 = x[0::2] = (1, 0, 0), a2 = x[1::2] = (0, 1, 0)),
+# for each of the 15 hand joints: the hand pose a body-only export writes.
+HAND_IDENTITY_6D = torch.tensor([1.0, 0.0, 0.0, 1.0, 0.0, 0.0] * HAND_ROT_JOINTS).reshape(1, -1)
+
+
 class SMPLerX(nn.Module):
     """SMPLer-X in test mode; input (1, 3, 512, 384) or (1, 3, 256, 192) RGB / 255."""
 
@@ -388,7 +393,11 @@ class SMPLerX(nn.Module):
         self.hand_regressor = HandRotationNet(dim)
         self.face_regressor = FaceRegressor(dim)
 
-    def forward(self, img: torch.Tensor) -> Dict[str, torch.Tensor]:
+    def forward(self, img: torch.Tensor, hands: bool = True) -> Dict[str, torch.Tensor]:
+        """The eight contract outputs. ``hands=False``: the hand branch (box net, hand RoI, hand
+        position and rotation nets) is not run and both hand poses are the identity rotation in 6D
+        (``HAND_IDENTITY_6D``: the tail decodes it to axis-angle 0, the SMPL-X hand mean pose); the
+        other six outputs do not depend on that branch and are the same."""
         if img.shape[2:] == INPUT_IMG_SHAPE:
             img = img[:, :, ::2, ::2]  # F.interpolate(nearest) to 256 x 192 takes every other pixel
         feature, tokens = self.encoder(img)
@@ -396,15 +405,22 @@ class SMPLerX(nn.Module):
         body_tokens = tokens[:, 6:]
         joint_heatmaps, body_joints = self.body_position_net(feature)
         root, body, betas, cam = self.body_regressor(body_tokens, shape_token, cam_token, body_joints)
+        if not hands:
+            expression, jaw = self.face_regressor(expression_token, jaw_token)
+            # Tied to the graph's input by a product with zero so that the outputs are computed tensors,
+            # not graph constants (an engine builder may refuse a constant as a network output).
+            identity = HAND_IDENTITY_6D.to(root.dtype).expand(root.shape[0], -1) + 0.0 * root[:, :1]
+            return {"root_pose": root, "body_pose": body, "lhand_pose": identity, "rhand_pose": identity,
+                    "jaw_pose": jaw, "betas": betas, "expression": expression, "cam_param": cam}
         l_center, l_size, r_center, r_size, _, _ = self.box_net(feature, joint_heatmaps)
         hand_aspect = INPUT_HAND_SHAPE[1] / INPUT_HAND_SHAPE[0]
         lhand_box = restore_box(l_center, l_size, hand_aspect, 2.0)
         rhand_box = restore_box(r_center, r_size, hand_aspect, 2.0)
         hand_feature = self.hand_roi_net(feature, lhand_box, rhand_box)
         _, hand_joints = self.hand_position_net(hand_feature)
-        hands = self.hand_regressor(hand_feature, hand_joints)
+        hand_poses = self.hand_regressor(hand_feature, hand_joints)
         expression, jaw = self.face_regressor(expression_token, jaw_token)
-        return {"root_pose": root, "body_pose": body, "lhand_pose": hands[0:1], "rhand_pose": hands[1:2],
+        return {"root_pose": root, "body_pose": body, "lhand_pose": hand_poses[0:1], "rhand_pose": hand_poses[1:2],
                 "jaw_pose": jaw, "betas": betas, "expression": expression, "cam_param": cam}
 
 

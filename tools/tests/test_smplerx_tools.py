@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -106,13 +107,48 @@ def test_random_checkpoint_round_trip_and_wrong_variant(tmp_path: Path) -> None:
         load_smplerx(str(tmp_path / "broken.pth.tar"), "s32")
 
 
-@pytest.mark.parametrize("variant", ["s32"])
-def test_export_parity_contract_and_metadata(variant: str, tmp_path: Path) -> None:
+def test_export_parity_contract_metadata_and_the_body_only_export(tmp_path: Path) -> None:
+    """s32 exported in full and body-only (--without-hands) from the same weights: the body-only engine's
+    root/body/betas/cam/jaw/expression are the full engine's, its hands the identity rotation."""
+    import onnxruntime
     from leapnbv_model_tools.__main__ import main
+    from leapnbv_model_tools.export import OUTPUT_NAMES
 
-    checkpoint = save_official(random_smplerx(variant, seed=5), str(tmp_path / f"smpler_x_{variant}.pth.tar"))
-    out = str(tmp_path / f"{variant}.onnx")
-    assert main(["export-hmr", "--checkpoint", checkpoint, "--variant", variant, "--out", out]) == 0
-    metadata = {p.key: p.value for p in onnx.load(out, load_external_data=False).metadata_props}
-    assert metadata["leapnbv.variant"] == f"smpler_x_{variant}" and metadata["leapnbv.input_size"] == "512x384"
-    assert main(["export-hmr", "--checkpoint", checkpoint, "--variant", "b32", "--out", out + ".b32"]) == 2
+    from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
+    from leapnbv_perception.hmr import HumanMeshEstimator
+    from leapnbv_perception.smplx_layer import SMPLXModel
+    from leapnbv_stand_ins.files import ensure_stand_in_body_model
+
+    checkpoint = save_official(random_smplerx("s32", seed=5), str(tmp_path / "smpler_x_s32.pth.tar"))
+    full, body_only = str(tmp_path / "s32.onnx"), str(tmp_path / "s32_body_only.onnx")
+    assert main(["export-hmr", "--checkpoint", checkpoint, "--variant", "s32", "--out", full]) == 0
+    metadata = {p.key: p.value for p in onnx.load(full, load_external_data=False).metadata_props}
+    assert metadata["leapnbv.variant"] == "smpler_x_s32" and metadata["leapnbv.input_size"] == "512x384"
+    assert metadata["leapnbv.hands"] == "estimated"
+    assert main(["export-hmr", "--checkpoint", checkpoint, "--variant", "b32", "--out", full + ".b32"]) == 2
+    assert main(["export-hmr", "--checkpoint", checkpoint, "--variant", "s32", "--out", body_only,
+                 "--without-hands", "--parity-crops", "1"]) == 0
+    body_model = onnx.load(body_only)
+    assert {p.key: p.value for p in body_model.metadata_props}["leapnbv.hands"] == "not_estimated"
+    assert "ConvTranspose" not in {node.op_type for node in body_model.graph.node}  # no box net, no hand RoI
+    assert os.path.getsize(body_only) < 0.8 * os.path.getsize(full)  # nor their weights
+
+    sessions = [onnxruntime.InferenceSession(path, providers=["CPUExecutionProvider"]) for path in (full, body_only)]
+    crops = np.random.default_rng(2).uniform(0.0, 1.0, size=(2, 1, 3, 512, 384)).astype(np.float32)
+    identity = np.tile(np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0], dtype=np.float32), 15)[None]
+    for crop in crops:
+        got_full, got_body = (dict(zip(OUTPUT_NAMES, s.run(list(OUTPUT_NAMES), {"img": crop}))) for s in sessions)
+        for name in ("root_pose", "body_pose", "jaw_pose", "betas", "expression", "cam_param"):
+            np.testing.assert_allclose(got_body[name], got_full[name], rtol=0, atol=1e-5, err_msg=name)
+        for name in ("lhand_pose", "rhand_pose"):
+            assert got_body[name].shape == got_full[name].shape == (1, 90)
+            np.testing.assert_array_equal(got_body[name], identity)
+            assert np.abs(got_full[name] - identity).max() > 1e-2  # the full engine's hands are its own
+    # Through the project's estimator: the hands decode to axis-angle 0 (the SMPL-X hand mean pose), and the
+    # estimator says that the engine does not estimate them.
+    estimator = HumanMeshEstimator(OnnxRuntimeBackend(body_only), SMPLXModel.load(ensure_stand_in_body_model()))
+    assert estimator.hands_estimated is False
+    estimate = estimator.estimate(np.full((480, 640, 3), 128, dtype=np.uint8), [200.0, 60.0, 420.0, 460.0])
+    np.testing.assert_array_equal(estimate.left_hand, np.zeros(45))
+    np.testing.assert_array_equal(estimate.right_hand, np.zeros(45))
+    assert HumanMeshEstimator(OnnxRuntimeBackend(full), estimator.body_model).hands_estimated is True

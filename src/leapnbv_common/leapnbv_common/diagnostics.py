@@ -52,6 +52,7 @@ class StageDiagnostics:
         self._engine_ok = True
         self._out_times: Deque[float] = collections.deque(maxlen=50)
         self._awaited_publishers: Dict[str, str] = {}  # input name -> resolved topic, until one is discovered
+        self.info: Dict[str, str] = {}  # what the node is configured as (``info.<key>``), e.g. the engine's kind
         self._timer = node.create_timer(period_s, self.publish)
 
     def frame_in(self) -> None:
@@ -123,6 +124,10 @@ class StageDiagnostics:
                 del self._awaited_publishers[name]
         return sorted(self._awaited_publishers)
 
+    def set_info(self, key: str, value: str) -> None:
+        """Report a fixed fact about the node (what its engine is) as ``info.<key>`` in every status."""
+        self.info[key] = str(value)
+
     def set_engine_state(self, state: str, ok: bool) -> None:
         self.engine_state = state
         self._engine_ok = ok
@@ -160,6 +165,7 @@ class StageDiagnostics:
         values.update({f"dropped.{k}": v for k, v in sorted(self.dropped.items())})
         values.update({f"counted.{k}": v for k, v in sorted(self.counted.items())})
         values.update({f"transport_ms.{k}": f"{v:.2f}" for k, v in sorted(self.transport_ms.items())})
+        values.update({f"info.{k}": v for k, v in sorted(self.info.items())})
         return DiagnosticStatus(
             level=level,
             name=self._name,

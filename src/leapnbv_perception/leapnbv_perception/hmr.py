@@ -31,6 +31,18 @@ class ExportMetadataError(ValueError):
 
 # Written by `leapnbv_model_tools export-hmr` (tools/): keys under this prefix in the ONNX metadata.
 EXPORT_METADATA_PREFIX = "leapnbv."
+# Whether the engine estimates the hand poses: "estimated", or "not_estimated" for a body-only export
+# (`export-hmr --without-hands`), whose lhand_pose / rhand_pose are the identity rotation for every hand
+# joint: axis-angle 0 after the tail, i.e. the SMPL-X hand mean pose. An engine without the key (a contract
+# model, an older export, an engine from elsewhere) is taken to estimate them.
+HANDS_KEY = EXPORT_METADATA_PREFIX + "hands"
+HANDS_ESTIMATED = "estimated"
+HANDS_NOT_ESTIMATED = "not_estimated"
+
+
+def hands_estimated(metadata: Mapping[str, str]) -> bool:
+    """False only for an engine whose export metadata says that it does not estimate the hands."""
+    return metadata.get(HANDS_KEY, HANDS_ESTIMATED) != HANDS_NOT_ESTIMATED
 
 
 def read_export_metadata(model_path: Optional[str]) -> Dict[str, str]:
@@ -55,7 +67,8 @@ def check_export_metadata(metadata: Mapping[str, str], input_hw: Tuple[int, int]
     No ``leapnbv.*`` metadata (a contract model, an export from elsewhere): nothing to check.
 
     Raises:
-        ExportMetadataError: naming each disagreement (input size, un-mirror flag, box ratio).
+        ExportMetadataError: naming each disagreement (input size, un-mirror flag, box ratio) and an
+            unknown ``leapnbv.hands`` value.
     """
     if not metadata:
         return
@@ -70,6 +83,9 @@ def check_export_metadata(metadata: Mapping[str, str], input_hw: Tuple[int, int]
     ratio = metadata.get(EXPORT_METADATA_PREFIX + "box_ratio")
     if ratio is not None and abs(float(ratio) - float(box_scale)) > 1e-6:
         problems.append("exported for box ratio %s but box_scale is %g" % (ratio, box_scale))
+    hands = metadata.get(HANDS_KEY)
+    if hands is not None and hands not in (HANDS_ESTIMATED, HANDS_NOT_ESTIMATED):
+        problems.append("metadata hands %r is neither %r nor %r" % (hands, HANDS_ESTIMATED, HANDS_NOT_ESTIMATED))
     if problems:
         raise ExportMetadataError(
             "%s (%s, checkpoint sha256 %s) does not match the parameters: %s"
@@ -124,6 +140,11 @@ class HumanMeshEstimator:
         box_scale: crop enlargement about the box centre (SMPLer-X 1.25).
         unmirror_left_hand: apply R_L = S R S to the left-hand rotations.
 
+    Attributes:
+        export_metadata: the model's ``leapnbv.*`` export metadata ({} when it has none).
+        hands_estimated: False for a body-only export (``leapnbv.hands`` = ``not_estimated``): its hand
+            poses are always axis-angle 0 (the SMPL-X hand mean pose), not an estimate.
+
     Raises:
         ModelContractError: when the backend does not declare the contract's names/shapes.
         ExportMetadataError: when the model is an export-hmr ONNX whose metadata (input size,
@@ -148,6 +169,8 @@ class HumanMeshEstimator:
         self.export_metadata = read_export_metadata(model_path if isinstance(model_path, str) else None)
         check_export_metadata(self.export_metadata, self.input_hw, self.box_scale, self.unmirror_left_hand,
                               str(model_path))
+        # A body-only engine (export-hmr --without-hands): every estimate's hands are the SMPL-X hand mean pose.
+        self.hands_estimated = hands_estimated(self.export_metadata)
 
     def _read_outputs(self, outputs: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
         """Flatten each named output to its per-item length and reject non-finite values."""

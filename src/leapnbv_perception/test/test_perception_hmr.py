@@ -138,3 +138,21 @@ def test_export_metadata_round_trip_and_mismatch(paths: Dict[str, str], body: SM
     wrong_size = with_metadata(paths["hmr256"], str(tmp_path / "wrong_size.onnx"), EXPORT_METADATA)
     with pytest.raises(ExportMetadataError, match="input_size 512x384 but the graph's input is 256x192"):
         HumanMeshEstimator(create_backend("onnxruntime", wrong_size), body)
+
+
+def test_export_metadata_says_whether_the_engine_estimates_the_hands(paths: Dict[str, str], body: SMPLXModel,
+                                                                     tmp_path) -> None:
+    from leapnbv_perception.hmr import ExportMetadataError
+
+    # An export without the key (older exports, contract models) and a full export estimate the hands.
+    assert HumanMeshEstimator(create_backend("onnxruntime", paths["hmr"]), body).hands_estimated is True
+    full = with_metadata(paths["hmr"], str(tmp_path / "full.onnx"),
+                         dict(EXPORT_METADATA, **{"leapnbv.hands": "estimated"}))
+    assert HumanMeshEstimator(create_backend("onnxruntime", full), body).hands_estimated is True
+    body_only = with_metadata(paths["hmr"], str(tmp_path / "body_only.onnx"),
+                              dict(EXPORT_METADATA, **{"leapnbv.hands": "not_estimated"}))
+    assert HumanMeshEstimator(create_backend("onnxruntime", body_only), body).hands_estimated is False
+    unknown = with_metadata(paths["hmr"], str(tmp_path / "unknown.onnx"),
+                            dict(EXPORT_METADATA, **{"leapnbv.hands": "left"}))
+    with pytest.raises(ExportMetadataError, match="metadata hands 'left' is neither 'estimated' nor 'not_estimated'"):
+        HumanMeshEstimator(create_backend("onnxruntime", unknown), body)

@@ -7,7 +7,9 @@ One frame, one set of inputs: the detections are paired with the image (or the g
 exactly their stamp, and the mesh lists what it used (``inputs``). Latest-frame scheduling: the
 detections subscription keeps the newest message only, a frame older than one already published
 is dropped, and cached images / ground truth older than a published frame are dropped; every drop
-is counted on /diagnostics (``dropped.<reason>``).
+is counted on /diagnostics (``dropped.<reason>``). Once the engine is loaded, /diagnostics says whether
+it estimates the hands (``info.hands``: ``estimated``, or ``not_estimated`` for a body-only export,
+whose meshes all have the SMPL-X hand mean pose; that is also logged once).
 
 Parameters: :class:`leapnbv_perception.params.HmrParams`. The crop scale, the hand un-mirroring
 and the target tracking change at runtime; the engine, the models and the cache are set at start-up.
@@ -105,10 +107,17 @@ class HmrNode(Node):
         body_model = SMPLXModel.load(os.path.expanduser(p.body_model_path))
         if self.ground_truth:
             return body_model
-        from leapnbv_perception.hmr import HumanMeshEstimator
+        from leapnbv_perception.hmr import HANDS_ESTIMATED, HANDS_NOT_ESTIMATED, HumanMeshEstimator
 
-        return HumanMeshEstimator(create_engine_backend(p), body_model, box_scale=p.box_scale,
-                                  unmirror_left_hand=p.unmirror_left_hand)
+        estimator = HumanMeshEstimator(create_engine_backend(p), body_model, box_scale=p.box_scale,
+                                       unmirror_left_hand=p.unmirror_left_hand)
+        # Said once, when the engine loads: a body-only engine's meshes all have the hand mean pose.
+        self.diagnostics.set_info("hands", HANDS_ESTIMATED if estimator.hands_estimated else HANDS_NOT_ESTIMATED)
+        if not estimator.hands_estimated:
+            self.get_logger().info(
+                f"HMR engine {p.model_file_path!r} is body-only (export metadata leapnbv.hands=not_estimated): "
+                "the hand poses are not estimated, every mesh has the SMPL-X hand mean pose")
+        return estimator
 
     def on_params_change(self, params: HmrParams, changed: Set[str]) -> None:
         """The crop scale and the hand un-mirroring apply from the next frame; the tracking settings
