@@ -21,8 +21,6 @@ import numpy as np
 
 from leapnbv_evaluation.results import EvaluationRun
 
-ROBOT_RADIUS_M = 0.3  # the planner's default robot_radius
-GRID_CELL_M = 0.1
 _SCENES: Dict[Tuple[str, int], object] = {}
 
 ROWS: Tuple[Tuple[str, str, str], ...] = (
@@ -43,21 +41,14 @@ def wrong_floor(scene) -> bool:
 def true_path_length(room: str, seed: int, start_xy, goal_xy) -> float:
     """Shortest free path (m) from start to goal on the scene's true floor map; inf when there is none."""
     from leapnbv_evaluation.benchmark_set import benchmark_scene
+    from leapnbv_evaluation.truth_paths import true_path_lengths
     from leapnbv_perception.smplx_layer import SMPLXModel
-    from leapnbv_planner.reachability import build_occupancy_grid, reachability
     from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
-    if math.dist(start_xy, goal_xy) < 1e-6:
-        return 0.0
     key = (room, int(seed))
     if key not in _SCENES:
         _SCENES[key] = benchmark_scene(int(seed), SMPLXModel.load(ensure_stand_in_body_model("small")), room)
-    scene = _SCENES[key]
-    up = np.array([0.0, 0.0, 1.0])
-    start, goal = np.array([*start_xy, 0.0]), np.array([[*goal_xy, 0.0]])
-    grid = build_occupancy_grid(scene.obstacle_voxel_centres(GRID_CELL_M), scene.body_vertices_world, up, 0.0,
-                                np.concatenate([start[None], goal]), GRID_CELL_M, ROBOT_RADIUS_M, 0.05)
-    return float(reachability(grid, start, goal, 1e6, ROBOT_RADIUS_M).path_lengths[0])
+    return float(true_path_lengths(_SCENES[key], start_xy, np.asarray([goal_xy]))[0])
 
 
 def stats(run: EvaluationRun, method: str) -> Dict[str, float]:
