@@ -1,0 +1,58 @@
+"""The closed loop with learned perception beside ground-truth perception (scripts/learned_perception.sh).
+
+Reads OUT/learned/run.json and OUT/truth/run.json and prints, for leap_nbv, random and oracle under each
+perception: scenes, success (%), surface coverage before -> after (%), person area before -> after (k px)
+and the graph mesh's PA-MPVPE before -> after (mm; learned perception only: the truth's mesh is exact).
+Usage: scripts/env.sh python scripts/learned_perception_table.py OUT
+Exit 0; 2 when a run is missing.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+from typing import List
+
+from leapnbv_evaluation.results import EvaluationRun
+from leapnbv_evaluation.task_report import aggregate_task_results
+
+METHODS = ("leap_nbv", "random", "oracle")
+
+
+def _fmt(value: float, digits: int = 1) -> str:
+    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def main(argv: List[str]) -> int:
+    if len(argv) != 1:
+        print("usage: learned_perception_table.py OUT", file=sys.stderr)
+        return 2
+    lines = ["| perception | method | scenes | success (%) | coverage before -> after (%) | area before -> after "
+             "(k px) | PA-MPVPE before -> after (mm) |", "|---|---|---:|---:|---:|---:|---:|"]
+    for variant in ("truth", "learned"):
+        path = os.path.join(argv[0], variant, "run.json")
+        if not os.path.exists(path):
+            print(f"learned_perception_table: run not found: '{path}'", file=sys.stderr)
+            return 2
+        run = EvaluationRun.read(path)
+        per_method = aggregate_task_results(run)["per_method"]
+        for method in METHODS:
+            if method not in per_method:
+                continue
+            row = per_method[method]
+            error = (f"{_fmt(row['pa_mpvpe_before_mm'])} -> {_fmt(row['pa_mpvpe_mm'])}"
+                     if math.isfinite(row["pa_mpvpe_mm"]) else "n/a")
+            lines.append(f"| {run.perception} | {method} | {row['scenes']} | {_fmt(row['success_rate_pct'])} | "
+                         f"{_fmt(row['coverage_before_pct'])} -> {_fmt(row['coverage_after_pct'])} | "
+                         f"{_fmt(row['area_before_kpx'])} -> {_fmt(row['area_after_kpx'])} | {error} |")
+    failures = []
+    for variant in ("truth", "learned"):
+        run = EvaluationRun.read(os.path.join(argv[0], variant, "run.json"))
+        failures.append(f"{variant}: {sum(1 for s in run.scenes if s.graph_failure)} of {len(run.scenes)}")
+    print("\n".join(lines))
+    print(f"\ngraph failures: {'; '.join(failures)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
