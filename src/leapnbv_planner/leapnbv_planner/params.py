@@ -39,7 +39,10 @@ class CandidateRingParams:
     # 640x480) sees only ~1.2 m of height, so a standing person never fits.
     radius: float = param(2.5, "metres: ring radius around the target, on the ground", min=0.1, max=20.0)
     include_current: bool = param(True, "score the current view as candidate 0, so staying is possible")
-    max_travel: float = param(4.5, "metres: farthest foot point from the robot's current one", min=0.0, max=100.0)
+    # 6 m, as max_path_length: with 4.5 m the far side of a person in a corridor (about 5-6 m away, and
+    # the only view past the occluder) was out of range although a free path reached it.
+    max_travel: float = param(6.0, "metres: farthest foot point from the robot's current one (straight line)",
+                              min=0.0, max=100.0)
     robot_radius: float = param(0.3, "metres: footprint radius checked for obstacles", min=0.0, max=5.0)
     floor_clearance: float = param(0.05, "metres: background points higher than this above the floor are obstacles",
                                    min=0.0, max=2.0)

@@ -20,7 +20,7 @@ NODE_PARAMETER_NAMES = {
 
 # The robot's values (src/leapnbv_bringup/config/leapnbv.yaml when the params became a dataclass).
 ROBOT_VALUES = {
-    "num_candidates": 16, "radius": 2.5, "include_current": True, "max_travel": 4.5, "robot_radius": 0.3,
+    "num_candidates": 16, "radius": 2.5, "include_current": True, "max_travel": 6.0, "robot_radius": 0.3,
     "floor_clearance": 0.05, "weight_visibility": 0.03, "weight_area": 0.14, "weight_occlusion": 0.83,
     "delta_px": 4.0, "ground_wait_s": 0.5, "ground_max_age_s": 0.5, "use_obstacle_map": True,
     "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 150,
@@ -61,7 +61,7 @@ def test_ring_code_takes_its_defaults_from_the_node_params():
     np.testing.assert_allclose(radii, np.repeat([1.5, 2.0, 2.5], 16))
     feasible, _ = check_feasibility(candidates, np.zeros((0, 3)), up, 1.2, node)
     travel = np.linalg.norm(candidates.foot_points - candidates.foot_points[0], axis=1)
-    np.testing.assert_array_equal(feasible, travel <= 4.5)
+    np.testing.assert_array_equal(feasible, travel <= 6.0)
 
 
 @pytest.mark.parametrize("name, value, message", [

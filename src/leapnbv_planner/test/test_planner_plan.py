@@ -48,7 +48,7 @@ def obstacle_map():
 @pytest.mark.parametrize("radius", [1.5, 2.5])
 def test_plan_views_is_the_step_by_step_pipeline(with_map, radius):
     target, ground = frame()
-    params = nbv_params_class()(radius=radius)
+    params = nbv_params_class()(radius=radius, min_radius=1.0, reachability=False)  # the paper's steps: no path search
     grid = obstacle_map() if with_map else None
     plan = plan_views(target, ground, params, grid, CAMERA_IN_MAP if with_map else None)
 

@@ -150,7 +150,8 @@ def test_a_term_registered_from_a_test_file_gets_its_weight_parameter_and_is_pla
     # Only the new term: the nearest feasible view wins (the current one is 3 m away).
     alone = plan_views(target, ground, params_class(score_terms=["closeness"], weight_closeness=1.0))
     feasible = alone.feasibility.feasible
-    assert alone.scores.term("closeness")[alone.chosen_index] == alone.scores.score[feasible].max()
+    # The choice ties scores within 1e-9 (then the nearest wins): the inner ring's views nearly tie here.
+    assert alone.scores.term("closeness")[alone.chosen_index] >= alone.scores.score[feasible].max() - 1e-9
     assert alone.chosen_index != 0
 
 
