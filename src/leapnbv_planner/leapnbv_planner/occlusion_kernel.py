@@ -230,3 +230,401 @@ def axis_aligned_bounds(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
             if value > upper[axis]:
                 upper[axis] = value
     return lower, upper
+
+
+# ---------------------------------------------------------------------------------------------
+# The same counts over points bucketed into boxes: whole boxes that cannot matter to a candidate
+# are skipped, whole boxes that are surely in view are counted without projecting their points.
+# The points that are projected go through exactly the per-point arithmetic of
+# count_visible_targets, and every count is order-free (a count, a min), so the results are the
+# same; the box tests only decide which points need that arithmetic, with margins far larger than
+# the rounding of either side (see _PIXEL_MARGIN, _NEAR_Z, _Z_MARGIN).
+
+#: Boxes are tested against the candidate's pixel rectangle grown (or, for "surely inside", shrunk) by this
+#: many pixels; the per-point rounding of u and v is many orders of magnitude smaller.
+_PIXEL_MARGIN = 1.0
+#: The pixel-rectangle side tests are used only on boxes at least this far (m) in front of the camera plane, where
+#: the division by z is well conditioned; boxes nearer the camera plane are tested point by point.
+_NEAR_Z = 1e-3
+#: A box is behind the camera (or beyond the farthest target) only when it is this far (m) past the plane.
+_Z_MARGIN = 1e-9
+#: Points per box the bucketing aims at.
+POINTS_PER_BOX = 64
+
+
+@njit(cache=True)
+def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: int):
+    """Sort (N, 3) points into the boxes of a regular grid over their bounds (a counting sort).
+
+    Args:
+        points: (N, 3) float64, finite.
+        companions: (N, 3) float64 rows that travel with the points (normals), or (0, 3).
+        points_per_box: the grid has about N / points_per_box cells (at least 1, at most 64 per axis).
+
+    Returns:
+        (sorted points (N, 3), sorted companions (N or 0, 3), starts (B + 1,) int64 of the B non-empty
+        boxes, lower (B, 3), upper (B, 3) the tight bounds of each box's points).
+    """
+    num = points.shape[0]
+    with_companions = companions.shape[0] == num and num > 0
+    low = np.empty(3)
+    high = np.empty(3)
+    for a in range(3):
+        low[a] = np.inf
+        high[a] = -np.inf
+    for n in range(num):
+        for a in range(3):
+            value = points[n, a]
+            if value < low[a]:
+                low[a] = value
+            if value > high[a]:
+                high[a] = value
+    cells_per_axis = 1
+    if num > 0:
+        cells_per_axis = int(max(1.0, min(64.0, np.floor((num / max(1, points_per_box)) ** (1.0 / 3.0) + 0.5))))
+    scale = np.empty(3)
+    for a in range(3):
+        extent = high[a] - low[a] if num > 0 else 0.0
+        scale[a] = cells_per_axis / extent if extent > 0.0 else 0.0
+    total = cells_per_axis * cells_per_axis * cells_per_axis
+    box_of = np.empty(num, dtype=np.int64)
+    counts = np.zeros(total + 1, dtype=np.int64)
+    for n in range(num):
+        key = 0
+        for a in range(3):
+            index = int((points[n, a] - low[a]) * scale[a])
+            if index >= cells_per_axis:
+                index = cells_per_axis - 1
+            if index < 0:
+                index = 0
+            key = key * cells_per_axis + index
+        box_of[n] = key
+        counts[key + 1] += 1
+    for key in range(total):
+        counts[key + 1] += counts[key]
+    fill = counts[:total].copy()
+    sorted_points = np.empty((num, 3))
+    sorted_companions = np.empty((num if with_companions else 0, 3))
+    for n in range(num):
+        slot = fill[box_of[n]]
+        fill[box_of[n]] += 1
+        for a in range(3):
+            sorted_points[slot, a] = points[n, a]
+            if with_companions:
+                sorted_companions[slot, a] = companions[n, a]
+    num_boxes = 0
+    for key in range(total):
+        if counts[key + 1] > counts[key]:
+            num_boxes += 1
+    starts = np.empty(num_boxes + 1, dtype=np.int64)
+    lower = np.empty((num_boxes, 3))
+    upper = np.empty((num_boxes, 3))
+    box = 0
+    for key in range(total):
+        begin, end = counts[key], counts[key + 1]
+        if end == begin:
+            continue
+        starts[box] = begin
+        for a in range(3):
+            lower[box, a] = sorted_points[begin, a]
+            upper[box, a] = sorted_points[begin, a]
+        for n in range(begin + 1, end):
+            for a in range(3):
+                value = sorted_points[n, a]
+                if value < lower[box, a]:
+                    lower[box, a] = value
+                if value > upper[box, a]:
+                    upper[box, a] = value
+        box += 1
+    starts[num_boxes] = num
+    return sorted_points, sorted_companions, starts, lower, upper
+
+
+@njit(cache=True)
+def _form_range(forms: np.ndarray, k: int, centre: np.ndarray, half: np.ndarray):
+    """(min, max) over a box of the linear form forms[k, :3] . p + forms[k, 3] (exact box extremes)."""
+    value = forms[k, 0] * centre[0] + forms[k, 1] * centre[1] + forms[k, 2] * centre[2] + forms[k, 3]
+    extent = abs(forms[k, 0]) * half[0] + abs(forms[k, 1]) * half[1] + abs(forms[k, 2]) * half[2]
+    return value - extent, value + extent
+
+
+@njit(cache=True)
+def _frustum_forms(forms: np.ndarray, rotation: np.ndarray, position: np.ndarray, fx: float, skew: float, cx: float,
+                   fy: float, cy: float, u_lo: float, u_hi: float, v_lo: float, v_hi: float, z_far: float) -> None:
+    """Fill forms (6, 4) with observation-frame linear forms f(p) = a . p + b of a candidate camera:
+    0: z, 1: z_far - z, 2: fx x + skew y - (u_lo - cx) z (>= 0: u >= u_lo), 3: (u_hi - cx) z - fx x - skew y
+    (>= 0: u <= u_hi), 4: fy y - (v_lo - cy) z, 5: (v_hi - cy) z - fy y, with (x, y, z) = R^T (p - t)."""
+    coefficients = np.zeros((6, 3))
+    coefficients[0, 2] = 1.0
+    coefficients[1, 2] = -1.0
+    coefficients[2, 0], coefficients[2, 1], coefficients[2, 2] = fx, skew, cx - u_lo
+    coefficients[3, 0], coefficients[3, 1], coefficients[3, 2] = -fx, -skew, u_hi - cx
+    coefficients[4, 1], coefficients[4, 2] = fy, cy - v_lo
+    coefficients[5, 1], coefficients[5, 2] = -fy, v_hi - cy
+    for k in range(6):
+        for a in range(3):  # a = R (alpha, beta, gamma): camera x, y, z are R^T (p - t)
+            forms[k, a] = (rotation[a, 0] * coefficients[k, 0] + rotation[a, 1] * coefficients[k, 1]
+                           + rotation[a, 2] * coefficients[k, 2])
+        forms[k, 3] = -(forms[k, 0] * position[0] + forms[k, 1] * position[1] + forms[k, 2] * position[2])
+    forms[1, 3] += z_far
+
+
+@njit(cache=True)
+def _box_outside(forms: np.ndarray, centre: np.ndarray, half: np.ndarray, far_test: bool) -> bool:
+    """The box surely holds no point that the per-point test keeps (behind the camera, beyond z_far, or off the
+    pixel rectangle; the forms carry the pixel margin)."""
+    z_min, z_max = _form_range(forms, 0, centre, half)
+    if z_max < -_Z_MARGIN:
+        return True
+    if far_test:
+        _, far_max = _form_range(forms, 1, centre, half)
+        if far_max < -_Z_MARGIN:
+            return True
+    if z_min < _NEAR_Z:
+        return False
+    for k in range(2, 6):
+        _, side_max = _form_range(forms, k, centre, half)
+        if side_max < 0.0:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _box_inside(forms: np.ndarray, centre: np.ndarray, half: np.ndarray) -> bool:
+    """Every point of the box is surely in view (the forms carry the inner pixel margin)."""
+    z_min, _ = _form_range(forms, 0, centre, half)
+    if not z_min >= _NEAR_Z:
+        return False
+    for k in range(2, 6):
+        side_min, _ = _form_range(forms, k, centre, half)
+        if not side_min > 0.0:
+            return False
+    return True
+
+
+@njit(cache=True)
+def count_visible_targets_bucketed(
+    target_points: np.ndarray,
+    target_normals: np.ndarray,
+    target_starts: np.ndarray,
+    target_lower: np.ndarray,
+    target_upper: np.ndarray,
+    background_points: np.ndarray,
+    background_starts: np.ndarray,
+    background_lower: np.ndarray,
+    background_upper: np.ndarray,
+    rotations: np.ndarray,
+    positions: np.ndarray,
+    fx: float,
+    skew: float,
+    cx: float,
+    fy: float,
+    cy: float,
+    width: int,
+    height: int,
+    half_window: int,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """count_visible_targets over bucketed clouds (from :func:`bucket_points`): the same counts, faster.
+
+    Per candidate, a target box wholly off the image is skipped, and, when nothing can hide anything (no
+    background, no normals), a target box wholly in the image is counted without projecting its points. A
+    background box that lies wholly behind the camera, beyond the farthest in-view target point, or off the
+    target pixels' rectangle grown by the window is skipped. Every other point goes through the per-point
+    arithmetic of count_visible_targets; counts and minima do not depend on the order of the points.
+
+    Args:
+        target_points, target_normals, target_starts, target_lower, target_upper: the bucketed targets (normals
+            (N, 3) or (0, 3), as in count_visible_targets).
+        background_points, background_starts, background_lower, background_upper: the bucketed background (may
+            hold 0 points).
+        rotations, positions, fx, skew, cx, fy, cy, width, height, half_window: as in count_visible_targets.
+
+    Returns:
+        (in_view (C,) int64, not_hidden (C,) int64) counts, equal to count_visible_targets's.
+    """
+    num_candidates = rotations.shape[0]
+    num_targets = target_points.shape[0]
+    num_background = background_points.shape[0]
+    num_target_boxes = target_starts.shape[0] - 1
+    num_background_boxes = background_starts.shape[0] - 1
+    facing = target_normals.shape[0] == num_targets and num_targets > 0
+    window = 2 * half_window + 1
+    in_view = np.zeros(num_candidates, dtype=np.int64)
+    not_hidden = np.zeros(num_candidates, dtype=np.int64)
+    wholesale = num_background == 0 and not facing  # only the in-view count is needed
+
+    target_centre = np.empty((num_target_boxes, 3))
+    target_half = np.empty((num_target_boxes, 3))
+    for b in range(num_target_boxes):
+        for a in range(3):
+            target_centre[b, a] = 0.5 * (target_lower[b, a] + target_upper[b, a])
+            target_half[b, a] = 0.5 * (target_upper[b, a] - target_lower[b, a])
+    background_centre = np.empty((num_background_boxes, 3))
+    background_half = np.empty((num_background_boxes, 3))
+    for b in range(num_background_boxes):
+        for a in range(3):
+            background_centre[b, a] = 0.5 * (background_lower[b, a] + background_upper[b, a])
+            background_half[b, a] = 0.5 * (background_upper[b, a] - background_lower[b, a])
+    # The half extents are rounded up a little so that the box surely holds its points.
+    for b in range(num_target_boxes):
+        for a in range(3):
+            target_half[b, a] = target_half[b, a] * (1.0 + 1e-12) + 1e-12
+    for b in range(num_background_boxes):
+        for a in range(3):
+            background_half[b, a] = background_half[b, a] * (1.0 + 1e-12) + 1e-12
+
+    padded_width = width + 2 * half_window
+    row_capacity = ((padded_width + window - 1) // window) * window
+    depth = np.empty((height + 2 * half_window, row_capacity))
+    row_min = np.empty((height + 2 * half_window, padded_width))
+    prefix_min = np.empty(row_capacity)
+    suffix_min = np.empty(row_capacity)
+    target_col = np.empty(num_targets, dtype=np.int64)
+    target_row = np.empty(num_targets, dtype=np.int64)
+    target_depth = np.empty(num_targets)
+    first_occupied = np.empty(height + 2 * half_window, dtype=np.int64)
+    last_occupied = np.empty(height + 2 * half_window, dtype=np.int64)
+    valid_lo = np.empty(height + 2 * half_window, dtype=np.int64)
+    valid_hi = np.empty(height + 2 * half_window, dtype=np.int64)
+    outer_forms = np.empty((6, 4))
+    inner_forms = np.empty((6, 4))
+    region_forms = np.empty((6, 4))
+
+    for c in range(num_candidates):
+        rotation = rotations[c]
+        position = positions[c]
+        r00, r01, r02 = rotations[c, 0, 0], rotations[c, 0, 1], rotations[c, 0, 2]
+        r10, r11, r12 = rotations[c, 1, 0], rotations[c, 1, 1], rotations[c, 1, 2]
+        r20, r21, r22 = rotations[c, 2, 0], rotations[c, 2, 1], rotations[c, 2, 2]
+        tx, ty, tz = positions[c, 0], positions[c, 1], positions[c, 2]
+        _frustum_forms(outer_forms, rotation, position, fx, skew, cx, fy, cy, -_PIXEL_MARGIN,
+                       width + _PIXEL_MARGIN, -_PIXEL_MARGIN, height + _PIXEL_MARGIN, 0.0)
+        if wholesale:
+            _frustum_forms(inner_forms, rotation, position, fx, skew, cx, fy, cy, _PIXEL_MARGIN,
+                           width - _PIXEL_MARGIN, _PIXEL_MARGIN, height - _PIXEL_MARGIN, 0.0)
+
+        count = 0
+        col_min, col_max, row_min_t, row_max_t = width, -1, height, -1
+        farthest_target = 0.0
+        for b in range(num_target_boxes):
+            if _box_outside(outer_forms, target_centre[b], target_half[b], False):
+                continue
+            if wholesale and _box_inside(inner_forms, target_centre[b], target_half[b]):
+                count += target_starts[b + 1] - target_starts[b]
+                continue
+            for n in range(target_starts[b], target_starts[b + 1]):
+                dx = target_points[n, 0] - tx
+                dy = target_points[n, 1] - ty
+                dz = target_points[n, 2] - tz
+                if facing and not (target_normals[n, 0] * dx + target_normals[n, 1] * dy
+                                   + target_normals[n, 2] * dz) < 0.0:
+                    continue
+                z = r02 * dx + r12 * dy + r22 * dz
+                if not z > 0.0:
+                    continue
+                xn = (r00 * dx + r10 * dy + r20 * dz) / z
+                yn = (r01 * dx + r11 * dy + r21 * dz) / z
+                u = fx * xn + skew * yn + cx
+                v = fy * yn + cy
+                if not (u >= 0.0 and u < width and v >= 0.0 and v < height):
+                    continue
+                if wholesale:
+                    count += 1
+                    continue
+                col = int(math.floor(u))
+                row = int(math.floor(v))
+                target_col[count] = col
+                target_row[count] = row
+                target_depth[count] = z
+                count += 1
+                col_min = min(col_min, col)
+                col_max = max(col_max, col)
+                row_min_t = min(row_min_t, row)
+                row_max_t = max(row_max_t, row)
+                farthest_target = max(farthest_target, z)
+        in_view[c] = count
+        if count == 0:
+            continue
+        if num_background == 0:
+            not_hidden[c] = count
+            continue
+
+        col_lo = col_min - half_window
+        row_lo = row_min_t - half_window
+        region_width = col_max - col_min + 1 + 2 * half_window
+        region_height = row_max_t - row_min_t + 1 + 2 * half_window
+        region_row_len = ((region_width + window - 1) // window) * window
+        col_hi_excl = float(col_lo + region_width)
+        row_hi_excl = float(row_lo + region_height)
+        for rr in range(region_height):  # a row's depths are set to +inf when its first point comes
+            first_occupied[rr] = region_width
+            last_occupied[rr] = -1
+        any_occupied = False
+        _frustum_forms(region_forms, rotation, position, fx, skew, cx, fy, cy, col_lo - _PIXEL_MARGIN,
+                       col_hi_excl + _PIXEL_MARGIN, row_lo - _PIXEL_MARGIN, row_hi_excl + _PIXEL_MARGIN,
+                       farthest_target)
+
+        for b in range(num_background_boxes):
+            if _box_outside(region_forms, background_centre[b], background_half[b], True):
+                continue
+            for k in range(background_starts[b], background_starts[b + 1]):
+                dx = background_points[k, 0] - tx
+                dy = background_points[k, 1] - ty
+                dz = background_points[k, 2] - tz
+                z = r02 * dx + r12 * dy + r22 * dz
+                if not (z > 0.0 and z < farthest_target):
+                    continue
+                xn = (r00 * dx + r10 * dy + r20 * dz) / z
+                yn = (r01 * dx + r11 * dy + r21 * dz) / z
+                u = fx * xn + skew * yn + cx
+                v = fy * yn + cy
+                if not (u >= col_lo and u < col_hi_excl and v >= row_lo and v < row_hi_excl):
+                    continue
+                cc = int(math.floor(u)) - col_lo
+                rr = int(math.floor(v)) - row_lo
+                if last_occupied[rr] < 0:
+                    for cell in range(region_row_len):
+                        depth[rr, cell] = np.inf
+                    any_occupied = True
+                if z < depth[rr, cc]:
+                    depth[rr, cc] = z
+                first_occupied[rr] = min(first_occupied[rr], cc)
+                last_occupied[rr] = max(last_occupied[rr], cc)
+        if not any_occupied:  # nothing in front of the target pixels: every in-view point is seen
+            not_hidden[c] = count
+            continue
+
+        for rr in range(region_height):
+            if last_occupied[rr] < 0:
+                valid_lo[rr] = 1
+                valid_hi[rr] = 0
+                continue
+            start_lo = max(0, first_occupied[rr] - 2 * half_window)
+            start_hi = min(last_occupied[rr], region_width - window)
+            block_lo = (start_lo // window) * window
+            block_hi = ((start_hi + 2 * half_window) // window + 1) * window
+            for block in range(block_lo, block_hi, window):
+                prefix_min[block] = depth[rr, block]
+                for cc in range(block + 1, block + window):
+                    prefix_min[cc] = min(prefix_min[cc - 1], depth[rr, cc])
+                last = block + window - 1
+                suffix_min[last] = depth[rr, last]
+                for cc in range(last - 1, block - 1, -1):
+                    suffix_min[cc] = min(suffix_min[cc + 1], depth[rr, cc])
+            for a in range(start_lo, start_hi + 1):
+                row_min[rr, a + half_window] = min(suffix_min[a], prefix_min[a + window - 1])
+            valid_lo[rr] = start_lo + half_window
+            valid_hi[rr] = start_hi + half_window
+
+        visible = 0
+        for n in range(count):
+            cc = target_col[n] - col_lo
+            rr0 = target_row[n] - row_lo - half_window
+            nearest = np.inf
+            for rr in range(rr0, rr0 + window):
+                if valid_lo[rr] <= cc and cc <= valid_hi[rr] and row_min[rr, cc] < nearest:
+                    nearest = row_min[rr, cc]
+            if target_depth[n] <= nearest:
+                visible += 1
+        not_hidden[c] = visible
+    return in_view, not_hidden

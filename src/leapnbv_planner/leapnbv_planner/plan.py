@@ -27,6 +27,7 @@ from leapnbv_planner.candidates import (
     generate_candidates,
     normalize_plane,
 )
+from leapnbv_planner.mesh_kernel import face_normal_sums
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
 from leapnbv_planner.reachability import Reachability, build_occupancy_grid, reachability
@@ -150,12 +151,7 @@ def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
-    corners = vertices[faces]
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(vertices)
-    flat = faces.reshape(-1)
-    for axis in range(3):  # bincount sums per vertex (np.add.at is far slower)
-        normals[:, axis] = np.bincount(flat, weights=np.repeat(face_normals[:, axis], 3), minlength=len(vertices))
+    normals = face_normal_sums(np.ascontiguousarray(vertices), np.ascontiguousarray(faces))
     lengths = np.linalg.norm(normals, axis=1)
     normals = np.where(lengths[:, None] > 0, normals / np.maximum(lengths, 1e-300)[:, None], 0.0)
     if float(np.sum(normals * (vertices - vertices.mean(axis=0)))) < 0.0:

@@ -1,0 +1,110 @@
+"""The planner's fast kernels give what their straightforward references give, bit for bit, on random scenes.
+
+The references are the per-point occlusion kernel (``count_visible_targets``, itself checked against the
+definition in test_planner_scoring), numpy's cross products and bincount sums for the mesh normals, and a
+point-by-point footprint test.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from leapnbv_planner.candidates import camera_look_at
+from leapnbv_planner.mesh_kernel import face_normal_sums
+from leapnbv_planner.occlusion_kernel import bucket_points, count_visible_targets, count_visible_targets_bucketed
+
+UP = np.array([0.0, -1.0, 0.0])
+NONE = np.zeros((0, 3))
+
+
+def random_views(rng, count, centre):
+    """The identity view, views round the centre at 0.5-3 m, one inside the clutter and one looking away."""
+    rotations, positions = [np.eye(3)], [np.zeros(3)]
+    for _ in range(count):
+        position = centre + rng.uniform([-3.0, -0.6, -3.0], [3.0, 0.6, 3.0])
+        aim = centre + rng.normal(scale=0.5, size=3)
+        rotations.append(camera_look_at(position, aim, UP))
+        positions.append(position)
+    rotations.append(camera_look_at(centre + [0.1, 0.0, -0.4], centre + [0.0, 0.0, 2.0], UP))
+    positions.append(centre + [0.1, 0.0, -0.4])
+    rotations.append(camera_look_at(np.zeros(3), [0.0, 0.0, -3.0], UP))
+    positions.append(np.zeros(3))
+    return np.ascontiguousarray(rotations), np.ascontiguousarray(positions)
+
+
+def both(targets, normals, background, rotations, positions, camera, half_window, points_per_box):
+    fx, skew, cx, fy, cy, width, height = camera
+    reference = count_visible_targets(targets, background, rotations, positions, fx, skew, cx, fy, cy, width,
+                                      height, half_window, normals)
+    t_points, t_normals, t_starts, t_lower, t_upper = bucket_points(targets, normals, points_per_box)
+    b_points, _, b_starts, b_lower, b_upper = bucket_points(background, NONE, points_per_box)
+    fast = count_visible_targets_bucketed(t_points, t_normals, t_starts, t_lower, t_upper, b_points, b_starts,
+                                          b_lower, b_upper, rotations, positions, fx, skew, cx, fy, cy, width,
+                                          height, half_window)
+    return reference, fast
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bucketed_counts_equal_the_per_point_kernel(seed):
+    rng = np.random.default_rng(seed)
+    centre = np.array([0.0, 0.3, 3.0])
+    camera = (250.0, 1.5 * seed, 150.0, 240.0, 95.0, 300, 200)
+    targets = rng.normal(size=(3000, 3)) * [0.3, 0.6, 0.2] + centre
+    normals = rng.normal(size=(3000, 3))
+    background = np.concatenate([
+        rng.uniform([-4, -2, -1], [4, 2, 7], size=(6000, 3)),  # everywhere, behind the cameras too
+        rng.normal(size=(6000, 3)) * [0.5, 0.7, 0.6] + centre - [0.0, 0.0, 0.8],  # in front of the target
+        rng.uniform([-4, -2, 6.9], [4, 2, 7.0], size=(4000, 3)),  # a wall
+        rng.normal(scale=1e-4, size=(50, 3)),  # at the identity view's centre
+    ])
+    rotations, positions = random_views(rng, 12, centre)
+    for half_window in (0, 2, 4):
+        for points_per_box in (1, 16, 64, 100000):
+            for target_normals in (NONE, normals):
+                reference, fast = both(targets, target_normals, background, rotations, positions, camera,
+                                       half_window, points_per_box)
+                np.testing.assert_array_equal(fast[0], reference[0])
+                np.testing.assert_array_equal(fast[1], reference[1])
+            # In view only (S_v's call): whole boxes are counted without projecting their points.
+            reference, fast = both(targets, NONE, NONE, rotations, positions, camera, half_window, points_per_box)
+            np.testing.assert_array_equal(fast[0], reference[0])
+    # The scene is not trivial: one view sees none of the target, others part of it or nearly all of it, and
+    # some views see points both hidden and not hidden.
+    in_view = reference[0]
+    assert in_view[-1] == 0 and np.any((in_view > 0) & (in_view < len(targets) // 2))
+    assert in_view.max() > 0.9 * len(targets)
+    reference, _ = both(targets, NONE, background, rotations, positions, camera, 4, 64)
+    assert np.any((reference[1] > 0) & (reference[1] < reference[0]))
+
+
+def test_bucketing_keeps_every_point_in_a_box_that_bounds_it():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(5000, 3)) * [2.0, 0.01, 1.0]
+    normals = rng.normal(size=(5000, 3))
+    sorted_points, sorted_normals, starts, lower, upper = bucket_points(points, normals, 32)
+    assert starts[0] == 0 and starts[-1] == len(points) and np.all(np.diff(starts) > 0)
+    order = np.lexsort(points.T)
+    np.testing.assert_array_equal(np.sort(sorted_points.view("f8,f8,f8"), axis=0),
+                                  np.sort(points.view("f8,f8,f8"), axis=0))
+    pairs = {tuple(p): tuple(n) for p, n in zip(points[order], normals[order])}
+    assert all(pairs[tuple(p)] == tuple(n) for p, n in zip(sorted_points, sorted_normals))
+    for box in range(len(starts) - 1):
+        inside = sorted_points[starts[box]:starts[box + 1]]
+        np.testing.assert_array_equal(inside.min(axis=0), lower[box])
+        np.testing.assert_array_equal(inside.max(axis=0), upper[box])
+    empty = bucket_points(NONE, NONE, 32)
+    assert empty[0].shape == (0, 3) and list(empty[2]) == [0]
+
+
+def test_face_normal_sums_equal_numpy_cross_and_bincount():
+    rng = np.random.default_rng(4)
+    vertices = rng.normal(size=(2000, 3)) * [0.3, 0.8, 0.2]
+    faces = rng.integers(0, len(vertices), size=(5000, 3))
+    corners = vertices[faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    expected = np.zeros_like(vertices)
+    for axis in range(3):
+        expected[:, axis] = np.bincount(faces.reshape(-1), weights=np.repeat(face_normals[:, axis], 3),
+                                        minlength=len(vertices))
+    np.testing.assert_array_equal(face_normal_sums(vertices, faces), expected)
