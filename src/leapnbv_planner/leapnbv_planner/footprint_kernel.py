@@ -45,6 +45,11 @@ def footprints_blocked(
     # Bounding square of all footprints: most points fail this cheap test.
     u_lo, u_hi = feet_u.min() - robot_radius, feet_u.max() + robot_radius
     v_lo, v_hi = feet_v.min() - robot_radius, feet_v.max() + robot_radius
+    # The feet sorted by u: a point is tested only against the feet whose u lies within the radius of its own
+    # (widened by far more than the rounding, so no foot the distance test would block is left out).
+    order = np.argsort(feet_u)
+    sorted_u = feet_u[order]
+    reach = robot_radius * (1.0 + 1e-9) + 1e-12
     for k in range(points.shape[0]):
         x, y, z = points[k, 0], points[k, 1], points[k, 2]
         height = unit_normal[0] * x + unit_normal[1] * y + unit_normal[2] * z + plane_offset
@@ -54,7 +59,11 @@ def footprints_blocked(
         v = plane_axis_v[0] * x + plane_axis_v[1] * y + plane_axis_v[2] * z
         if not (u >= u_lo and u <= u_hi and v >= v_lo and v <= v_hi):
             continue
-        for c in range(num_feet):
+        first = np.searchsorted(sorted_u, u - reach)
+        for i in range(first, num_feet):
+            if sorted_u[i] > u + reach:
+                break
+            c = order[i]
             du = u - feet_u[c]
             dv = v - feet_v[c]
             if du * du + dv * dv <= radius_squared:

@@ -19,8 +19,8 @@ Space outside the map's voxels counts as free (unknown space is not an obstacle 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Tuple
+from dataclasses import dataclass, field
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -49,10 +49,20 @@ class VoxelObstacleMap:
     lower_index: np.ndarray
     resolution: float
     centres: np.ndarray
+    _prefix: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
 
     @property
     def voxel_count(self) -> int:
         return int(self.centres.shape[0])
+
+    def occupied_prefix_sums(self) -> np.ndarray:
+        """(X + 1, Y + 1, Z + 1) int32 counts of occupied cells in [0, a) x [0, b) x [0, c), computed once per map
+        (a box of cells is counted with eight look-ups)."""
+        if self._prefix is None or self._prefix.shape != tuple(s + 1 for s in self.occupied.shape):
+            prefix = np.zeros(tuple(s + 1 for s in self.occupied.shape), dtype=np.int32)
+            prefix[1:, 1:, 1:] = self.occupied.astype(np.int32).cumsum(0).cumsum(1).cumsum(2)
+            self._prefix = prefix
+        return self._prefix
 
 
 def voxel_map_from_centres(centres: np.ndarray, resolution: float) -> VoxelObstacleMap:
@@ -162,9 +172,10 @@ def line_of_sight_clear_fraction(
     # Observation frame -> map frame: x_map = R x + t.
     cameras_map = cameras @ rotation.T + position[None, :]
     targets_map = targets @ rotation.T + position[None, :]
-    clear = segments_clear(obstacle_map.occupied, obstacle_map.lower_index.astype(np.float64),
-                           obstacle_map.resolution, np.ascontiguousarray(cameras_map),
-                           np.ascontiguousarray(targets_map), float(target_margin))
+    clear = segments_clear_skipping_empty(
+        obstacle_map.occupied, obstacle_map.occupied_prefix_sums(), obstacle_map.lower_index.astype(np.float64),
+        obstacle_map.resolution, np.ascontiguousarray(cameras_map), np.ascontiguousarray(targets_map),
+        float(target_margin))
     return clear.mean(axis=1)
 
 
@@ -207,6 +218,139 @@ def segments_clear(
             for a in range(3):
                 start[a] = origins[c, a] / resolution - lower_index[a]
                 delta[a] = delta[a] / resolution
+                cell[a] = np.int64(np.floor(start[a]))
+                if delta[a] > 0.0:
+                    step[a] = 1
+                    t_delta[a] = 1.0 / delta[a]
+                    t_max[a] = (cell[a] + 1.0 - start[a]) / delta[a]
+                elif delta[a] < 0.0:
+                    step[a] = -1
+                    t_delta[a] = -1.0 / delta[a]
+                    t_max[a] = (start[a] - cell[a]) / -delta[a]
+                else:
+                    step[a] = 0
+                    t_delta[a] = np.inf
+                    t_max[a] = np.inf
+            t = 0.0
+            while t <= t_end:
+                if (0 <= cell[0] < size_x and 0 <= cell[1] < size_y and 0 <= cell[2] < size_z
+                        and occupied[cell[0], cell[1], cell[2]]):
+                    clear[c, m] = False
+                    break
+                axis = 0
+                if t_max[1] < t_max[axis]:
+                    axis = 1
+                if t_max[2] < t_max[axis]:
+                    axis = 2
+                t = t_max[axis]
+                cell[axis] += step[axis]
+                t_max[axis] += t_delta[axis]
+    return clear
+
+
+#: A segment's checked part is halved this many times at most for the empty-box test of
+#: segments_clear_skipping_empty (pieces of 1/16 of it at the finest).
+_MAX_HALVINGS = 4
+#: Cells by which a piece's bounding box is grown: the walk's cells stray from the segment's own by the rounding
+#: of its crossing parameters (about 1e-13 cell over a walk of a few hundred cells), far less than this.
+_BOX_GROWTH = 1e-6
+
+
+@njit(cache=True)
+def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, delta: np.ndarray, t_a: float,
+                          t_b: float) -> bool:
+    """Whether the cells of the bounding box of g([t_a, t_b]) (g(t) = start + t delta, grid coordinates), grown
+    by _BOX_GROWTH, hold an occupied cell (prefix sums: eight look-ups)."""
+    lo0 = lo1 = lo2 = hi0 = hi1 = hi2 = 0
+    for a in range(3):
+        g_a = start[a] + t_a * delta[a]
+        g_b = start[a] + t_b * delta[a]
+        low = max(np.int64(np.floor(min(g_a, g_b) - _BOX_GROWTH)), 0)
+        high = min(np.int64(np.floor(max(g_a, g_b) + _BOX_GROWTH)), sizes[a] - 1)
+        if low > high:
+            return False  # wholly off the grid: free
+        if a == 0:
+            lo0, hi0 = low, high
+        elif a == 1:
+            lo1, hi1 = low, high
+        else:
+            lo2, hi2 = low, high
+    count = (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
+             - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
+             + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
+    return count > 0
+
+
+@njit(cache=True)
+def segments_clear_skipping_empty(
+    occupied: np.ndarray,
+    prefix: np.ndarray,
+    lower_index: np.ndarray,
+    resolution: float,
+    origins: np.ndarray,
+    targets: np.ndarray,
+    target_margin: float,
+) -> np.ndarray:
+    """segments_clear, with the walk left out for segments that surely cross no occupied cell.
+
+    The checked part of a segment is tested as a whole, then by halves, quarters, ... (at most _MAX_HALVINGS
+    times, only the pieces whose box is not empty): when every piece at some level has a bounding box whose cells,
+    grown by _BOX_GROWTH cells on each side (far more than the walk's rounding can stray), hold no occupied cell,
+    the segment is clear. Otherwise it is walked exactly as segments_clear walks it (the same arithmetic), so
+    the answer is the same.
+
+    Args:
+        occupied, lower_index, resolution, origins, targets, target_margin: as in segments_clear.
+        prefix: the map's occupied_prefix_sums().
+    """
+    num_origins = origins.shape[0]
+    num_targets = targets.shape[0]
+    size_x, size_y, size_z = occupied.shape[0], occupied.shape[1], occupied.shape[2]
+    sizes = np.array([size_x, size_y, size_z], dtype=np.int64)
+    clear = np.ones((num_origins, num_targets), dtype=np.bool_)
+    start = np.empty(3)
+    delta = np.empty(3)
+    cell = np.empty(3, dtype=np.int64)
+    step = np.empty(3, dtype=np.int64)
+    t_max = np.empty(3)
+    t_delta = np.empty(3)
+    stack_a = np.empty(2 * _MAX_HALVINGS + 2)
+    stack_b = np.empty(2 * _MAX_HALVINGS + 2)
+    stack_level = np.empty(2 * _MAX_HALVINGS + 2, dtype=np.int64)
+    for c in range(num_origins):
+        for m in range(num_targets):
+            length = 0.0
+            for a in range(3):
+                delta[a] = targets[m, a] - origins[c, a]
+                length += delta[a] * delta[a]
+            length = np.sqrt(length)
+            if length <= target_margin:
+                continue  # nothing left to check
+            t_end = 1.0 - target_margin / length
+            for a in range(3):
+                start[a] = origins[c, a] / resolution - lower_index[a]
+                delta[a] = delta[a] / resolution
+
+            # The empty-box test: a piece whose box holds an occupied cell is halved, down to _MAX_HALVINGS.
+            maybe_blocked = False
+            stack_a[0], stack_b[0], stack_level[0] = 0.0, t_end, 0
+            depth = 1
+            while depth > 0:
+                depth -= 1
+                t_a, t_b, level = stack_a[depth], stack_b[depth], stack_level[depth]
+                if not _piece_may_be_blocked(prefix, sizes, start, delta, t_a, t_b):
+                    continue
+                if level == _MAX_HALVINGS:
+                    maybe_blocked = True
+                    break
+                t_mid = 0.5 * (t_a + t_b)
+                stack_a[depth], stack_b[depth], stack_level[depth] = t_mid, t_b, level + 1
+                stack_a[depth + 1], stack_b[depth + 1], stack_level[depth + 1] = t_a, t_mid, level + 1
+                depth += 2
+            if not maybe_blocked:
+                continue
+
+            for a in range(3):
                 cell[a] = np.int64(np.floor(start[a]))
                 if delta[a] > 0.0:
                     step[a] = 1

@@ -194,8 +194,9 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     normal = np.asarray(ground.normal, dtype=np.float64).reshape(3)
     offset = float(ground.offset)
     centroid = np.asarray(target.centroid, dtype=np.float64).reshape(3)
-    target_points = target.target_points
-    background = target.background_points
+    # float64 once here (the messages carry float32), not again in every step that reads the clouds.
+    target_points = np.ascontiguousarray(target.target_points, dtype=np.float64)
+    background = np.ascontiguousarray(target.background_points, dtype=np.float64)
     candidates = generate_candidates(centroid, normal, offset, params)
     obstacles, line_of_sight_clear, mesh_clear = background, None, None
     mesh_vertices = mesh_normals = None
@@ -215,7 +216,8 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
     reach, path_lengths = None, None
     if getattr(params, "reachability", False):
-        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, normal, offset, params)
+        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, target_points, normal, offset,
+                                          params)
         path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
     scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, target.k,
                               target.width, target.height, params.term_weights(), delta_px=params.delta_px,
@@ -236,11 +238,12 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
 
 
 def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles: np.ndarray, target: Any,
-                 normal: np.ndarray, offset: float, params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
+                 target_points: np.ndarray, normal: np.ndarray, offset: float,
+                 params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
     """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
     unit_normal, unit_offset = normalize_plane(normal, offset)
     current_foot = -unit_offset * unit_normal
-    grid = build_occupancy_grid(obstacles, target.target_points, unit_normal, unit_offset,
+    grid = build_occupancy_grid(obstacles, target_points, unit_normal, unit_offset,
                                 np.vstack([candidates.foot_points, current_foot[None]]), params.grid_resolution,
                                 params.robot_radius, params.floor_clearance, params.unknown_space,
                                 camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),

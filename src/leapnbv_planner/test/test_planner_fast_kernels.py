@@ -108,3 +108,62 @@ def test_face_normal_sums_equal_numpy_cross_and_bincount():
         expected[:, axis] = np.bincount(faces.reshape(-1), weights=np.repeat(face_normals[:, axis], 3),
                                         minlength=len(vertices))
     np.testing.assert_array_equal(face_normal_sums(vertices, faces), expected)
+
+
+def test_footprints_blocked_equals_every_point_against_every_foot():
+    from leapnbv_planner.footprint_kernel import footprints_blocked
+
+    rng = np.random.default_rng(5)
+    normal = np.array([0.0, -1.0, 0.0])
+    offset, clearance, radius = 1.2, 0.05, 0.3
+    axis_u, axis_v = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    angles = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
+    feet_u = np.ascontiguousarray(2.0 * np.cos(angles))
+    feet_v = np.ascontiguousarray(3.0 + 2.0 * np.sin(angles))
+    points = rng.uniform([-3.0, -1.0, 0.5], [3.0, 1.3, 5.5], size=(60, 3))
+    # Points exactly one radius from a foot (on the boundary: blocked) and just beyond it.
+    for index in range(0, 48, 10):
+        points[index] = [feet_u[index] + radius, 0.0, feet_v[index]]
+        points[index + 1] = [feet_u[index + 1] - radius * (1 + 1e-15), 0.0, feet_v[index + 1]]
+    for radius_here in (radius, 0.05, 0.0):
+        blocked = footprints_blocked(points, normal, offset, clearance, axis_u, axis_v, feet_u, feet_v,
+                                     radius_here)
+        height = normal[0] * points[:, 0] + normal[1] * points[:, 1] + normal[2] * points[:, 2] + offset
+        u = axis_u[0] * points[:, 0] + axis_u[1] * points[:, 1] + axis_u[2] * points[:, 2]
+        v = axis_v[0] * points[:, 0] + axis_v[1] * points[:, 1] + axis_v[2] * points[:, 2]
+        du = u[:, None] - feet_u[None, :]
+        dv = v[:, None] - feet_v[None, :]
+        expected = np.any((du * du + dv * dv <= radius_here * radius_here) & (height > clearance)[:, None], axis=0)
+        np.testing.assert_array_equal(blocked, expected)
+        if radius_here == radius:
+            assert 0 < expected.sum() < len(expected)
+
+
+@pytest.mark.parametrize("density", [0.002, 0.02, 0.2])
+def test_segment_walk_with_empty_box_skipping_equals_the_plain_walk(density):
+    from leapnbv_planner.obstacle_map import segments_clear, segments_clear_skipping_empty, voxel_map_from_centres
+
+    rng = np.random.default_rng(int(density * 1000))
+    resolution = 0.1
+    occupied = rng.random((40, 20, 40)) < density
+    occupied[5:9, :, 20:22] = True  # a wall
+    lower = np.array([-20, -10, 0])
+    centres = (np.argwhere(occupied) + lower + 0.5) * resolution
+    obstacle_map = voxel_map_from_centres(centres, resolution)
+    origins = rng.uniform([-2.2, -1.2, -0.2], [2.2, 1.2, 4.2], (15, 3))
+    # Segments along cell boundaries and through cell corners, where the walk's rounding matters most.
+    origins[0] = [0.3, 0.2, 0.0]
+    origins[1] = [-1.0, -0.5, 0.5]
+    targets = rng.uniform([-2.2, -1.2, -0.2], [2.2, 1.2, 4.2], (120, 3))
+    targets[0] = [0.3, 0.2, 3.9]
+    targets[1] = [1.0, 0.5, 2.5]
+    targets[2] = [0.3, 0.2, 0.05]  # shorter than the margin
+    args = (obstacle_map.lower_index.astype(np.float64), resolution, origins, targets)
+    for margin in (0.1, 0.0):
+        expected = segments_clear(obstacle_map.occupied, *args, margin)
+        fast = segments_clear_skipping_empty(obstacle_map.occupied, obstacle_map.occupied_prefix_sums(), *args,
+                                             margin)
+        np.testing.assert_array_equal(fast, expected)
+        assert 0.0 < expected.mean() < 1.0
+    prefix = obstacle_map.occupied_prefix_sums()
+    assert prefix[-1, -1, -1] == obstacle_map.occupied.sum() and prefix is obstacle_map.occupied_prefix_sums()
