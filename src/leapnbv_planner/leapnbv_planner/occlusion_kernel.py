@@ -248,24 +248,49 @@ _PIXEL_MARGIN = 1.0
 _NEAR_Z = 1e-3
 #: A box is behind the camera (or beyond the farthest target) only when it is this far (m) past the plane.
 _Z_MARGIN = 1e-9
-#: Points per box the bucketing aims at.
+#: Points per grid cell the bucketing aims at, and the most points in a run (the finer boxes inside a cell).
 POINTS_PER_BOX = 64
+RUN_LENGTH = 16
 
 
 @njit(cache=True)
-def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: int):
-    """Sort (N, 3) points into the boxes of a regular grid over their bounds (a counting sort).
+def _bounding_box(points: np.ndarray, begin: int, end: int, out: np.ndarray) -> None:
+    """out (6,) = centre and half extents of the points [begin, end), the half extents grown by far more than the
+    rounding of the centre, so that the box surely holds every one of them."""
+    for a in range(3):
+        low = points[begin, a]
+        high = points[begin, a]
+        for n in range(begin + 1, end):
+            value = points[n, a]
+            if value < low:
+                low = value
+            if value > high:
+                high = value
+        centre = 0.5 * (low + high)
+        out[a] = centre
+        out[3 + a] = 0.5 * (high - low) * (1.0 + 1e-12) + 1e-12 * (abs(centre) + 1.0)
+
+
+@njit(cache=True)
+def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: int, run_length: int):
+    """Sort (N, 3) points into the cells of a regular grid over their bounds (a stable counting sort), and each
+    cell's points into runs of at most run_length consecutive points (in the input's order within the cell: a depth
+    image's raster order keeps a run compact).
 
     Args:
         points: (N, 3) float64, finite.
         companions: (N, 3) float64 rows that travel with the points (normals), or (0, 3).
         points_per_box: the grid has about N / points_per_box cells (at least 1, at most 64 per axis).
+        run_length: the most points in one run (>= 1).
 
     Returns:
-        (sorted points (N, 3), sorted companions (N or 0, 3), starts (B + 1,) int64 of the B non-empty
-        boxes, lower (B, 3), upper (B, 3) the tight bounds of each box's points).
+        (sorted points (N, 3), sorted companions (N or 0, 3), cell_runs (B + 1,) int64: the runs of non-empty cell
+        b are cell_runs[b] to cell_runs[b + 1], cell_boxes (B, 6), run_starts (S + 1,) int64: run r holds the
+        sorted points run_starts[r] to run_starts[r + 1], run_boxes (S, 6)); a box is (centre, half extents)
+        of a bounding box of its points.
     """
     num = points.shape[0]
+    run_length = max(1, run_length)
     with_companions = companions.shape[0] == num and num > 0
     low = np.empty(3)
     high = np.empty(3)
@@ -287,7 +312,7 @@ def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: in
         extent = high[a] - low[a] if num > 0 else 0.0
         scale[a] = cells_per_axis / extent if extent > 0.0 else 0.0
     total = cells_per_axis * cells_per_axis * cells_per_axis
-    box_of = np.empty(num, dtype=np.int64)
+    cell_of = np.empty(num, dtype=np.int64)
     counts = np.zeros(total + 1, dtype=np.int64)
     for n in range(num):
         key = 0
@@ -298,53 +323,53 @@ def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: in
             if index < 0:
                 index = 0
             key = key * cells_per_axis + index
-        box_of[n] = key
+        cell_of[n] = key
         counts[key + 1] += 1
+    num_cells = 0
+    num_runs = 0
     for key in range(total):
+        size = counts[key + 1]
+        if size > 0:
+            num_cells += 1
+            num_runs += (size + run_length - 1) // run_length
         counts[key + 1] += counts[key]
     fill = counts[:total].copy()
     sorted_points = np.empty((num, 3))
     sorted_companions = np.empty((num if with_companions else 0, 3))
     for n in range(num):
-        slot = fill[box_of[n]]
-        fill[box_of[n]] += 1
+        slot = fill[cell_of[n]]
+        fill[cell_of[n]] += 1
         for a in range(3):
             sorted_points[slot, a] = points[n, a]
             if with_companions:
                 sorted_companions[slot, a] = companions[n, a]
-    num_boxes = 0
-    for key in range(total):
-        if counts[key + 1] > counts[key]:
-            num_boxes += 1
-    starts = np.empty(num_boxes + 1, dtype=np.int64)
-    lower = np.empty((num_boxes, 3))
-    upper = np.empty((num_boxes, 3))
-    box = 0
+    cell_runs = np.empty(num_cells + 1, dtype=np.int64)
+    cell_boxes = np.empty((num_cells, 6))
+    run_starts = np.empty(num_runs + 1, dtype=np.int64)
+    run_boxes = np.empty((num_runs, 6))
+    cell = 0
+    run = 0
     for key in range(total):
         begin, end = counts[key], counts[key + 1]
         if end == begin:
             continue
-        starts[box] = begin
-        for a in range(3):
-            lower[box, a] = sorted_points[begin, a]
-            upper[box, a] = sorted_points[begin, a]
-        for n in range(begin + 1, end):
-            for a in range(3):
-                value = sorted_points[n, a]
-                if value < lower[box, a]:
-                    lower[box, a] = value
-                if value > upper[box, a]:
-                    upper[box, a] = value
-        box += 1
-    starts[num_boxes] = num
-    return sorted_points, sorted_companions, starts, lower, upper
+        cell_runs[cell] = run
+        _bounding_box(sorted_points, begin, end, cell_boxes[cell])
+        for first in range(begin, end, run_length):
+            run_starts[run] = first
+            _bounding_box(sorted_points, first, min(first + run_length, end), run_boxes[run])
+            run += 1
+        cell += 1
+    cell_runs[num_cells] = num_runs
+    run_starts[num_runs] = num
+    return sorted_points, sorted_companions, cell_runs, cell_boxes, run_starts, run_boxes
 
 
 @njit(cache=True)
-def _form_range(forms: np.ndarray, k: int, centre: np.ndarray, half: np.ndarray):
-    """(min, max) over a box of the linear form forms[k, :3] . p + forms[k, 3] (exact box extremes)."""
-    value = forms[k, 0] * centre[0] + forms[k, 1] * centre[1] + forms[k, 2] * centre[2] + forms[k, 3]
-    extent = abs(forms[k, 0]) * half[0] + abs(forms[k, 1]) * half[1] + abs(forms[k, 2]) * half[2]
+def _form_range(forms: np.ndarray, k: int, box: np.ndarray):
+    """(min, max) over a box (centre, half extents) of the linear form forms[k, :3] . p + forms[k, 3]."""
+    value = forms[k, 0] * box[0] + forms[k, 1] * box[1] + forms[k, 2] * box[2] + forms[k, 3]
+    extent = abs(forms[k, 0]) * box[3] + abs(forms[k, 1]) * box[4] + abs(forms[k, 2]) * box[5]
     return value - extent, value + extent
 
 
@@ -370,49 +395,67 @@ def _frustum_forms(forms: np.ndarray, rotation: np.ndarray, position: np.ndarray
 
 
 @njit(cache=True)
-def _box_outside(forms: np.ndarray, centre: np.ndarray, half: np.ndarray, far_test: bool) -> bool:
+def _box_outside(forms: np.ndarray, box: np.ndarray, far_test: bool) -> bool:
     """The box surely holds no point that the per-point test keeps (behind the camera, beyond z_far, or off the
     pixel rectangle; the forms carry the pixel margin)."""
-    z_min, z_max = _form_range(forms, 0, centre, half)
+    z_min, z_max = _form_range(forms, 0, box)
     if z_max < -_Z_MARGIN:
         return True
     if far_test:
-        _, far_max = _form_range(forms, 1, centre, half)
+        _, far_max = _form_range(forms, 1, box)
         if far_max < -_Z_MARGIN:
             return True
     if z_min < _NEAR_Z:
         return False
     for k in range(2, 6):
-        _, side_max = _form_range(forms, k, centre, half)
+        _, side_max = _form_range(forms, k, box)
         if side_max < 0.0:
             return True
     return False
 
 
 @njit(cache=True)
-def _box_inside(forms: np.ndarray, centre: np.ndarray, half: np.ndarray) -> bool:
+def _box_inside(forms: np.ndarray, box: np.ndarray) -> bool:
     """Every point of the box is surely in view (the forms carry the inner pixel margin)."""
-    z_min, _ = _form_range(forms, 0, centre, half)
+    z_min, _ = _form_range(forms, 0, box)
     if not z_min >= _NEAR_Z:
         return False
     for k in range(2, 6):
-        side_min, _ = _form_range(forms, k, centre, half)
+        side_min, _ = _form_range(forms, k, box)
         if not side_min > 0.0:
             return False
     return True
 
 
 @njit(cache=True)
+def _live_runs(forms: np.ndarray, cell_runs: np.ndarray, cell_boxes: np.ndarray, run_boxes: np.ndarray,
+               far_test: bool, out: np.ndarray) -> int:
+    """Write to out the runs that _box_outside cannot rule out (their cell's box first, then their own); return
+    how many."""
+    count = 0
+    for cell in range(cell_runs.shape[0] - 1):
+        if _box_outside(forms, cell_boxes[cell], far_test):
+            continue
+        for run in range(cell_runs[cell], cell_runs[cell + 1]):
+            if not _box_outside(forms, run_boxes[run], far_test):
+                out[count] = run
+                count += 1
+    return count
+
+
+@njit(cache=True)
 def count_visible_targets_bucketed(
     target_points: np.ndarray,
     target_normals: np.ndarray,
-    target_starts: np.ndarray,
-    target_lower: np.ndarray,
-    target_upper: np.ndarray,
+    target_cell_runs: np.ndarray,
+    target_cell_boxes: np.ndarray,
+    target_run_starts: np.ndarray,
+    target_run_boxes: np.ndarray,
     background_points: np.ndarray,
-    background_starts: np.ndarray,
-    background_lower: np.ndarray,
-    background_upper: np.ndarray,
+    background_cell_runs: np.ndarray,
+    background_cell_boxes: np.ndarray,
+    background_run_starts: np.ndarray,
+    background_run_boxes: np.ndarray,
     rotations: np.ndarray,
     positions: np.ndarray,
     fx: float,
@@ -426,17 +469,18 @@ def count_visible_targets_bucketed(
 ) -> Tuple[np.ndarray, np.ndarray]:
     """count_visible_targets over bucketed clouds (from :func:`bucket_points`): the same counts, faster.
 
-    Per candidate, a target box wholly off the image is skipped, and, when nothing can hide anything (no
-    background, no normals), a target box wholly in the image is counted without projecting its points. A
-    background box that lies wholly behind the camera, beyond the farthest in-view target point, or off the
-    target pixels' rectangle grown by the window is skipped. Every other point goes through the per-point
-    arithmetic of count_visible_targets; counts and minima do not depend on the order of the points.
+    Per candidate, a target cell or run wholly off the image is skipped, and, when nothing can hide anything (no
+    background, no normals), a target run wholly in the image is counted without projecting its points. A
+    background cell or run that lies wholly behind the camera, beyond the farthest in-view target point, or off
+    the target pixels' rectangle grown by the window is skipped. Every other point goes through the per-point
+    arithmetic of count_visible_targets (a point surely off the rectangle is left out before its division); counts
+    and minima do not depend on the order of the points.
 
     Args:
-        target_points, target_normals, target_starts, target_lower, target_upper: the bucketed targets (normals
-            (N, 3) or (0, 3), as in count_visible_targets).
-        background_points, background_starts, background_lower, background_upper: the bucketed background (may
-            hold 0 points).
+        target_points, target_normals, target_cell_runs, target_cell_boxes, target_run_starts, target_run_boxes:
+            the bucketed targets (normals (N, 3) or (0, 3), as in count_visible_targets).
+        background_points, background_cell_runs, background_cell_boxes, background_run_starts,
+            background_run_boxes: the bucketed background (may hold 0 points).
         rotations, positions, fx, skew, cx, fy, cy, width, height, half_window: as in count_visible_targets.
 
     Returns:
@@ -445,34 +489,13 @@ def count_visible_targets_bucketed(
     num_candidates = rotations.shape[0]
     num_targets = target_points.shape[0]
     num_background = background_points.shape[0]
-    num_target_boxes = target_starts.shape[0] - 1
-    num_background_boxes = background_starts.shape[0] - 1
     facing = target_normals.shape[0] == num_targets and num_targets > 0
     window = 2 * half_window + 1
     in_view = np.zeros(num_candidates, dtype=np.int64)
     not_hidden = np.zeros(num_candidates, dtype=np.int64)
     wholesale = num_background == 0 and not facing  # only the in-view count is needed
 
-    target_centre = np.empty((num_target_boxes, 3))
-    target_half = np.empty((num_target_boxes, 3))
-    for b in range(num_target_boxes):
-        for a in range(3):
-            target_centre[b, a] = 0.5 * (target_lower[b, a] + target_upper[b, a])
-            target_half[b, a] = 0.5 * (target_upper[b, a] - target_lower[b, a])
-    background_centre = np.empty((num_background_boxes, 3))
-    background_half = np.empty((num_background_boxes, 3))
-    for b in range(num_background_boxes):
-        for a in range(3):
-            background_centre[b, a] = 0.5 * (background_lower[b, a] + background_upper[b, a])
-            background_half[b, a] = 0.5 * (background_upper[b, a] - background_lower[b, a])
-    # The half extents are rounded up a little so that the box surely holds its points.
-    for b in range(num_target_boxes):
-        for a in range(3):
-            target_half[b, a] = target_half[b, a] * (1.0 + 1e-12) + 1e-12
-    for b in range(num_background_boxes):
-        for a in range(3):
-            background_half[b, a] = background_half[b, a] * (1.0 + 1e-12) + 1e-12
-
+    live_runs = np.empty(max(target_run_starts.shape[0], background_run_starts.shape[0]), dtype=np.int64)
     padded_width = width + 2 * half_window
     row_capacity = ((padded_width + window - 1) // window) * window
     depth = np.empty((height + 2 * half_window, row_capacity))
@@ -486,6 +509,8 @@ def count_visible_targets_bucketed(
     last_occupied = np.empty(height + 2 * half_window, dtype=np.int64)
     valid_lo = np.empty(height + 2 * half_window, dtype=np.int64)
     valid_hi = np.empty(height + 2 * half_window, dtype=np.int64)
+    near_block = np.empty(((height + 2 * half_window) // window + 1, (width + 2 * half_window) // window + 1),
+                          dtype=np.bool_)
     outer_forms = np.empty((6, 4))
     inner_forms = np.empty((6, 4))
     region_forms = np.empty((6, 4))
@@ -506,13 +531,13 @@ def count_visible_targets_bucketed(
         count = 0
         col_min, col_max, row_min_t, row_max_t = width, -1, height, -1
         farthest_target = 0.0
-        for b in range(num_target_boxes):
-            if _box_outside(outer_forms, target_centre[b], target_half[b], False):
+        num_live = _live_runs(outer_forms, target_cell_runs, target_cell_boxes, target_run_boxes, False, live_runs)
+        for live in range(num_live):
+            run = live_runs[live]
+            if wholesale and _box_inside(inner_forms, target_run_boxes[run]):
+                count += target_run_starts[run + 1] - target_run_starts[run]
                 continue
-            if wholesale and _box_inside(inner_forms, target_centre[b], target_half[b]):
-                count += target_starts[b + 1] - target_starts[b]
-                continue
-            for n in range(target_starts[b], target_starts[b + 1]):
+            for n in range(target_run_starts[run], target_run_starts[run + 1]):
                 dx = target_points[n, 0] - tx
                 dy = target_points[n, 1] - ty
                 dz = target_points[n, 2] - tz
@@ -560,22 +585,32 @@ def count_visible_targets_bucketed(
             first_occupied[rr] = region_width
             last_occupied[rr] = -1
         any_occupied = False
+        u_off_lo, u_off_hi = col_lo - _PIXEL_MARGIN, col_hi_excl + _PIXEL_MARGIN
+        v_off_lo, v_off_hi = row_lo - _PIXEL_MARGIN, row_hi_excl + _PIXEL_MARGIN
         _frustum_forms(region_forms, rotation, position, fx, skew, cx, fy, cy, col_lo - _PIXEL_MARGIN,
                        col_hi_excl + _PIXEL_MARGIN, row_lo - _PIXEL_MARGIN, row_hi_excl + _PIXEL_MARGIN,
                        farthest_target)
 
-        for b in range(num_background_boxes):
-            if _box_outside(region_forms, background_centre[b], background_half[b], True):
-                continue
-            for k in range(background_starts[b], background_starts[b + 1]):
+        num_live = _live_runs(region_forms, background_cell_runs, background_cell_boxes, background_run_boxes, True,
+                              live_runs)
+        for live in range(num_live):
+            run = live_runs[live]
+            for k in range(background_run_starts[run], background_run_starts[run + 1]):
                 dx = background_points[k, 0] - tx
                 dy = background_points[k, 1] - ty
                 dz = background_points[k, 2] - tz
                 z = r02 * dx + r12 * dy + r22 * dz
                 if not (z > 0.0 and z < farthest_target):
                     continue
-                xn = (r00 * dx + r10 * dy + r20 * dz) / z
-                yn = (r01 * dx + r11 * dy + r21 * dz) / z
+                x = r00 * dx + r10 * dy + r20 * dz
+                y = r01 * dx + r11 * dy + r21 * dz
+                if z >= _NEAR_Z:  # surely off the rectangle (by a pixel): no division needed
+                    horizontal = fx * x + skew * y
+                    if (horizontal < (u_off_lo - cx) * z or horizontal > (u_off_hi - cx) * z
+                            or fy * y < (v_off_lo - cy) * z or fy * y > (v_off_hi - cy) * z):
+                        continue
+                xn = x / z
+                yn = y / z
                 u = fx * xn + skew * yn + cx
                 v = fy * yn + cy
                 if not (u >= col_lo and u < col_hi_excl and v >= row_lo and v < row_hi_excl):
@@ -616,10 +651,27 @@ def count_visible_targets_bucketed(
             valid_lo[rr] = start_lo + half_window
             valid_hi[rr] = start_hi + half_window
 
+        # Blocks of window x window pixels near a block that holds a point (3 x 3 blocks hold any window around a
+        # pixel of the middle one): a target pixel in another block has nothing in its window and is seen.
+        block_rows = (region_height + window - 1) // window
+        block_cols = (region_width + window - 1) // window
+        for br in range(block_rows):
+            for bc in range(block_cols):
+                near_block[br, bc] = False
+        for rr in range(region_height):
+            if last_occupied[rr] < 0:
+                continue
+            br = rr // window
+            for bc in range(max(0, first_occupied[rr] // window - 1), min(block_cols, last_occupied[rr] // window + 2)):
+                for neighbour in range(max(0, br - 1), min(block_rows, br + 2)):
+                    near_block[neighbour, bc] = True
         visible = 0
         for n in range(count):
             cc = target_col[n] - col_lo
             rr0 = target_row[n] - row_lo - half_window
+            if not near_block[(rr0 + half_window) // window, cc // window]:
+                visible += 1
+                continue
             nearest = np.inf
             for rr in range(rr0, rr0 + window):
                 if valid_lo[rr] <= cc and cc <= valid_hi[rr] and row_min[rr, cc] < nearest:

@@ -33,15 +33,14 @@ def random_views(rng, count, centre):
     return np.ascontiguousarray(rotations), np.ascontiguousarray(positions)
 
 
-def both(targets, normals, background, rotations, positions, camera, half_window, points_per_box):
+def both(targets, normals, background, rotations, positions, camera, half_window, points_per_box, run_length=16):
     fx, skew, cx, fy, cy, width, height = camera
     reference = count_visible_targets(targets, background, rotations, positions, fx, skew, cx, fy, cy, width,
                                       height, half_window, normals)
-    t_points, t_normals, t_starts, t_lower, t_upper = bucket_points(targets, normals, points_per_box)
-    b_points, _, b_starts, b_lower, b_upper = bucket_points(background, NONE, points_per_box)
-    fast = count_visible_targets_bucketed(t_points, t_normals, t_starts, t_lower, t_upper, b_points, b_starts,
-                                          b_lower, b_upper, rotations, positions, fx, skew, cx, fy, cy, width,
-                                          height, half_window)
+    t_points, t_normals, *t_boxes = bucket_points(targets, normals, points_per_box, run_length)
+    b_points, _, *b_boxes = bucket_points(background, NONE, points_per_box, run_length)
+    fast = count_visible_targets_bucketed(t_points, t_normals, *t_boxes, b_points, *b_boxes, rotations, positions,
+                                          fx, skew, cx, fy, cy, width, height, half_window)
     return reference, fast
 
 
@@ -60,14 +59,15 @@ def test_bucketed_counts_equal_the_per_point_kernel(seed):
     ])
     rotations, positions = random_views(rng, 12, centre)
     for half_window in (0, 2, 4):
-        for points_per_box in (1, 16, 64, 100000):
+        for points_per_box, run_length in ((1, 1), (16, 4), (64, 16), (100000, 100000)):
             for target_normals in (NONE, normals):
                 reference, fast = both(targets, target_normals, background, rotations, positions, camera,
-                                       half_window, points_per_box)
+                                       half_window, points_per_box, run_length)
                 np.testing.assert_array_equal(fast[0], reference[0])
                 np.testing.assert_array_equal(fast[1], reference[1])
             # In view only (S_v's call): whole boxes are counted without projecting their points.
-            reference, fast = both(targets, NONE, NONE, rotations, positions, camera, half_window, points_per_box)
+            reference, fast = both(targets, NONE, NONE, rotations, positions, camera, half_window, points_per_box,
+                                   run_length)
             np.testing.assert_array_equal(fast[0], reference[0])
     # The scene is not trivial: one view sees none of the target, others part of it or nearly all of it, and
     # some views see points both hidden and not hidden.
@@ -80,21 +80,27 @@ def test_bucketed_counts_equal_the_per_point_kernel(seed):
 
 def test_bucketing_keeps_every_point_in_a_box_that_bounds_it():
     rng = np.random.default_rng(3)
-    points = rng.normal(size=(5000, 3)) * [2.0, 0.01, 1.0]
+    points = rng.normal(size=(5000, 3)) * [2.0, 0.01, 1.0] + [1e3, 0.0, 0.0]
     normals = rng.normal(size=(5000, 3))
-    sorted_points, sorted_normals, starts, lower, upper = bucket_points(points, normals, 32)
-    assert starts[0] == 0 and starts[-1] == len(points) and np.all(np.diff(starts) > 0)
-    order = np.lexsort(points.T)
+    sorted_points, sorted_normals, cell_runs, cell_boxes, run_starts, run_boxes = bucket_points(points, normals, 32, 7)
+    assert run_starts[0] == 0 and run_starts[-1] == len(points) and np.all(np.diff(run_starts) > 0)
+    assert np.all(np.diff(run_starts) <= 7) and cell_runs[0] == 0 and cell_runs[-1] == len(run_boxes)
     np.testing.assert_array_equal(np.sort(sorted_points.view("f8,f8,f8"), axis=0),
                                   np.sort(points.view("f8,f8,f8"), axis=0))
-    pairs = {tuple(p): tuple(n) for p, n in zip(points[order], normals[order])}
+    pairs = {tuple(p): tuple(n) for p, n in zip(points, normals)}
     assert all(pairs[tuple(p)] == tuple(n) for p, n in zip(sorted_points, sorted_normals))
-    for box in range(len(starts) - 1):
-        inside = sorted_points[starts[box]:starts[box + 1]]
-        np.testing.assert_array_equal(inside.min(axis=0), lower[box])
-        np.testing.assert_array_equal(inside.max(axis=0), upper[box])
-    empty = bucket_points(NONE, NONE, 32)
-    assert empty[0].shape == (0, 3) and list(empty[2]) == [0]
+    def holds_tightly(box, inside):
+        # Every point inside; no larger than the points' own bounds but for the growth (1e-8 m here).
+        return (np.all(np.abs(inside - box[:3]) <= box[3:])
+                and np.all(box[3:] - 0.5 * (inside.max(axis=0) - inside.min(axis=0)) < 1e-8))
+
+    for cell in range(len(cell_boxes)):
+        runs = range(cell_runs[cell], cell_runs[cell + 1])
+        assert holds_tightly(cell_boxes[cell], sorted_points[run_starts[runs[0]]:run_starts[runs[-1] + 1]])
+        for run in runs:
+            assert holds_tightly(run_boxes[run], sorted_points[run_starts[run]:run_starts[run + 1]])
+    empty = bucket_points(NONE, NONE, 32, 16)
+    assert empty[0].shape == (0, 3) and list(empty[2]) == [0] and list(empty[4]) == [0]
 
 
 def test_face_normal_sums_equal_numpy_cross_and_bincount():

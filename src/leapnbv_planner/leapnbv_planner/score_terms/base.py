@@ -20,13 +20,18 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from leapnbv_planner.occlusion_kernel import POINTS_PER_BOX, bucket_points, count_visible_targets_bucketed
+from leapnbv_planner.occlusion_kernel import (
+    POINTS_PER_BOX,
+    RUN_LENGTH,
+    bucket_points,
+    count_visible_targets_bucketed,
+)
 
 # (fx, skew, cx, fy, cy, width, height) of validated intrinsics and image size.
 Camera = Tuple[float, float, float, float, float, int, int]
-# A cloud sorted into boxes by leapnbv_planner.occlusion_kernel.bucket_points: (points, companions, starts, lower,
-# upper).
-Buckets = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+# A cloud sorted into boxes by leapnbv_planner.occlusion_kernel.bucket_points: (points, companions, cell_runs,
+# cell_boxes, run_starts, run_boxes).
+Buckets = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 _NO_ROWS = np.zeros((0, 3))
 
 
@@ -179,19 +184,18 @@ class ScoringContext:
                 points = {"targets": self.targets, "background": self.background}.get(name, _NO_ROWS)
                 companions = _NO_ROWS
             self._buckets[name] = bucket_points(np.ascontiguousarray(points), np.ascontiguousarray(companions),
-                                                POINTS_PER_BOX)
+                                                POINTS_PER_BOX, RUN_LENGTH)
         return self._buckets[name]
 
     def _kernel_counts(self, targets: str, background: str) -> Tuple[np.ndarray, np.ndarray]:
         """(in_view, not_hidden) of :func:`leapnbv_planner.occlusion_kernel.count_visible_targets_bucketed`."""
         fx, skew, cx, fy, cy, width, height = self.camera
-        target_points, target_normals, target_starts, target_lower, target_upper = self.buckets(targets)
-        background_points, _, background_starts, background_lower, background_upper = self.buckets(background)
+        target_points, target_normals, *target_boxes = self.buckets(targets)
+        background_points, _, *background_boxes = self.buckets(background)
         self.kernel_calls += 1
         return count_visible_targets_bucketed(
-            target_points, target_normals, target_starts, target_lower, target_upper, background_points,
-            background_starts, background_lower, background_upper, self.rotations, self.positions,
-            fx, skew, cx, fy, cy, width, height, self.half_window)
+            target_points, target_normals, *target_boxes, background_points, *background_boxes, self.rotations,
+            self.positions, fx, skew, cx, fy, cy, width, height, self.half_window)
 
     def visible_counts(self) -> Tuple[np.ndarray, np.ndarray]:
         """(in_view (C,) int64, not_hidden (C,) int64), from one occlusion-kernel call per context.
