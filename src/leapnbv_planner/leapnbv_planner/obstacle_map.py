@@ -282,6 +282,16 @@ def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarr
 
 
 @njit(cache=True)
+def _walk_axis(start: float, delta: float, cell: int):
+    """(step, t_delta, first t_max) of one axis of the walk, with segments_clear's arithmetic."""
+    if delta > 0.0:
+        return 1, 1.0 / delta, (cell + 1.0 - start) / delta
+    if delta < 0.0:
+        return -1, -1.0 / delta, (start - cell) / -delta
+    return 0, np.inf, np.inf
+
+
+@njit(cache=True)
 def segments_clear_skipping_empty(
     occupied: np.ndarray,
     prefix: np.ndarray,
@@ -310,10 +320,6 @@ def segments_clear_skipping_empty(
     clear = np.ones((num_origins, num_targets), dtype=np.bool_)
     start = np.empty(3)
     delta = np.empty(3)
-    cell = np.empty(3, dtype=np.int64)
-    step = np.empty(3, dtype=np.int64)
-    t_max = np.empty(3)
-    t_delta = np.empty(3)
     stack_a = np.empty(2 * _MAX_HALVINGS + 2)
     stack_b = np.empty(2 * _MAX_HALVINGS + 2)
     stack_level = np.empty(2 * _MAX_HALVINGS + 2, dtype=np.int64)
@@ -331,53 +337,64 @@ def segments_clear_skipping_empty(
                 start[a] = origins[c, a] / resolution - lower_index[a]
                 delta[a] = delta[a] / resolution
 
-            # The empty-box test: a piece whose box holds an occupied cell is halved, down to _MAX_HALVINGS.
-            maybe_blocked = False
+            # The empty-box test: a piece whose box holds an occupied cell is halved, down to _MAX_HALVINGS; the
+            # walk is needed only when a piece of the finest level holds one, and only up to the last such piece.
+            walk_until = -1.0
             stack_a[0], stack_b[0], stack_level[0] = 0.0, t_end, 0
             depth = 1
             while depth > 0:
                 depth -= 1
                 t_a, t_b, level = stack_a[depth], stack_b[depth], stack_level[depth]
-                if not _piece_may_be_blocked(prefix, sizes, start, delta, t_a, t_b):
+                if t_b <= walk_until or not _piece_may_be_blocked(prefix, sizes, start, delta, t_a, t_b):
                     continue
                 if level == _MAX_HALVINGS:
-                    maybe_blocked = True
-                    break
+                    walk_until = t_b
+                    continue
                 t_mid = 0.5 * (t_a + t_b)
-                stack_a[depth], stack_b[depth], stack_level[depth] = t_mid, t_b, level + 1
-                stack_a[depth + 1], stack_b[depth + 1], stack_level[depth + 1] = t_a, t_mid, level + 1
+                # The later half first: the first finest piece found then is the last one along the segment.
+                stack_a[depth], stack_b[depth], stack_level[depth] = t_a, t_mid, level + 1
+                stack_a[depth + 1], stack_b[depth + 1], stack_level[depth + 1] = t_mid, t_b, level + 1
                 depth += 2
-            if not maybe_blocked:
+            if walk_until < 0.0:
                 continue
+            # Past walk_until (with a margin far above the rounding of the crossing parameters) every cell the walk
+            # enters lies in an empty piece's box: the segment is clear from there on.
+            walk_until += 1e-9
 
-            for a in range(3):
-                cell[a] = np.int64(np.floor(start[a]))
-                if delta[a] > 0.0:
-                    step[a] = 1
-                    t_delta[a] = 1.0 / delta[a]
-                    t_max[a] = (cell[a] + 1.0 - start[a]) / delta[a]
-                elif delta[a] < 0.0:
-                    step[a] = -1
-                    t_delta[a] = -1.0 / delta[a]
-                    t_max[a] = (start[a] - cell[a]) / -delta[a]
-                else:
-                    step[a] = 0
-                    t_delta[a] = np.inf
-                    t_max[a] = np.inf
+            # The walk of segments_clear, its arithmetic unchanged (scalars instead of 3-arrays).
+            start_x, start_y, start_z = start[0], start[1], start[2]
+            delta_x, delta_y, delta_z = delta[0], delta[1], delta[2]
+            cell_x = np.int64(np.floor(start_x))
+            cell_y = np.int64(np.floor(start_y))
+            cell_z = np.int64(np.floor(start_z))
+            step_x, t_delta_x, t_max_x = _walk_axis(start_x, delta_x, cell_x)
+            step_y, t_delta_y, t_max_y = _walk_axis(start_y, delta_y, cell_y)
+            step_z, t_delta_z, t_max_z = _walk_axis(start_z, delta_z, cell_z)
             t = 0.0
             while t <= t_end:
-                if (0 <= cell[0] < size_x and 0 <= cell[1] < size_y and 0 <= cell[2] < size_z
-                        and occupied[cell[0], cell[1], cell[2]]):
+                if t > walk_until:
+                    break
+                if (0 <= cell_x < size_x and 0 <= cell_y < size_y and 0 <= cell_z < size_z
+                        and occupied[cell_x, cell_y, cell_z]):
                     clear[c, m] = False
                     break
-                axis = 0
-                if t_max[1] < t_max[axis]:
-                    axis = 1
-                if t_max[2] < t_max[axis]:
-                    axis = 2
-                t = t_max[axis]
-                cell[axis] += step[axis]
-                t_max[axis] += t_delta[axis]
+                if t_max_y < t_max_x:
+                    if t_max_z < t_max_y:
+                        t = t_max_z
+                        cell_z += step_z
+                        t_max_z += t_delta_z
+                    else:
+                        t = t_max_y
+                        cell_y += step_y
+                        t_max_y += t_delta_y
+                elif t_max_z < t_max_x:
+                    t = t_max_z
+                    cell_z += step_z
+                    t_max_z += t_delta_z
+                else:
+                    t = t_max_x
+                    cell_x += step_x
+                    t_max_x += t_delta_x
     return clear
 
 

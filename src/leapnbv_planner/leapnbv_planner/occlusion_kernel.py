@@ -531,12 +531,28 @@ def count_visible_targets_bucketed(
         count = 0
         col_min, col_max, row_min_t, row_max_t = width, -1, height, -1
         farthest_target = 0.0
-        num_live = _live_runs(outer_forms, target_cell_runs, target_cell_boxes, target_run_boxes, False, live_runs)
+        if wholesale:  # whole cells, then whole runs, surely in the image are counted without their points
+            num_live = 0
+            for cell in range(target_cell_runs.shape[0] - 1):
+                if _box_outside(outer_forms, target_cell_boxes[cell], False):
+                    continue
+                first_run, end_run = target_cell_runs[cell], target_cell_runs[cell + 1]
+                if _box_inside(inner_forms, target_cell_boxes[cell]):
+                    count += target_run_starts[end_run] - target_run_starts[first_run]
+                    continue
+                for run in range(first_run, end_run):
+                    if _box_outside(outer_forms, target_run_boxes[run], False):
+                        continue
+                    if _box_inside(inner_forms, target_run_boxes[run]):
+                        count += target_run_starts[run + 1] - target_run_starts[run]
+                        continue
+                    live_runs[num_live] = run
+                    num_live += 1
+        else:
+            num_live = _live_runs(outer_forms, target_cell_runs, target_cell_boxes, target_run_boxes, False,
+                                  live_runs)
         for live in range(num_live):
             run = live_runs[live]
-            if wholesale and _box_inside(inner_forms, target_run_boxes[run]):
-                count += target_run_starts[run + 1] - target_run_starts[run]
-                continue
             for n in range(target_run_starts[run], target_run_starts[run + 1]):
                 dx = target_points[n, 0] - tx
                 dy = target_points[n, 1] - ty
