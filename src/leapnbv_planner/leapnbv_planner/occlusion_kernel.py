@@ -366,6 +366,37 @@ def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: in
 
 
 @njit(cache=True)
+def run_facing_bounds(points: np.ndarray, normals: np.ndarray, run_starts: np.ndarray) -> np.ndarray:
+    """(S, 7) per run of bucketed points with normals: min of n . p over the run, then the lower and upper
+    corners of its normals' bounding box (what tells that a whole run faces away from a camera)."""
+    num_runs = run_starts.shape[0] - 1
+    bounds = np.empty((num_runs, 7))
+    for run in range(num_runs):
+        lowest = np.inf
+        for a in range(3):
+            bounds[run, 1 + a] = np.inf
+            bounds[run, 4 + a] = -np.inf
+        for n in range(run_starts[run], run_starts[run + 1]):
+            value = normals[n, 0] * points[n, 0] + normals[n, 1] * points[n, 1] + normals[n, 2] * points[n, 2]
+            lowest = min(lowest, value)
+            for a in range(3):
+                bounds[run, 1 + a] = min(bounds[run, 1 + a], normals[n, a])
+                bounds[run, 4 + a] = max(bounds[run, 4 + a], normals[n, a])
+        bounds[run, 0] = lowest
+    return bounds
+
+
+@njit(cache=True)
+def _run_faces_away(bounds: np.ndarray, run: int, tx: float, ty: float, tz: float) -> bool:
+    """Every point of the run surely has n . (p - t) > 0 (the far side from camera centre t): n . p - n . t is at
+    least min(n . p) - max over the normals' box of n . t, with a margin far above the rounding of either form."""
+    most = (max(bounds[run, 1] * tx, bounds[run, 4] * tx) + max(bounds[run, 2] * ty, bounds[run, 5] * ty)
+            + max(bounds[run, 3] * tz, bounds[run, 6] * tz))
+    scale = abs(bounds[run, 0]) + abs(most) + 1.0
+    return bounds[run, 0] - most > 1e-9 * scale
+
+
+@njit(cache=True)
 def _form_range(forms: np.ndarray, k: int, box: np.ndarray):
     """(min, max) over a box (centre, half extents) of the linear form forms[k, :3] . p + forms[k, 3]."""
     value = forms[k, 0] * box[0] + forms[k, 1] * box[1] + forms[k, 2] * box[2] + forms[k, 3]
@@ -451,6 +482,7 @@ def count_visible_targets_bucketed(
     target_cell_boxes: np.ndarray,
     target_run_starts: np.ndarray,
     target_run_boxes: np.ndarray,
+    target_run_facing: np.ndarray,
     background_points: np.ndarray,
     background_cell_runs: np.ndarray,
     background_cell_boxes: np.ndarray,
@@ -479,6 +511,8 @@ def count_visible_targets_bucketed(
     Args:
         target_points, target_normals, target_cell_runs, target_cell_boxes, target_run_starts, target_run_boxes:
             the bucketed targets (normals (N, 3) or (0, 3), as in count_visible_targets).
+        target_run_facing: with normals, run_facing_bounds of the targets' runs (a run that faces away from a
+            candidate is skipped); (0, 7) otherwise.
         background_points, background_cell_runs, background_cell_boxes, background_run_starts,
             background_run_boxes: the bucketed background (may hold 0 points).
         rotations, positions, fx, skew, cx, fy, cy, width, height, half_window: as in count_visible_targets.
@@ -551,8 +585,11 @@ def count_visible_targets_bucketed(
         else:
             num_live = _live_runs(outer_forms, target_cell_runs, target_cell_boxes, target_run_boxes, False,
                                   live_runs)
+        run_bounds = facing and target_run_facing.shape[0] == target_run_starts.shape[0] - 1
         for live in range(num_live):
             run = live_runs[live]
+            if run_bounds and _run_faces_away(target_run_facing, run, tx, ty, tz):
+                continue
             for n in range(target_run_starts[run], target_run_starts[run + 1]):
                 dx = target_points[n, 0] - tx
                 dy = target_points[n, 1] - ty

@@ -12,7 +12,12 @@ import pytest
 
 from leapnbv_planner.candidates import camera_look_at
 from leapnbv_planner.mesh_kernel import face_normal_sums
-from leapnbv_planner.occlusion_kernel import bucket_points, count_visible_targets, count_visible_targets_bucketed
+from leapnbv_planner.occlusion_kernel import (
+    bucket_points,
+    count_visible_targets,
+    count_visible_targets_bucketed,
+    run_facing_bounds,
+)
 
 UP = np.array([0.0, -1.0, 0.0])
 NONE = np.zeros((0, 3))
@@ -39,8 +44,9 @@ def both(targets, normals, background, rotations, positions, camera, half_window
                                       height, half_window, normals)
     t_points, t_normals, *t_boxes = bucket_points(targets, normals, points_per_box, run_length)
     b_points, _, *b_boxes = bucket_points(background, NONE, points_per_box, run_length)
-    fast = count_visible_targets_bucketed(t_points, t_normals, *t_boxes, b_points, *b_boxes, rotations, positions,
-                                          fx, skew, cx, fy, cy, width, height, half_window)
+    facing = run_facing_bounds(t_points, t_normals, t_boxes[2]) if len(t_normals) else np.zeros((0, 7))
+    fast = count_visible_targets_bucketed(t_points, t_normals, *t_boxes, facing, b_points, *b_boxes, rotations,
+                                          positions, fx, skew, cx, fy, cy, width, height, half_window)
     return reference, fast
 
 
@@ -51,6 +57,7 @@ def test_bucketed_counts_equal_the_per_point_kernel(seed):
     camera = (250.0, 1.5 * seed, 150.0, 240.0, 95.0, 300, 200)
     targets = rng.normal(size=(3000, 3)) * [0.3, 0.6, 0.2] + centre
     normals = rng.normal(size=(3000, 3))
+    outward = targets - centre  # coherent normals: whole runs face away from a camera
     background = np.concatenate([
         rng.uniform([-4, -2, -1], [4, 2, 7], size=(6000, 3)),  # everywhere, behind the cameras too
         rng.normal(size=(6000, 3)) * [0.5, 0.7, 0.6] + centre - [0.0, 0.0, 0.8],  # in front of the target
@@ -60,7 +67,7 @@ def test_bucketed_counts_equal_the_per_point_kernel(seed):
     rotations, positions = random_views(rng, 12, centre)
     for half_window in (0, 2, 4):
         for points_per_box, run_length in ((1, 1), (16, 4), (64, 16), (100000, 100000)):
-            for target_normals in (NONE, normals):
+            for target_normals in (NONE, normals, outward):
                 reference, fast = both(targets, target_normals, background, rotations, positions, camera,
                                        half_window, points_per_box, run_length)
                 np.testing.assert_array_equal(fast[0], reference[0])

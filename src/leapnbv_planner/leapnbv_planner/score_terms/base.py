@@ -25,6 +25,7 @@ from leapnbv_planner.occlusion_kernel import (
     RUN_LENGTH,
     bucket_points,
     count_visible_targets_bucketed,
+    run_facing_bounds,
 )
 
 # (fx, skew, cx, fy, cy, width, height) of validated intrinsics and image size.
@@ -192,10 +193,12 @@ class ScoringContext:
         fx, skew, cx, fy, cy, width, height = self.camera
         target_points, target_normals, *target_boxes = self.buckets(targets)
         background_points, _, *background_boxes = self.buckets(background)
+        facing = (run_facing_bounds(target_points, target_normals, target_boxes[2]) if len(target_normals)
+                  else np.zeros((0, 7)))
         self.kernel_calls += 1
         return count_visible_targets_bucketed(
-            target_points, target_normals, *target_boxes, background_points, *background_boxes, self.rotations,
-            self.positions, fx, skew, cx, fy, cy, width, height, self.half_window)
+            target_points, target_normals, *target_boxes, facing, background_points, *background_boxes,
+            self.rotations, self.positions, fx, skew, cx, fy, cy, width, height, self.half_window)
 
     def visible_counts(self) -> Tuple[np.ndarray, np.ndarray]:
         """(in_view (C,) int64, not_hidden (C,) int64), from one occlusion-kernel call per context.
