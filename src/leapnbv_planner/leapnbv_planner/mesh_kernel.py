@@ -37,3 +37,32 @@ def face_normal_sums(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
             sums[v, 1] += n1
             sums[v, 2] += n2
     return sums
+
+
+@njit(cache=True)
+def unit_normals(sums: np.ndarray, vertices: np.ndarray, centre: np.ndarray):
+    """(V, 3) sums / |sums| per row (0 for a zero row), with numpy's arithmetic for np.linalg.norm(axis=1) and
+    ``np.where(length > 0, sums / np.maximum(length, 1e-300), 0)``; and the sum over the vertices of
+    n . (v - centre) and of its terms' magnitudes (what decides, and bounds the rounding of, the outward sign).
+    """
+    count = sums.shape[0]
+    normals = np.empty((count, 3))
+    total = 0.0
+    magnitude = 0.0
+    for v in range(count):
+        x, y, z = sums[v, 0], sums[v, 1], sums[v, 2]
+        length = np.sqrt(x * x + y * y + z * z)
+        if length > 0.0:
+            divisor = max(length, 1e-300)
+            normals[v, 0] = x / divisor
+            normals[v, 1] = y / divisor
+            normals[v, 2] = z / divisor
+        else:
+            normals[v, 0] = 0.0
+            normals[v, 1] = 0.0
+            normals[v, 2] = 0.0
+        for a in range(3):
+            term = normals[v, a] * (vertices[v, a] - centre[a])
+            total += term
+            magnitude += abs(term)
+    return normals, total, magnitude

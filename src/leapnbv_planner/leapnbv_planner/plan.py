@@ -27,7 +27,7 @@ from leapnbv_planner.candidates import (
     generate_candidates,
     normalize_plane,
 )
-from leapnbv_planner.mesh_kernel import face_normal_sums
+from leapnbv_planner.mesh_kernel import face_normal_sums, unit_normals
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
 from leapnbv_planner.reachability import Reachability, build_occupancy_grid, reachability
@@ -151,10 +151,15 @@ def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
-    normals = face_normal_sums(np.ascontiguousarray(vertices), np.ascontiguousarray(faces))
-    lengths = np.linalg.norm(normals, axis=1)
-    normals = np.where(lengths[:, None] > 0, normals / np.maximum(lengths, 1e-300)[:, None], 0.0)
-    if float(np.sum(normals * (vertices - vertices.mean(axis=0)))) < 0.0:
+    vertices = np.ascontiguousarray(vertices)
+    centre = vertices.mean(axis=0)
+    normals, total, magnitude = unit_normals(face_normal_sums(vertices, np.ascontiguousarray(faces)), vertices,
+                                             centre)
+    # The sign of the sum decides; when it is too near 0 for the summation order not to matter (never for a body),
+    # it is taken as numpy sums it.
+    if abs(total) <= 1e-9 * magnitude:
+        total = float(np.sum(normals * (vertices - centre)))
+    if total < 0.0:
         normals = -normals
     return normals
 

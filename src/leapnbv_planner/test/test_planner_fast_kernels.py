@@ -180,3 +180,23 @@ def test_segment_walk_with_empty_box_skipping_equals_the_plain_walk(density):
         assert 0.0 < expected.mean() < 1.0
     prefix = obstacle_map.occupied_prefix_sums()
     assert prefix[-1, -1, -1] == obstacle_map.occupied.sum() and prefix is obstacle_map.occupied_prefix_sums()
+
+
+def test_mesh_vertex_normals_equal_the_numpy_expression():
+    from leapnbv_planner.plan import mesh_vertex_normals
+
+    rng = np.random.default_rng(6)
+    for vertices, faces in ((rng.normal(size=(3000, 3)), rng.integers(0, 3000, size=(6000, 3))),
+                            (rng.normal(size=(50, 3)), np.zeros((0, 3), dtype=np.int64))):
+        faces = np.vstack([faces, [[0, 0, 0]]])  # a degenerate face: a zero normal stays zero
+        corners = vertices[faces]
+        sums = np.zeros_like(vertices)
+        face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        for axis in range(3):
+            sums[:, axis] = np.bincount(faces.reshape(-1), weights=np.repeat(face_normals[:, axis], 3),
+                                        minlength=len(vertices))
+        lengths = np.linalg.norm(sums, axis=1)
+        expected = np.where(lengths[:, None] > 0, sums / np.maximum(lengths, 1e-300)[:, None], 0.0)
+        if float(np.sum(expected * (vertices - vertices.mean(axis=0)))) < 0.0:
+            expected = -expected
+        np.testing.assert_array_equal(mesh_vertex_normals(vertices, faces), expected)
