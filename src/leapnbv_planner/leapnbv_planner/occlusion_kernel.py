@@ -254,21 +254,13 @@ RUN_LENGTH = 16
 
 
 @njit(cache=True)
-def _bounding_box(points: np.ndarray, begin: int, end: int, out: np.ndarray) -> None:
-    """out (6,) = centre and half extents of the points [begin, end), the half extents grown by far more than the
-    rounding of the centre, so that the box surely holds every one of them."""
+def _box_from_bounds(low: np.ndarray, high: np.ndarray, out: np.ndarray) -> None:
+    """out (6,) = centre and half extents of [low, high], the half extents grown by far more than the rounding of
+    the centre, so that the box surely holds everything in [low, high]."""
     for a in range(3):
-        low = points[begin, a]
-        high = points[begin, a]
-        for n in range(begin + 1, end):
-            value = points[n, a]
-            if value < low:
-                low = value
-            if value > high:
-                high = value
-        centre = 0.5 * (low + high)
+        centre = 0.5 * (low[a] + high[a])
         out[a] = centre
-        out[3 + a] = 0.5 * (high - low) * (1.0 + 1e-12) + 1e-12 * (abs(centre) + 1.0)
+        out[3 + a] = 0.5 * (high[a] - low[a]) * (1.0 + 1e-12) + 1e-12 * (abs(centre) + 1.0)
 
 
 @njit(cache=True)
@@ -349,16 +341,36 @@ def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: in
     run_boxes = np.empty((num_runs, 6))
     cell = 0
     run = 0
+    run_low = np.empty(3)
+    run_high = np.empty(3)
+    cell_low = np.empty(3)
+    cell_high = np.empty(3)
     for key in range(total):
         begin, end = counts[key], counts[key + 1]
         if end == begin:
             continue
         cell_runs[cell] = run
-        _bounding_box(sorted_points, begin, end, cell_boxes[cell])
+        for a in range(3):
+            cell_low[a] = np.inf
+            cell_high[a] = -np.inf
         for first in range(begin, end, run_length):
             run_starts[run] = first
-            _bounding_box(sorted_points, first, min(first + run_length, end), run_boxes[run])
+            for a in range(3):
+                run_low[a] = sorted_points[first, a]
+                run_high[a] = sorted_points[first, a]
+            for n in range(first + 1, min(first + run_length, end)):
+                for a in range(3):
+                    value = sorted_points[n, a]
+                    if value < run_low[a]:
+                        run_low[a] = value
+                    if value > run_high[a]:
+                        run_high[a] = value
+            _box_from_bounds(run_low, run_high, run_boxes[run])
+            for a in range(3):
+                cell_low[a] = min(cell_low[a], run_low[a])
+                cell_high[a] = max(cell_high[a], run_high[a])
             run += 1
+        _box_from_bounds(cell_low, cell_high, cell_boxes[cell])
         cell += 1
     cell_runs[num_cells] = num_runs
     run_starts[num_runs] = num
