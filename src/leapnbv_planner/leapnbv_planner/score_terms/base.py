@@ -153,8 +153,11 @@ class ScoringContext:
             if vertices.ndim != 2 or vertices.shape[1] != 3 or normals is None or normals.shape != vertices.shape:
                 raise ScoringInputError(f"mesh_vertices must be (V, 3) with mesh_normals of the same shape, got "
                                         f"{vertices.shape} and {None if normals is None else normals.shape}")
-            keep = np.all(np.isfinite(vertices), axis=1) & np.all(np.isfinite(normals), axis=1)
-            self.mesh_vertices, self.mesh_normals = vertices[keep], normals[keep]
+            if np.isfinite(vertices).all() and np.isfinite(normals).all():  # the usual case: no copies
+                self.mesh_vertices, self.mesh_normals = vertices, normals
+            else:
+                keep = np.all(np.isfinite(vertices), axis=1) & np.all(np.isfinite(normals), axis=1)
+                self.mesh_vertices, self.mesh_normals = vertices[keep], normals[keep]
             if mesh_line_of_sight_clear is not None:
                 clear = np.asarray(mesh_line_of_sight_clear, dtype=np.float64).reshape(-1)
                 if clear.shape != (self.num_candidates,) or not np.all((clear >= 0.0) & (clear <= 1.0)):
