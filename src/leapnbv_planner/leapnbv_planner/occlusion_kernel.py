@@ -557,6 +557,8 @@ def count_visible_targets_bucketed(
     valid_hi = np.empty(height + 2 * half_window, dtype=np.int64)
     near_block = np.empty(((height + 2 * half_window) // window + 1, (width + 2 * half_window) // window + 1),
                           dtype=np.bool_)
+    holds_point = np.empty_like(near_block)
+    near_targets = np.empty(num_targets, dtype=np.int64)
     outer_forms = np.empty((6, 4))
     inner_forms = np.empty((6, 4))
     region_forms = np.empty((6, 4))
@@ -650,6 +652,13 @@ def count_visible_targets_bucketed(
             first_occupied[rr] = region_width
             last_occupied[rr] = -1
         any_occupied = False
+        # Blocks of window x window pixels that hold a point (then grown by a block: 3 x 3 blocks hold any window
+        # around a pixel of the middle one, so a target pixel in an unmarked block has nothing in its window).
+        block_rows = (region_height + window - 1) // window
+        block_cols = (region_width + window - 1) // window
+        for br in range(block_rows):
+            for bc in range(block_cols):
+                holds_point[br, bc] = False
         u_off_lo, u_off_hi = col_lo - _PIXEL_MARGIN, col_hi_excl + _PIXEL_MARGIN
         v_off_lo, v_off_hi = row_lo - _PIXEL_MARGIN, row_hi_excl + _PIXEL_MARGIN
         _frustum_forms(region_forms, rotation, position, fx, skew, cx, fy, cy, col_lo - _PIXEL_MARGIN,
@@ -690,57 +699,76 @@ def count_visible_targets_bucketed(
                     depth[rr, cc] = z
                 first_occupied[rr] = min(first_occupied[rr], cc)
                 last_occupied[rr] = max(last_occupied[rr], cc)
+                holds_point[rr // window, cc // window] = True
         if not any_occupied:  # nothing in front of the target pixels: every in-view point is seen
             not_hidden[c] = count
             continue
 
-        for rr in range(region_height):
-            if last_occupied[rr] < 0:
-                valid_lo[rr] = 1
-                valid_hi[rr] = 0
-                continue
-            start_lo = max(0, first_occupied[rr] - 2 * half_window)
-            start_hi = min(last_occupied[rr], region_width - window)
-            block_lo = (start_lo // window) * window
-            block_hi = ((start_hi + 2 * half_window) // window + 1) * window
-            for block in range(block_lo, block_hi, window):
-                prefix_min[block] = depth[rr, block]
-                for cc in range(block + 1, block + window):
-                    prefix_min[cc] = min(prefix_min[cc - 1], depth[rr, cc])
-                last = block + window - 1
-                suffix_min[last] = depth[rr, last]
-                for cc in range(last - 1, block - 1, -1):
-                    suffix_min[cc] = min(suffix_min[cc + 1], depth[rr, cc])
-            for a in range(start_lo, start_hi + 1):
-                row_min[rr, a + half_window] = min(suffix_min[a], prefix_min[a + window - 1])
-            valid_lo[rr] = start_lo + half_window
-            valid_hi[rr] = start_hi + half_window
-
-        # Blocks of window x window pixels near a block that holds a point (3 x 3 blocks hold any window around a
-        # pixel of the middle one): a target pixel in another block has nothing in its window and is seen.
-        block_rows = (region_height + window - 1) // window
-        block_cols = (region_width + window - 1) // window
         for br in range(block_rows):
             for bc in range(block_cols):
                 near_block[br, bc] = False
-        for rr in range(region_height):
-            if last_occupied[rr] < 0:
-                continue
-            br = rr // window
-            for bc in range(max(0, first_occupied[rr] // window - 1), min(block_cols, last_occupied[rr] // window + 2)):
-                for neighbour in range(max(0, br - 1), min(block_rows, br + 2)):
-                    near_block[neighbour, bc] = True
+        for br in range(block_rows):
+            for bc in range(block_cols):
+                if holds_point[br, bc]:
+                    for neighbour_row in range(max(0, br - 1), min(block_rows, br + 2)):
+                        for neighbour_col in range(max(0, bc - 1), min(block_cols, bc + 2)):
+                            near_block[neighbour_row, neighbour_col] = True
+        # The targets whose window may hold a point; the others are seen.
         visible = 0
+        num_near = 0
         for n in range(count):
+            if near_block[(target_row[n] - row_lo) // window, (target_col[n] - col_lo) // window]:
+                near_targets[num_near] = n
+                num_near += 1
+            else:
+                visible += 1
+        # Their window minima: read straight from the min-depth image (window x window reads each), or, when that
+        # costs more, from running row minima (van Herk / Gil-Werman over the occupied span of each row, then
+        # window reads each); both give the exact minimum.
+        row_work = 0
+        for rr in range(region_height):
+            if last_occupied[rr] >= 0:
+                row_work += 3 * (last_occupied[rr] - first_occupied[rr] + 3 * window)
+        direct = num_near * window * window <= row_work + num_near * window
+        if not direct:
+            for rr in range(region_height):
+                if last_occupied[rr] < 0:
+                    valid_lo[rr] = 1
+                    valid_hi[rr] = 0
+                    continue
+                start_lo = max(0, first_occupied[rr] - 2 * half_window)
+                start_hi = min(last_occupied[rr], region_width - window)
+                block_lo = (start_lo // window) * window
+                block_hi = ((start_hi + 2 * half_window) // window + 1) * window
+                for block in range(block_lo, block_hi, window):
+                    prefix_min[block] = depth[rr, block]
+                    for cc in range(block + 1, block + window):
+                        prefix_min[cc] = min(prefix_min[cc - 1], depth[rr, cc])
+                    last = block + window - 1
+                    suffix_min[last] = depth[rr, last]
+                    for cc in range(last - 1, block - 1, -1):
+                        suffix_min[cc] = min(suffix_min[cc + 1], depth[rr, cc])
+                for a in range(start_lo, start_hi + 1):
+                    row_min[rr, a + half_window] = min(suffix_min[a], prefix_min[a + window - 1])
+                valid_lo[rr] = start_lo + half_window
+                valid_hi[rr] = start_hi + half_window
+        for near in range(num_near):
+            n = near_targets[near]
             cc = target_col[n] - col_lo
             rr0 = target_row[n] - row_lo - half_window
-            if not near_block[(rr0 + half_window) // window, cc // window]:
-                visible += 1
-                continue
             nearest = np.inf
-            for rr in range(rr0, rr0 + window):
-                if valid_lo[rr] <= cc and cc <= valid_hi[rr] and row_min[rr, cc] < nearest:
-                    nearest = row_min[rr, cc]
+            if direct:
+                for rr in range(rr0, rr0 + window):
+                    if last_occupied[rr] < 0 or cc + half_window < first_occupied[rr] \
+                            or cc - half_window > last_occupied[rr]:
+                        continue
+                    for column in range(cc - half_window, cc + half_window + 1):
+                        if depth[rr, column] < nearest:
+                            nearest = depth[rr, column]
+            else:
+                for rr in range(rr0, rr0 + window):
+                    if valid_lo[rr] <= cc and cc <= valid_hi[rr] and row_min[rr, cc] < nearest:
+                        nearest = row_min[rr, cc]
             if target_depth[n] <= nearest:
                 visible += 1
         not_hidden[c] = visible
