@@ -353,6 +353,36 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
     print(f"  feasible {int(plan.feasibility.feasible.sum())} of {len(plan.candidates)}, unreachable "
           f"{int((plan.feasibility.reasons == 3).sum())}, chosen {plan.chosen_index}, path "
           f"{0 if plan.base_path is None else len(plan.base_path)} cells")
+    reference = reference_robot_terms(plan, target, background, mesh_vertices, mesh_faces, grid, robot)
+    for name, values in reference.items():
+        print(f"  {name}: max |plan - per-point reference| {np.max(np.abs(plan.scores.term(name) - values)):.1e}")
+
+
+def reference_robot_terms(plan, target: np.ndarray, background: np.ndarray, mesh_vertices: np.ndarray,
+                          mesh_faces: np.ndarray, grid, robot) -> dict:
+    """S_v and the mesh S_o of the plan's candidates from the per-point kernel (count_visible_targets: every point
+    projected, every background point tested) and the plain line-of-sight walk (segments_clear)."""
+    from leapnbv_planner.obstacle_map import segments_clear
+    from leapnbv_planner.occlusion_kernel import count_visible_targets
+    from leapnbv_planner.plan import mesh_vertex_normals
+
+    rotations, positions = plan.candidates.rotations, plan.candidates.positions
+    fx, skew, cx = INTRINSICS[0]
+    fy, cy = INTRINSICS[1, 1], INTRINSICS[1, 2]
+    half_window = int(np.floor(robot.delta_px))
+    target = np.ascontiguousarray(target.astype(np.float32), dtype=np.float64)
+    background = np.ascontiguousarray(background.astype(np.float32), dtype=np.float64)
+    in_view, _ = count_visible_targets(target, np.zeros((0, 3)), rotations, positions, fx, skew, cx, fy, cy, WIDTH,
+                                       HEIGHT, half_window, np.zeros((0, 3)))
+    normals = mesh_vertex_normals(mesh_vertices, mesh_faces)
+    _, not_hidden = count_visible_targets(mesh_vertices, background, rotations, positions, fx, skew, cx, fy, cy,
+                                          WIDTH, HEIGHT, half_window, normals)
+    facing = np.count_nonzero(positions @ normals.T > np.einsum("vk,vk->v", normals, mesh_vertices), axis=1)
+    stride = max(1, int(np.ceil(len(mesh_vertices) / robot.map_max_target_points)))
+    clear = segments_clear(grid.occupied, grid.lower_index.astype(np.float64), grid.resolution, positions,
+                           np.ascontiguousarray(mesh_vertices[::stride]), robot.map_target_margin).mean(axis=1)
+    body = np.where(facing > 0, not_hidden / np.maximum(facing, 1), 0.0) * clear
+    return {"visibility": in_view / len(target), "body_occlusion": body}
 
 
 def cylinder_mesh(count: int) -> Tuple[np.ndarray, np.ndarray]:

@@ -171,7 +171,8 @@ def test_view_candidates_ring_and_choice(graph, planned):
     centroid = planned["centroid"]
     assert views.header.frame_id == FRAME_ID
     count = len(views.poses)
-    assert count == 17 and views.includes_current_view
+    params = deployed_params()
+    assert count == 1 + params.num_rings * params.num_candidates and views.includes_current_view
     for field in ("score", "feasible", "infeasible_reason"):
         assert len(getattr(views, field)) == count, field
     assert list(views.term_names) == DEFAULT_SCORE_TERMS
@@ -183,11 +184,12 @@ def test_view_candidates_ring_and_choice(graph, planned):
     ring_center = point_to_numpy(views.ring_center)
     np.testing.assert_allclose(ring_center, centroid - plane_distance(centroid) * UP, atol=1e-6)
     assert abs(views.ring_radius - deployed_ring_radius()) < 1e-6
+    radii = np.repeat(np.linspace(params.min_radius, params.radius, params.num_rings), params.num_candidates)
     for i in range(1, count):  # ring candidates: camera height kept, looking at the target, x level
         rotation, position = pose_to_numpy(views.poses[i])
         assert abs(plane_distance(position) - CAMERA_HEIGHT) < 1e-3, i
         foot = position - plane_distance(position) * UP
-        assert abs(np.linalg.norm(foot - ring_center) - deployed_ring_radius()) < 1e-3, i
+        assert abs(np.linalg.norm(foot - ring_center) - radii[i - 1]) < 1e-3, i
         assert axis_miss_distance(rotation, position, centroid) < 0.01, i
         assert abs(rotation[:, 0] @ UP) < 1e-6, i
     scores = np.asarray(views.score)
@@ -329,7 +331,7 @@ def test_runtime_parameter_change_applies_to_the_next_plan(graph, planned):
     try:
         views = plan_frame(graph, 400)
         assert views.ring_radius == pytest.approx(2.0)
-        rotation, position = pose_to_numpy(views.poses[1])
+        rotation, position = pose_to_numpy(views.poses[-1])  # the outer ring's last candidate
         foot = position - plane_distance(position) * UP
         assert np.linalg.norm(foot - point_to_numpy(views.ring_center)) == pytest.approx(2.0, abs=1e-3)
     finally:
@@ -373,7 +375,7 @@ def test_invalid_parameter_change_is_refused_with_the_reason(graph, planned, nam
     assert not result.successful and reason in result.reason, result.reason
     views = plan_frame(graph, next(REFUSED_FRAME_SECONDS))  # still planning with the old values
     assert list(views.term_names) == DEFAULT_SCORE_TERMS and views.ring_radius == pytest.approx(deployed_ring_radius())
-    assert len(views.poses) == 17
+    assert len(views.poses) == 1 + deployed_params().num_rings * deployed_params().num_candidates
 
 
 # ----------------------------------------------------------------------------- the obstacle map
@@ -407,26 +409,22 @@ def test_reachability_publishes_the_path_to_the_base_goal(graph, planned):
 
     probe = graph["probe"]
     paths = probe.collect(Path, f"{NS}/base_path", latched_goal_qos())
-    results = set_parameters(probe, f"{NS}/nbv_node", reachability=True, num_rings=3, min_radius=1.5)
-    assert all(r.successful for r in results), [r.reason for r in results]
-    try:
-        key = send_frame(graph, make_header(420, 0))
-        assert probe.spin_until(lambda: by_stamp(graph["candidates"], key) and by_stamp(graph["base_goals"], key)
-                                and by_stamp(paths, key), 10.0), read_log(graph["procs"][NS + "/nbv_node"])[-3000:]
-        (views,) = by_stamp(graph["candidates"], key)
-        assert len(views.score) == 1 + 3 * deployed_params().num_candidates
-        (base,) = by_stamp(graph["base_goals"], key)
-        (path,) = by_stamp(paths, key)
-        rotations, positions = path_to_numpy(path)
-        assert len(positions) >= 2
-        _, goal_position = pose_to_numpy(base.pose)
-        np.testing.assert_allclose(positions[-1], goal_position, atol=1e-9)  # it ends at the base goal
-        np.testing.assert_allclose([plane_distance(p) for p in positions], 0.0, atol=1e-6)  # on the floor
-        steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
-        assert steps.max() < 0.2  # grid cells, no jumps
-    finally:
-        results = set_parameters(probe, f"{NS}/nbv_node", reachability=False, num_rings=1)
-        assert all(r.successful for r in results), [r.reason for r in results]
+    deployed = deployed_params()
+    assert deployed.reachability and deployed.num_rings == 3  # the robot's defaults search paths
+    key = send_frame(graph, make_header(420, 0))
+    assert probe.spin_until(lambda: by_stamp(graph["candidates"], key) and by_stamp(graph["base_goals"], key)
+                            and by_stamp(paths, key), 10.0), read_log(graph["procs"][NS + "/nbv_node"])[-3000:]
+    (views,) = by_stamp(graph["candidates"], key)
+    assert len(views.score) == 1 + 3 * deployed_params().num_candidates
+    (base,) = by_stamp(graph["base_goals"], key)
+    (path,) = by_stamp(paths, key)
+    rotations, positions = path_to_numpy(path)
+    assert len(positions) >= 2
+    _, goal_position = pose_to_numpy(base.pose)
+    np.testing.assert_allclose(positions[-1], goal_position, atol=1e-9)  # it ends at the base goal
+    np.testing.assert_allclose([plane_distance(p) for p in positions], 0.0, atol=1e-6)  # on the floor
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert steps.max() < 0.2  # grid cells, no jumps
 
 
 def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
@@ -444,8 +442,14 @@ def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
     _, chosen_position = pose_to_numpy(plain.poses[chosen])
     pillar = voxel_box(to_map(chosen_position)[:2], 0.1, 2.0)
     feasible = np.asarray(plain.feasible, bool)
-    screened = next(i for i in range(1, len(plain.poses)) if feasible[i] and i != chosen
-                    and abs(i - chosen) > 2)
+    per_ring = deployed_params().num_candidates
+
+    def apart(i: int, j: int) -> int:
+        """Steps around the rings between two candidates' directions (candidate 0 is the current view)."""
+        step = abs((i - 1) % per_ring - (j - 1) % per_ring)
+        return min(step, per_ring - step)
+
+    screened = next(i for i in range(1, len(plain.poses)) if feasible[i] and i != chosen and apart(i, chosen) > 2)
     _, screened_position = pose_to_numpy(plain.poses[screened])
     middle = 0.5 * (to_map(screened_position)[:2] + centroid_map[:2])
     screen = voxel_box(middle, 0.3, 2.0)
@@ -464,12 +468,13 @@ def test_obstacle_map_blocks_views_the_frame_cannot_see(graph, planned):
     assert probe.spin_until(lambda: by_stamp(graph["candidates"], key), 10.0)
     (mapped,) = by_stamp(graph["candidates"], key)
     assert not mapped.feasible[chosen] and mapped.infeasible_reason[chosen] == 2  # OBSTACLE
-    mapped_o, plain_o = view_candidates_to_arrays(mapped).term("occlusion"), view_candidates_to_arrays(plain).term(
-        "occlusion")
+    # No body mesh comes in this test: body_occlusion is the paper's S_o over the observed points.
+    mapped_o = view_candidates_to_arrays(mapped).term("body_occlusion")
+    plain_o = view_candidates_to_arrays(plain).term("body_occlusion")
     assert mapped_o[screened] < 0.2 < plain_o[screened] - 0.5
     assert mapped.chosen_index not in (chosen, screened) and mapped.chosen_index >= 1
     # Views away from both (ring neighbours may look past the pillar or the screen) keep their S_o.
-    unaffected = [i for i in range(len(plain.poses)) if abs(i - screened) > 1 and abs(i - chosen) > 1]
+    unaffected = [i for i in range(1, len(plain.poses)) if apart(i, screened) > 1 and apart(i, chosen) > 1]
     assert len(unaffected) >= 8
     np.testing.assert_allclose(mapped_o[unaffected], plain_o[unaffected], atol=0.05)
 

@@ -60,6 +60,8 @@ TOLERANCES: Dict[Tuple[str, str], float] = {
     ("view_candidates", "s_visibility"): 1e-4,
     ("view_candidates", "s_area"): 1e-4,
     ("view_candidates", "s_occlusion"): 1e-4,
+    ("view_candidates", "s_body_occlusion"): 1e-4,
+    ("view_candidates", "s_travel"): 1e-4,
     ("next_best_view", "position"): 0.01,         # 1 cm
     ("next_best_view", "heading_deg"): 1.0,       # 1 degree
     ("base_goal", "position"): 0.01,
@@ -248,7 +250,7 @@ def golden_summary(values: Dict[str, Dict[int, Dict[str, np.ndarray]]]) -> Dict[
         entry = {"stamp_ns": stamp, "chosen_index": chosen}
         if chosen >= 0:
             entry.update({k: round(float(vc[k][chosen]), 6)
-                          for k in ("score", "s_visibility", "s_area", "s_occlusion")})
+                          for k in sorted(vc) if k == "score" or k.startswith("s_")})
             goal = values.get("next_best_view", {}).get(stamp)
             if goal is not None:
                 entry["position_m"] = [round(float(v), 4) for v in goal["position"]]

@@ -82,7 +82,7 @@ def test_candidate_pose_in_world_matches_the_ring_geometry(scene):
     offset = float(start.position[2])
     centroid_world = scene.body_centre_world
     centroid = start.world_to_camera(centroid_world[None])[0]
-    params = CandidateRingParams(num_candidates=8, radius=2.0)
+    params = CandidateRingParams(num_candidates=8, radius=2.0, num_rings=1)
     ring = generate_candidates(centroid, normal, offset, params)
     candidates = _arrays(ring.rotations, ring.positions, {"visibility": np.zeros(9)}, np.ones(9, bool), chosen=-1)
     stay = candidate_world_pose(start, candidates, 0)
@@ -176,7 +176,7 @@ def test_score_methods_renders_each_pick_and_decides_success_once(scene):
     normal = start.rotation.T @ np.array([0.0, 0.0, 1.0])
     centroid = start.world_to_camera(scene.body_centre_world[None])[0]
     ring = generate_candidates(centroid, normal, float(start.position[2]), CandidateRingParams(num_candidates=8,
-                                                                                              radius=2.0))
+                                                                                              radius=2.0, num_rings=1))
     feasible = np.ones(9, bool)
     feasible[4] = False
     candidates = _arrays(ring.rotations, ring.positions, {"visibility": np.linspace(1.0, 0.2, 9),

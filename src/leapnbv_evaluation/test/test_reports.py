@@ -307,8 +307,8 @@ def _crafted_run() -> EvaluationRun:
         return SceneResult(
             seed=seed, scene_index=seed - 11, stamp_ns=seed, start_occlusion=occlusion,
             start_pose=PoseRecord([0.0, 0.0, 1.2], 0.0, 5.0), graph_failure=None, graph_area_before_px=9000,
-            before=leap.before, pa_mpvpe_before_mm=float(seed) * 5.0, graph_vs_truth=GraphVsTruth([0.0] * 3, [0.0] * 3, [0.0] * 3,
-                                                                                     1.2),
+            before=leap.before, pa_mpvpe_before_mm=float(seed) * 5.0,
+            graph_vs_truth=GraphVsTruth([0.0] * 3, [0.0] * 3, [0.0] * 3, 1.2),
             candidates=None, candidate_views=None, per_method={"leap_nbv": leap, "stay": stay}, latency_ms=latency)
 
     # Success comes with each row, decided when the episode was scored (here: by hand, on purpose

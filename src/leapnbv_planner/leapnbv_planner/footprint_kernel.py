@@ -8,6 +8,17 @@ from leapnbv_planner.jit import njit
 
 
 @njit(cache=True)
+def _cells_near(foot_u: float, foot_v: float, u_lo: float, v_lo: float, size: float, reach: float, cols: int,
+                rows: int):
+    """(first col, last col, first row, last row) of the grid cells that come within reach of the foot."""
+    col_a = max(0, int(np.floor((foot_u - reach - u_lo) / size)) - 1)
+    col_b = min(cols - 1, int(np.floor((foot_u + reach - u_lo) / size)) + 1)
+    row_a = max(0, int(np.floor((foot_v - reach - v_lo) / size)) - 1)
+    row_b = min(rows - 1, int(np.floor((foot_v + reach - v_lo) / size)) + 1)
+    return col_a, col_b, row_a, row_b
+
+
+@njit(cache=True)
 def footprints_blocked(
     points: np.ndarray,
     unit_normal: np.ndarray,
@@ -45,6 +56,29 @@ def footprints_blocked(
     # Bounding square of all footprints: most points fail this cheap test.
     u_lo, u_hi = feet_u.min() - robot_radius, feet_u.max() + robot_radius
     v_lo, v_hi = feet_v.min() - robot_radius, feet_v.max() + robot_radius
+    # A grid of square cells over the bounding square; each cell lists the feet within the radius of some point of
+    # it (widened by far more than the rounding of a point's cell index, so no foot the distance test would block
+    # is left out). A point is tested only against its cell's feet.
+    size = max(robot_radius, (u_hi - u_lo) / 64.0, (v_hi - v_lo) / 64.0, 1e-9)
+    cols = int((u_hi - u_lo) / size) + 1
+    rows = int((v_hi - v_lo) / size) + 1
+    reach = robot_radius * (1.0 + 1e-9) + size * 1e-9 + 1e-12
+    counts = np.zeros(rows * cols + 1, dtype=np.int64)
+    for c in range(num_feet):
+        col_a, col_b, row_a, row_b = _cells_near(feet_u[c], feet_v[c], u_lo, v_lo, size, reach, cols, rows)
+        for row in range(row_a, row_b + 1):
+            for col in range(col_a, col_b + 1):
+                counts[row * cols + col + 1] += 1
+    for cell in range(rows * cols):
+        counts[cell + 1] += counts[cell]
+    fill = counts[:rows * cols].copy()
+    listed = np.empty(counts[rows * cols], dtype=np.int64)
+    for c in range(num_feet):
+        col_a, col_b, row_a, row_b = _cells_near(feet_u[c], feet_v[c], u_lo, v_lo, size, reach, cols, rows)
+        for row in range(row_a, row_b + 1):
+            for col in range(col_a, col_b + 1):
+                listed[fill[row * cols + col]] = c
+                fill[row * cols + col] += 1
     for k in range(points.shape[0]):
         x, y, z = points[k, 0], points[k, 1], points[k, 2]
         height = unit_normal[0] * x + unit_normal[1] * y + unit_normal[2] * z + plane_offset
@@ -54,7 +88,9 @@ def footprints_blocked(
         v = plane_axis_v[0] * x + plane_axis_v[1] * y + plane_axis_v[2] * z
         if not (u >= u_lo and u <= u_hi and v >= v_lo and v <= v_hi):
             continue
-        for c in range(num_feet):
+        cell = min(int((v - v_lo) / size), rows - 1) * cols + min(int((u - u_lo) / size), cols - 1)
+        for i in range(counts[cell], counts[cell + 1]):
+            c = listed[i]
             du = u - feet_u[c]
             dv = v - feet_v[c]
             if du * du + dv * dv <= radius_squared:

@@ -19,8 +19,8 @@ Space outside the map's voxels counts as free (unknown space is not an obstacle 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Tuple
+from dataclasses import dataclass, field
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -49,10 +49,20 @@ class VoxelObstacleMap:
     lower_index: np.ndarray
     resolution: float
     centres: np.ndarray
+    _prefix: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
 
     @property
     def voxel_count(self) -> int:
         return int(self.centres.shape[0])
+
+    def occupied_prefix_sums(self) -> np.ndarray:
+        """(X + 1, Y + 1, Z + 1) int32 counts of occupied cells in [0, a) x [0, b) x [0, c), computed once per map
+        (a box of cells is counted with eight look-ups)."""
+        if self._prefix is None or self._prefix.shape != tuple(s + 1 for s in self.occupied.shape):
+            prefix = np.zeros(tuple(s + 1 for s in self.occupied.shape), dtype=np.int32)
+            prefix[1:, 1:, 1:] = self.occupied.astype(np.int32).cumsum(0).cumsum(1).cumsum(2)
+            self._prefix = prefix
+        return self._prefix
 
 
 def voxel_map_from_centres(centres: np.ndarray, resolution: float) -> VoxelObstacleMap:
@@ -162,9 +172,10 @@ def line_of_sight_clear_fraction(
     # Observation frame -> map frame: x_map = R x + t.
     cameras_map = cameras @ rotation.T + position[None, :]
     targets_map = targets @ rotation.T + position[None, :]
-    clear = segments_clear(obstacle_map.occupied, obstacle_map.lower_index.astype(np.float64),
-                           obstacle_map.resolution, np.ascontiguousarray(cameras_map),
-                           np.ascontiguousarray(targets_map), float(target_margin))
+    clear = segments_clear_skipping_empty(
+        obstacle_map.occupied, obstacle_map.occupied_prefix_sums(), obstacle_map.lower_index.astype(np.float64),
+        obstacle_map.resolution, np.ascontiguousarray(cameras_map), np.ascontiguousarray(targets_map),
+        float(target_margin))
     return clear.mean(axis=1)
 
 
@@ -235,6 +246,281 @@ def segments_clear(
                 cell[axis] += step[axis]
                 t_max[axis] += t_delta[axis]
     return clear
+
+
+#: A segment's checked part is halved this many times at most for the empty-box test of
+#: segments_clear_skipping_empty (pieces of 1/16 of it at the finest).
+_MAX_HALVINGS = 4
+#: Consecutive targets tested together, as a fan from the origin, before their segments one by one.
+_FAN_RUN = 16
+#: Cells by which a piece's bounding box is grown: the walk's cells stray from the segment's own by the rounding
+#: of its crossing parameters (about 1e-13 cell over a walk of a few hundred cells), far less than this.
+_BOX_GROWTH = 1e-6
+
+
+@njit(cache=True)
+def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, delta: np.ndarray, t_a: float,
+                          t_b: float) -> bool:
+    """Whether the cells of the bounding box of g([t_a, t_b]) (g(t) = start + t delta, grid coordinates), grown
+    by _BOX_GROWTH, hold an occupied cell (prefix sums: eight look-ups)."""
+    lo0 = lo1 = lo2 = hi0 = hi1 = hi2 = 0
+    for a in range(3):
+        g_a = start[a] + t_a * delta[a]
+        g_b = start[a] + t_b * delta[a]
+        low = max(np.int64(np.floor(min(g_a, g_b) - _BOX_GROWTH)), 0)
+        high = min(np.int64(np.floor(max(g_a, g_b) + _BOX_GROWTH)), sizes[a] - 1)
+        if low > high:
+            return False  # wholly off the grid: free
+        if a == 0:
+            lo0, hi0 = low, high
+        elif a == 1:
+            lo1, hi1 = low, high
+        else:
+            lo2, hi2 = low, high
+    count = (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
+             - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
+             + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
+    return count > 0
+
+
+@njit(cache=True)
+def _walk_axis(start: float, delta: float, cell: int):
+    """(step, t_delta, first t_max) of one axis of the walk, with segments_clear's arithmetic."""
+    if delta > 0.0:
+        return 1, 1.0 / delta, (cell + 1.0 - start) / delta
+    if delta < 0.0:
+        return -1, -1.0 / delta, (start - cell) / -delta
+    return 0, np.inf, np.inf
+
+
+@njit(cache=True)
+def segments_clear_skipping_empty(
+    occupied: np.ndarray,
+    prefix: np.ndarray,
+    lower_index: np.ndarray,
+    resolution: float,
+    origins: np.ndarray,
+    targets: np.ndarray,
+    target_margin: float,
+) -> np.ndarray:
+    """segments_clear, with the walk left out where its answer is sure without it.
+
+    First, per origin, runs of _FAN_RUN consecutive targets are tested together: the fan of their segments is
+    tested as a whole, then by halves, quarters, ... (at most _MAX_HALVINGS times, only the pieces whose box is
+    not empty); when every piece at some level has a bounding box whose cells, grown by _BOX_GROWTH cells on each
+    side (far more than the walk's rounding can stray), hold no occupied cell, all its segments are clear. The
+    segments of other runs get the same test one by one; a segment still not sure is blocked when a point of its
+    last non-empty piece lies well inside an occupied cell, and is otherwise walked as segments_clear walks it
+    (the same arithmetic), up to the end of that piece. The answer is segments_clear's.
+
+    Args:
+        occupied, lower_index, resolution, origins, targets, target_margin: as in segments_clear.
+        prefix: the map's occupied_prefix_sums().
+    """
+    num_origins = origins.shape[0]
+    num_targets = targets.shape[0]
+    size_x, size_y, size_z = occupied.shape[0], occupied.shape[1], occupied.shape[2]
+    sizes = np.array([size_x, size_y, size_z], dtype=np.int64)
+    clear = np.ones((num_origins, num_targets), dtype=np.bool_)
+    start = np.empty(3)
+    delta = np.empty(3)
+    stack_a = np.empty(2 * _MAX_HALVINGS + 2)
+    stack_b = np.empty(2 * _MAX_HALVINGS + 2)
+    stack_level = np.empty(2 * _MAX_HALVINGS + 2, dtype=np.int64)
+    # Runs of _FAN_RUN consecutive targets (in the given order: a raster order keeps them together), as boxes in
+    # grid coordinates.
+    num_runs = (num_targets + _FAN_RUN - 1) // _FAN_RUN
+    run_box = np.empty((num_runs, 6))
+    for run in range(num_runs):
+        for a in range(3):
+            run_box[run, a] = np.inf
+            run_box[run, 3 + a] = -np.inf
+        for m in range(run * _FAN_RUN, min(num_targets, (run + 1) * _FAN_RUN)):
+            for a in range(3):
+                value = targets[m, a] / resolution - lower_index[a]
+                run_box[run, a] = min(run_box[run, a], value)
+                run_box[run, 3 + a] = max(run_box[run, 3 + a], value)
+    for c in range(num_origins):
+        for a in range(3):
+            start[a] = origins[c, a] / resolution - lower_index[a]
+        for run in range(num_runs):
+            if _fan_clear(prefix, sizes, start, run_box[run], resolution, target_margin, stack_a, stack_b,
+                          stack_level):
+                continue  # every segment of the run is clear
+            for m in range(run * _FAN_RUN, min(num_targets, (run + 1) * _FAN_RUN)):
+                _walk_one(occupied, prefix, sizes, lower_index, resolution, origins, targets, target_margin, c, m,
+                          start, delta, stack_a, stack_b, stack_level, clear)
+    return clear
+
+
+@njit(cache=True)
+def _fan_clear(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, box: np.ndarray, resolution: float,
+               target_margin: float, stack_a: np.ndarray, stack_b: np.ndarray, stack_level: np.ndarray) -> bool:
+    """Whether every segment from the origin (grid coordinates start) to a point of the box (lower, upper corners in
+    grid coordinates), up to where its check ends, surely crosses no occupied cell: the fan's pieces t in [t_a, t_b]
+    lie in the bounding box of start + t (q - start) over the piece's ends and the box's corners (the map is
+    bilinear in t and q), tested, then halved, like a segment's."""
+    # The check of a segment ends at t_end = 1 - margin / length <= 1 - margin / (the farthest corner's distance).
+    farthest = 0.0
+    for corner in range(8):
+        squared = 0.0
+        for a in range(3):
+            q = box[a] if (corner >> a) & 1 == 0 else box[3 + a]
+            squared += ((q - start[a]) * resolution) ** 2
+        farthest = max(farthest, squared)
+    farthest = np.sqrt(farthest) * (1.0 + 1e-9) + 1e-9
+    if farthest <= target_margin:
+        return False
+    t_end = 1.0 - target_margin / farthest + 1e-9
+    stack_a[0], stack_b[0], stack_level[0] = 0.0, t_end, 0
+    depth = 1
+    while depth > 0:
+        depth -= 1
+        t_a, t_b, level = stack_a[depth], stack_b[depth], stack_level[depth]
+        if not _fan_piece_may_be_blocked(prefix, sizes, start, box, t_a, t_b):
+            continue
+        if level == _MAX_HALVINGS:
+            return False
+        t_mid = 0.5 * (t_a + t_b)
+        stack_a[depth], stack_b[depth], stack_level[depth] = t_a, t_mid, level + 1
+        stack_a[depth + 1], stack_b[depth + 1], stack_level[depth + 1] = t_mid, t_b, level + 1
+        depth += 2
+    return True
+
+
+@njit(cache=True)
+def _fan_piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, box: np.ndarray, t_a: float,
+                              t_b: float) -> bool:
+    """_piece_may_be_blocked for the points start + t (q - start), t in [t_a, t_b], q in the box."""
+    lo0 = lo1 = lo2 = hi0 = hi1 = hi2 = 0
+    for a in range(3):
+        low_value = np.inf
+        high_value = -np.inf
+        for t in (t_a, t_b):
+            for q in (box[a], box[3 + a]):
+                value = start[a] + t * (q - start[a])
+                low_value = min(low_value, value)
+                high_value = max(high_value, value)
+        low = max(np.int64(np.floor(low_value - _BOX_GROWTH)), 0)
+        high = min(np.int64(np.floor(high_value + _BOX_GROWTH)), sizes[a] - 1)
+        if low > high:
+            return False
+        if a == 0:
+            lo0, hi0 = low, high
+        elif a == 1:
+            lo1, hi1 = low, high
+        else:
+            lo2, hi2 = low, high
+    count = (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
+             - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
+             + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
+    return count > 0
+
+
+@njit(cache=True)
+def _walk_one(occupied: np.ndarray, prefix: np.ndarray, sizes: np.ndarray, lower_index: np.ndarray,
+              resolution: float, origins: np.ndarray, targets: np.ndarray, target_margin: float, c: int, m: int,
+              start: np.ndarray, delta: np.ndarray, stack_a: np.ndarray, stack_b: np.ndarray,
+              stack_level: np.ndarray, clear: np.ndarray) -> None:
+    """One segment of segments_clear_skipping_empty: its own piece test, then (when needed) the walk."""
+    size_x, size_y, size_z = occupied.shape[0], occupied.shape[1], occupied.shape[2]
+    length = 0.0
+    for a in range(3):
+        delta[a] = targets[m, a] - origins[c, a]
+        length += delta[a] * delta[a]
+    length = np.sqrt(length)
+    if length <= target_margin:
+        return  # nothing left to check
+    t_end = 1.0 - target_margin / length
+    for a in range(3):
+        start[a] = origins[c, a] / resolution - lower_index[a]
+        delta[a] = delta[a] / resolution
+
+    # The empty-box test: a piece whose box holds an occupied cell is halved, down to _MAX_HALVINGS; the
+    # walk is needed only when a piece of the finest level holds one, and only up to the last such piece.
+    walk_until = -1.0
+    last_piece_start = 0.0
+    stack_a[0], stack_b[0], stack_level[0] = 0.0, t_end, 0
+    depth = 1
+    while depth > 0:
+        depth -= 1
+        t_a, t_b, level = stack_a[depth], stack_b[depth], stack_level[depth]
+        if t_b <= walk_until or not _piece_may_be_blocked(prefix, sizes, start, delta, t_a, t_b):
+            continue
+        if level == _MAX_HALVINGS:
+            walk_until = t_b
+            last_piece_start = t_a
+            continue
+        t_mid = 0.5 * (t_a + t_b)
+        # The later half first: the first finest piece found then is the last one along the segment.
+        stack_a[depth], stack_b[depth], stack_level[depth] = t_a, t_mid, level + 1
+        stack_a[depth + 1], stack_b[depth + 1], stack_level[depth + 1] = t_mid, t_b, level + 1
+        depth += 2
+    if walk_until < 0.0:
+        return
+    # Points of the last such piece, a few per cell: one well inside an occupied cell (farther than _BOX_GROWTH
+    # from its faces, before the check ends) is a cell the walk surely enters: the segment is blocked.
+    longest = max(abs(delta[0]), abs(delta[1]), abs(delta[2]))
+    samples = int(min(64.0, (walk_until - last_piece_start) * longest * 4.0)) + 2
+    for k in range(samples):
+        t = last_piece_start + (walk_until - last_piece_start) * k / (samples - 1)
+        if t > t_end - 1e-9:
+            break
+        inside = True
+        index_x = index_y = index_z = 0
+        for a in range(3):
+            g = start[a] + t * delta[a]
+            index = np.floor(g)
+            if not (g - index > _BOX_GROWTH and index + 1.0 - g > _BOX_GROWTH and 0.0 <= index < sizes[a]):
+                inside = False
+                break
+            if a == 0:
+                index_x = np.int64(index)
+            elif a == 1:
+                index_y = np.int64(index)
+            else:
+                index_z = np.int64(index)
+        if inside and occupied[index_x, index_y, index_z]:
+            clear[c, m] = False
+            return
+    # Past walk_until (with a margin far above the rounding of the crossing parameters) every cell the walk
+    # enters lies in an empty piece's box: the segment is clear from there on.
+    walk_until += 1e-9
+
+    # The walk of segments_clear, its arithmetic unchanged (scalars instead of 3-arrays).
+    start_x, start_y, start_z = start[0], start[1], start[2]
+    delta_x, delta_y, delta_z = delta[0], delta[1], delta[2]
+    cell_x = np.int64(np.floor(start_x))
+    cell_y = np.int64(np.floor(start_y))
+    cell_z = np.int64(np.floor(start_z))
+    step_x, t_delta_x, t_max_x = _walk_axis(start_x, delta_x, cell_x)
+    step_y, t_delta_y, t_max_y = _walk_axis(start_y, delta_y, cell_y)
+    step_z, t_delta_z, t_max_z = _walk_axis(start_z, delta_z, cell_z)
+    t = 0.0
+    while t <= t_end:
+        if t > walk_until:
+            break
+        if (0 <= cell_x < size_x and 0 <= cell_y < size_y and 0 <= cell_z < size_z
+                and occupied[cell_x, cell_y, cell_z]):
+            clear[c, m] = False
+            break
+        if t_max_y < t_max_x:
+            if t_max_z < t_max_y:
+                t = t_max_z
+                cell_z += step_z
+                t_max_z += t_delta_z
+            else:
+                t = t_max_y
+                cell_y += step_y
+                t_max_y += t_delta_y
+        elif t_max_z < t_max_x:
+            t = t_max_z
+            cell_z += step_z
+            t_max_z += t_delta_z
+        else:
+            t = t_max_x
+            cell_x += step_x
+            t_max_x += t_delta_x
 
 
 def warm_up_obstacle_map() -> None:

@@ -23,8 +23,10 @@ from typing import Dict, List, Tuple, Type
 from leapnbv_common.params import ParamsError, param
 from leapnbv_planner.score_terms import registered_terms, weight_parameter
 
-# The deployed score terms, in summation order.
-DEFAULT_SCORE_TERMS = ["visibility", "area", "occlusion"]
+# The deployed score terms, in summation order: non-occlusion over the whole metric body mesh
+# (body_occlusion), which rewards a view of the hidden side; the paper's S_o over the observed points
+# ("occlusion") stays registered (docs/ALGORITHMS.md, the family benchmark compares both).
+DEFAULT_SCORE_TERMS = ["visibility", "area", "body_occlusion"]
 
 
 @dataclass
@@ -37,7 +39,10 @@ class CandidateRingParams:
     # 640x480) sees only ~1.2 m of height, so a standing person never fits.
     radius: float = param(2.5, "metres: ring radius around the target, on the ground", min=0.1, max=20.0)
     include_current: bool = param(True, "score the current view as candidate 0, so staying is possible")
-    max_travel: float = param(4.5, "metres: farthest foot point from the robot's current one", min=0.0, max=100.0)
+    # 6 m, as max_path_length: with 4.5 m the far side of a person in a corridor (about 5-6 m away, and
+    # the only view past the occluder) was out of range although a free path reached it.
+    max_travel: float = param(6.0, "metres: farthest foot point from the robot's current one (straight line)",
+                              min=0.0, max=100.0)
     robot_radius: float = param(0.3, "metres: footprint radius checked for obstacles", min=0.0, max=5.0)
     floor_clearance: float = param(0.05, "metres: background points higher than this above the floor are obstacles",
                                    min=0.0, max=2.0)
@@ -47,10 +52,10 @@ class CandidateRingParams:
     camera_tilt: str = param("look_at", "look_at: each candidate camera aims at the target (a pan-tilt head); fixed: "
                              "it turns toward the target and keeps the current camera's pitch", choices=("look_at",
                                                                                                        "fixed"))
-    num_rings: int = param(1, "rings of candidates, radii evenly from min_radius to radius (1: radius only)",
+    num_rings: int = param(3, "rings of candidates, radii evenly from min_radius to radius (1: radius only)",
                            min=1, max=8)
     min_radius: float = param(1.5, "metres: radius of the innermost ring when num_rings > 1", min=0.1, max=20.0)
-    reachability: bool = param(False, "a candidate must be reached by a free path on the floor grid (obstacles "
+    reachability: bool = param(True, "a candidate must be reached by a free path on the floor grid (obstacles "
                                "inflated by robot_radius) of at most max_path_length")
     max_path_length: float = param(6.0, "metres: longest path to a reachable candidate (also the travel term's "
                                    "scale)", min=0.1, max=100.0)

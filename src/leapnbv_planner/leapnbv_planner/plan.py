@@ -27,6 +27,7 @@ from leapnbv_planner.candidates import (
     generate_candidates,
     normalize_plane,
 )
+from leapnbv_planner.mesh_kernel import face_normal_sums, unit_normals
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
 from leapnbv_planner.reachability import Reachability, build_occupancy_grid, reachability
@@ -150,15 +151,15 @@ def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
-    corners = vertices[faces]
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(vertices)
-    flat = faces.reshape(-1)
-    for axis in range(3):  # bincount sums per vertex (np.add.at is far slower)
-        normals[:, axis] = np.bincount(flat, weights=np.repeat(face_normals[:, axis], 3), minlength=len(vertices))
-    lengths = np.linalg.norm(normals, axis=1)
-    normals = np.where(lengths[:, None] > 0, normals / np.maximum(lengths, 1e-300)[:, None], 0.0)
-    if float(np.sum(normals * (vertices - vertices.mean(axis=0)))) < 0.0:
+    vertices = np.ascontiguousarray(vertices)
+    centre = vertices.mean(axis=0)
+    normals, total, magnitude = unit_normals(face_normal_sums(vertices, np.ascontiguousarray(faces)), vertices,
+                                             centre)
+    # The sign of the sum decides; when it is too near 0 for the summation order not to matter (never for a body),
+    # it is taken as numpy sums it.
+    if abs(total) <= 1e-9 * magnitude:
+        total = float(np.sum(normals * (vertices - centre)))
+    if total < 0.0:
         normals = -normals
     return normals
 
@@ -198,8 +199,9 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     normal = np.asarray(ground.normal, dtype=np.float64).reshape(3)
     offset = float(ground.offset)
     centroid = np.asarray(target.centroid, dtype=np.float64).reshape(3)
-    target_points = target.target_points
-    background = target.background_points
+    # float64 once here (the messages carry float32), not again in every step that reads the clouds.
+    target_points = np.ascontiguousarray(target.target_points, dtype=np.float64)
+    background = np.ascontiguousarray(target.background_points, dtype=np.float64)
     candidates = generate_candidates(centroid, normal, offset, params)
     obstacles, line_of_sight_clear, mesh_clear = background, None, None
     mesh_vertices = mesh_normals = None
@@ -219,7 +221,8 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
     reach, path_lengths = None, None
     if getattr(params, "reachability", False):
-        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, normal, offset, params)
+        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, target_points, normal, offset,
+                                          params)
         path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
     scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, target.k,
                               target.width, target.height, params.term_weights(), delta_px=params.delta_px,
@@ -240,11 +243,12 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
 
 
 def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles: np.ndarray, target: Any,
-                 normal: np.ndarray, offset: float, params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
+                 target_points: np.ndarray, normal: np.ndarray, offset: float,
+                 params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
     """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
     unit_normal, unit_offset = normalize_plane(normal, offset)
     current_foot = -unit_offset * unit_normal
-    grid = build_occupancy_grid(obstacles, target.target_points, unit_normal, unit_offset,
+    grid = build_occupancy_grid(obstacles, target_points, unit_normal, unit_offset,
                                 np.vstack([candidates.foot_points, current_foot[None]]), params.grid_resolution,
                                 params.robot_radius, params.floor_clearance, params.unknown_space,
                                 camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),

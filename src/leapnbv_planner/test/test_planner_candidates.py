@@ -18,6 +18,12 @@ LEVEL_NORMAL = np.array([0.0, -1.0, 0.0])
 LEVEL_OFFSET = 1.2  # floor at y = 1.2: the camera is 1.2 m above it
 
 
+
+def single_ring(**values) -> CandidateRingParams:
+    """One ring, no path search: the geometry these tests check by hand (the robot's defaults add rings and
+    reachability, tested in test_planner_reachability)."""
+    return CandidateRingParams(**{"num_rings": 1, "reachability": False, **values})
+
 def tilted_plane():
     """A floor seen by a camera pitched down ~12 deg and rolled ~5 deg, 1.35 m above it."""
     normal = np.array([0.08, -0.97, -0.21])
@@ -27,7 +33,7 @@ def tilted_plane():
 
 def test_candidate_zero_is_the_current_pose():
     candidates = generate_candidates(
-        np.array([0.3, 0.2, 3.0]), LEVEL_NORMAL, LEVEL_OFFSET, CandidateRingParams()
+        np.array([0.3, 0.2, 3.0]), LEVEL_NORMAL, LEVEL_OFFSET, single_ring()
     )
     assert len(candidates) == 17
     np.testing.assert_array_equal(candidates.rotations[0], np.eye(3))
@@ -38,7 +44,7 @@ def test_candidate_zero_is_the_current_pose():
 
 
 def test_without_current_view_only_the_ring():
-    params = CandidateRingParams(num_candidates=8, include_current=False)
+    params = single_ring(num_candidates=8, include_current=False)
     candidates = generate_candidates(np.array([0.0, 0.2, 3.0]), LEVEL_NORMAL, 1.2, params)
     assert len(candidates) == 8
     assert not candidates.is_current.any()
@@ -48,7 +54,7 @@ def test_without_current_view_only_the_ring():
 def test_ring_poses_look_at_the_centroid_at_camera_height(plane):
     normal, offset = (LEVEL_NORMAL, LEVEL_OFFSET) if plane == "level" else tilted_plane()
     centroid = np.array([0.4, 0.25, 2.7])
-    params = CandidateRingParams(num_candidates=16, radius=1.5)
+    params = single_ring(num_candidates=16, radius=1.5)
     candidates = generate_candidates(centroid, normal, offset, params)
     ring_center = centroid - (normal @ centroid + offset) * normal
     np.testing.assert_allclose(candidates.ring_center, ring_center, atol=1e-12)
@@ -80,7 +86,7 @@ def test_ring_poses_look_at_the_centroid_at_camera_height(plane):
 
 def test_first_ring_candidate_is_on_the_current_bearing_and_ring_turns_counterclockwise():
     centroid = np.array([1.0, 0.3, 3.0])
-    candidates = generate_candidates(centroid, LEVEL_NORMAL, LEVEL_OFFSET, CandidateRingParams())
+    candidates = generate_candidates(centroid, LEVEL_NORMAL, LEVEL_OFFSET, single_ring())
     center = candidates.ring_center
     current_bearing = candidates.foot_points[0] - center
     first = candidates.foot_points[1] - center
@@ -107,11 +113,11 @@ def test_look_at_straight_down_still_gives_a_rotation():
 
 def test_camera_below_the_plane_is_rejected():
     with pytest.raises(CandidateGenerationError, match="not above the ground plane"):
-        generate_candidates(np.array([0.0, 0.0, 3.0]), LEVEL_NORMAL, -1.2, CandidateRingParams())
+        generate_candidates(np.array([0.0, 0.0, 3.0]), LEVEL_NORMAL, -1.2, single_ring())
 
 
 def test_obstacle_at_a_foot_point_makes_it_infeasible():
-    params = CandidateRingParams(num_candidates=8, radius=1.5, robot_radius=0.3,
+    params = single_ring(num_candidates=8, radius=1.5, robot_radius=0.3,
                                  floor_clearance=0.05, max_travel=10.0)
     candidates = generate_candidates(np.array([0.0, 0.3, 3.0]), LEVEL_NORMAL, 1.2, params)
     blocked_index, floor_index, near_miss_index = 3, 5, 7
@@ -138,7 +144,7 @@ def test_obstacle_at_a_foot_point_makes_it_infeasible():
 def test_candidates_beyond_travel_range_are_infeasible():
     # Target 3 m ahead: the current foot point is 3 m from the ring centre, ring foot points
     # are between 1.5 and 4.5 m away from it.
-    params = CandidateRingParams(num_candidates=16, radius=1.5, max_travel=3.0)
+    params = single_ring(num_candidates=16, radius=1.5, max_travel=3.0)
     candidates = generate_candidates(np.array([0.0, 0.3, 3.0]), LEVEL_NORMAL, 1.2, params)
     travel = np.linalg.norm(candidates.foot_points - candidates.foot_points[0], axis=1)
     feasible, reasons = check_feasibility(candidates, np.zeros((0, 3)), LEVEL_NORMAL, 1.2, params)
@@ -149,7 +155,7 @@ def test_candidates_beyond_travel_range_are_infeasible():
 
 def test_feasibility_on_a_tilted_plane_uses_plane_distances():
     normal, offset = tilted_plane()
-    params = CandidateRingParams(num_candidates=6, radius=1.5, robot_radius=0.3, max_travel=10.0)
+    params = single_ring(num_candidates=6, radius=1.5, robot_radius=0.3, max_travel=10.0)
     candidates = generate_candidates(np.array([0.2, 0.3, 3.0]), normal, offset, params)
     e1 = np.cross(normal, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)

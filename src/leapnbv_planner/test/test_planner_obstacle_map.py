@@ -12,10 +12,19 @@ from leapnbv_planner.obstacle_map import (
     segments_clear,
     voxel_map_from_centres,
 )
-from leapnbv_planner.scoring import score_candidates
+from leapnbv_planner.scoring import score_candidates as _score_candidates
 
 RES = 0.1
 
+
+
+# The paper's three terms, which these tests check (the deployed default scores body_occlusion instead of occlusion).
+PAPER_TERMS = [("visibility", 0.03), ("area", 0.14), ("occlusion", 0.83)]
+
+
+def score_candidates(*args, **kwargs):
+    kwargs.setdefault("terms", PAPER_TERMS)
+    return _score_candidates(*args, **kwargs)
 
 def box_centres(lower, upper, res=RES):
     """Centres of the voxels of the box [lower, upper) (corners on voxel boundaries)."""

@@ -20,11 +20,12 @@ NODE_PARAMETER_NAMES = {
 
 # The robot's values (src/leapnbv_bringup/config/leapnbv.yaml when the params became a dataclass).
 ROBOT_VALUES = {
-    "num_candidates": 16, "radius": 2.5, "include_current": True, "max_travel": 4.5, "robot_radius": 0.3,
+    "num_candidates": 16, "radius": 2.5, "include_current": True, "max_travel": 6.0, "robot_radius": 0.3,
     "floor_clearance": 0.05, "weight_visibility": 0.03, "weight_area": 0.14, "weight_occlusion": 0.83,
     "delta_px": 4.0, "ground_wait_s": 0.5, "ground_max_age_s": 0.5, "use_obstacle_map": True,
     "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 150,
-    "max_goal_age_s": 1.0, "camera_pose_wait_s": 0.1,
+    "max_goal_age_s": 1.0, "camera_pose_wait_s": 0.1, "num_rings": 3, "min_radius": 1.5, "reachability": True,
+    "weight_body_occlusion": 0.83,
 }
 # One frame per output and no stale goal: the frame's own plane is waited for 0.5 s, an older
 # plane is carried (by the camera-pose delta) from at most 0.5 s back, goals are at most 1 s old, and the pose
@@ -42,7 +43,7 @@ def test_defaults_are_the_robot_values_and_valid():
         "grid_resolution", "unknown_space", "camera_height", "camera_tilt"}
     for name, value in ROBOT_VALUES.items():
         assert getattr(params, name) == value, name
-    assert params.score_terms == ["visibility", "area", "occlusion"] and params.camera_pose_source == "topic"
+    assert params.score_terms == ["visibility", "area", "body_occlusion"] and params.camera_pose_source == "topic"
     for spec in param_specs(type(params)):
         assert spec.description, spec.name
 
@@ -55,11 +56,12 @@ def test_ring_code_takes_its_defaults_from_the_node_params():
     # The node's params instance drives the ring and the feasibility test as they are.
     centroid, up = np.array([0.0, 0.3, 3.0]), np.array([0.0, -1.0, 0.0])
     candidates = generate_candidates(centroid, up, 1.2, node)
-    assert len(candidates) == 17
-    np.testing.assert_allclose(np.linalg.norm(candidates.foot_points[1:] - candidates.ring_center, axis=1), 2.5)
+    assert len(candidates) == 1 + 3 * 16  # the current view and three rings: 1.5, 2.0, 2.5 m
+    radii = np.linalg.norm(candidates.foot_points[1:] - candidates.ring_center, axis=1)
+    np.testing.assert_allclose(radii, np.repeat([1.5, 2.0, 2.5], 16))
     feasible, _ = check_feasibility(candidates, np.zeros((0, 3)), up, 1.2, node)
     travel = np.linalg.norm(candidates.foot_points - candidates.foot_points[0], axis=1)
-    np.testing.assert_array_equal(feasible, travel <= 4.5)
+    np.testing.assert_array_equal(feasible, travel <= 6.0)
 
 
 @pytest.mark.parametrize("name, value, message", [

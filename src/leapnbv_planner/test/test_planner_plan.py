@@ -48,7 +48,7 @@ def obstacle_map():
 @pytest.mark.parametrize("radius", [1.5, 2.5])
 def test_plan_views_is_the_step_by_step_pipeline(with_map, radius):
     target, ground = frame()
-    params = nbv_params_class()(radius=radius)
+    params = nbv_params_class()(radius=radius, min_radius=1.0, reachability=False)  # the paper's steps: no path search
     grid = obstacle_map() if with_map else None
     plan = plan_views(target, ground, params, grid, CAMERA_IN_MAP if with_map else None)
 
@@ -114,8 +114,8 @@ def test_plan_converts_to_the_view_candidates_arrays():
     plan = plan_views(target, ground)
     views = plan.to_arrays()
     assert isinstance(views, conversions.ViewCandidatesArrays)
-    assert views.term_names == ["visibility", "area", "occlusion"] and views.chosen_index == plan.chosen_index
-    np.testing.assert_array_equal(views.term("occlusion"), plan.scores.term("occlusion"))
+    assert views.term_names == ["visibility", "area", "body_occlusion"] and views.chosen_index == plan.chosen_index
+    np.testing.assert_array_equal(views.term("body_occlusion"), plan.scores.term("body_occlusion"))
     np.testing.assert_array_equal(views.infeasible_reason, plan.feasibility.reasons.astype(np.uint8))
     assert views.ring_radius == 2.5 and views.includes_current_view
     back = conversions.view_candidates_to_arrays(conversions.arrays_to_view_candidates(views))

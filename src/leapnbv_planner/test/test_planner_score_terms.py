@@ -58,8 +58,8 @@ def test_built_in_terms_have_todays_names_and_default_weights():
     assert {term.name: term.default_weight for term in registered_terms()} == {
         "visibility": 0.03, "area": 0.14, "occlusion": 0.83, "travel": 0.05, "body_occlusion": 0.83}
     defaults = nbv_params_class()()
-    assert defaults.term_weights() == [("visibility", 0.03), ("area", 0.14), ("occlusion", 0.83)]
-    assert defaults.score_terms == DEFAULT_SCORE_TERMS == ["visibility", "area", "occlusion"]
+    assert defaults.term_weights() == [("visibility", 0.03), ("area", 0.14), ("body_occlusion", 0.83)]
+    assert defaults.score_terms == DEFAULT_SCORE_TERMS == ["visibility", "area", "body_occlusion"]
 
 
 def test_every_module_of_the_package_registers_the_term_it_is_named_after():
@@ -94,7 +94,8 @@ def test_visibility_and_occlusion_share_one_kernel_call():
 
 def test_score_is_the_weighted_sum_in_term_order_bit_for_bit():
     person, clutter = person_and_clutter()
-    scores = score_candidates(person, clutter, *ring_poses(), K, WIDTH, HEIGHT)
+    scores = score_candidates(person, clutter, *ring_poses(), K, WIDTH, HEIGHT,
+                              terms=[("visibility", 0.03), ("area", 0.14), ("occlusion", 0.83)])
     assert scores.term_names == ["visibility", "area", "occlusion"]
     s_v, s_a, s_o = (scores.term(name) for name in scores.term_names)
     np.testing.assert_array_equal(scores.score, 0.03 * s_v + 0.14 * s_a + 0.83 * s_o)
@@ -149,7 +150,8 @@ def test_a_term_registered_from_a_test_file_gets_its_weight_parameter_and_is_pla
     # Only the new term: the nearest feasible view wins (the current one is 3 m away).
     alone = plan_views(target, ground, params_class(score_terms=["closeness"], weight_closeness=1.0))
     feasible = alone.feasibility.feasible
-    assert alone.scores.term("closeness")[alone.chosen_index] == alone.scores.score[feasible].max()
+    # The choice ties scores within 1e-9 (then the nearest wins): the inner ring's views nearly tie here.
+    assert alone.scores.term("closeness")[alone.chosen_index] >= alone.scores.score[feasible].max() - 1e-9
     assert alone.chosen_index != 0
 
 

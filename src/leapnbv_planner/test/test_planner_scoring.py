@@ -13,7 +13,8 @@ from leapnbv_planner.candidates import (
     generate_candidates,
 )
 from leapnbv_planner.score_terms.area import bounding_box_area_fraction
-from leapnbv_planner.scoring import choose_best, score_candidates
+from leapnbv_planner.scoring import choose_best
+from leapnbv_planner.scoring import score_candidates as _score_candidates
 
 LEVEL_NORMAL = np.array([0.0, -1.0, 0.0])
 FLOOR_Y = 1.2  # camera 1.2 m above a level floor: plane n.x + d = 0 with d = 1.2
@@ -21,6 +22,21 @@ WIDTH, HEIGHT = 320, 240
 K_SMALL = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
 IDENTITY_POSE = (np.eye(3)[None], np.zeros((1, 3)))
 
+
+
+
+# The paper's three terms, which these tests check (the deployed default scores body_occlusion instead of occlusion).
+PAPER_TERMS = [("visibility", 0.03), ("area", 0.14), ("occlusion", 0.83)]
+
+
+def score_candidates(*args, **kwargs):
+    kwargs.setdefault("terms", PAPER_TERMS)
+    return _score_candidates(*args, **kwargs)
+
+def single_ring(**values) -> CandidateRingParams:
+    """One ring, no path search: the geometry these tests check by hand (the robot's defaults add rings and
+    reachability, tested in test_planner_reachability)."""
+    return CandidateRingParams(**{"num_rings": 1, "reachability": False, **values})
 
 def person_cloud(rng, center_xz=(0.0, 3.0), count=3000):
     """Points filling a 0.2 m-radius, 1.7 m-tall cylinder standing on the floor."""
@@ -35,7 +51,7 @@ def test_no_background_means_nothing_is_hidden():
     rng = np.random.default_rng(1)
     target = person_cloud(rng)
     candidates = generate_candidates(np.median(target, axis=0), LEVEL_NORMAL, FLOOR_Y,
-                                     CandidateRingParams(radius=2.5))
+                                     single_ring(radius=2.5))
     scores = score_candidates(target, np.zeros((0, 3)), candidates.rotations,
                               candidates.positions, K_SMALL, WIDTH, HEIGHT)
     assert (scores.term("visibility") > 0.5).all()
@@ -46,7 +62,7 @@ def test_wall_hides_the_target_from_half_the_ring_and_the_open_side_wins():
     rng = np.random.default_rng(2)
     target = person_cloud(rng)
     centroid = np.median(target, axis=0)
-    params = CandidateRingParams(num_candidates=16, radius=1.5, max_travel=10.0)
+    params = single_ring(num_candidates=16, radius=1.5, max_travel=10.0)
     candidates = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, params)
     center = candidates.ring_center
     # A curved wall, radius 0.9 m around the target, over the +x half (-80..80 deg), from
@@ -76,7 +92,7 @@ def test_wall_hides_the_target_from_half_the_ring_and_the_open_side_wins():
 def test_obstacle_at_the_best_candidate_moves_the_choice():
     rng = np.random.default_rng(3)
     target = person_cloud(rng)
-    params = CandidateRingParams(num_candidates=16, radius=1.5, max_travel=10.0)
+    params = single_ring(num_candidates=16, radius=1.5, max_travel=10.0)
     candidates = generate_candidates(np.median(target, axis=0), LEVEL_NORMAL, FLOOR_Y, params)
     scores = score_candidates(target, np.zeros((0, 3)), candidates.rotations,
                               candidates.positions, K_SMALL, WIDTH, HEIGHT)
@@ -95,7 +111,7 @@ def test_obstacle_at_the_best_candidate_moves_the_choice():
     chosen = choose_best(scores_with_post.score, feasible, candidates.positions, np.zeros(3))
     assert chosen != best and feasible[chosen]
     # Out of range too: with a 1 m travel limit only the current view remains.
-    short = CandidateRingParams(num_candidates=16, radius=1.5, max_travel=1.0)
+    short = single_ring(num_candidates=16, radius=1.5, max_travel=1.0)
     feasible_short, reasons_short = check_feasibility(candidates, post, LEVEL_NORMAL, FLOOR_Y,
                                                       short)
     assert feasible_short.tolist() == [True] + [False] * 16
@@ -109,8 +125,8 @@ def test_closer_ring_raises_area_score():
     # A 0.3 m cube of points 3 m ahead, so the projected box stays inside the image.
     target = rng.uniform(-0.15, 0.15, size=(2000, 3)) + np.array([0.0, 0.4, 3.0])
     centroid = np.median(target, axis=0)
-    near = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, CandidateRingParams(radius=1.0))
-    far = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, CandidateRingParams(radius=2.0))
+    near = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, single_ring(radius=1.0))
+    far = generate_candidates(centroid, LEVEL_NORMAL, FLOOR_Y, single_ring(radius=2.0))
     s_near = score_candidates(target, np.zeros((0, 3)), near.rotations, near.positions,
                               K_SMALL, WIDTH, HEIGHT).term("area")[1:]
     s_far = score_candidates(target, np.zeros((0, 3)), far.rotations, far.positions,

@@ -20,10 +20,20 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from leapnbv_planner.occlusion_kernel import count_visible_targets
+from leapnbv_planner.occlusion_kernel import (
+    POINTS_PER_BOX,
+    RUN_LENGTH,
+    bucket_points,
+    count_visible_targets_bucketed,
+    run_facing_bounds,
+)
 
 # (fx, skew, cx, fy, cy, width, height) of validated intrinsics and image size.
 Camera = Tuple[float, float, float, float, float, int, int]
+# A cloud sorted into boxes by leapnbv_planner.occlusion_kernel.bucket_points: (points, companions, cell_runs,
+# cell_boxes, run_starts, run_boxes).
+Buckets = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+_NO_ROWS = np.zeros((0, 3))
 
 
 class ScoringInputError(ValueError):
@@ -143,14 +153,18 @@ class ScoringContext:
             if vertices.ndim != 2 or vertices.shape[1] != 3 or normals is None or normals.shape != vertices.shape:
                 raise ScoringInputError(f"mesh_vertices must be (V, 3) with mesh_normals of the same shape, got "
                                         f"{vertices.shape} and {None if normals is None else normals.shape}")
-            keep = np.all(np.isfinite(vertices), axis=1) & np.all(np.isfinite(normals), axis=1)
-            self.mesh_vertices, self.mesh_normals = vertices[keep], normals[keep]
+            if np.isfinite(vertices).all() and np.isfinite(normals).all():  # the usual case: no copies
+                self.mesh_vertices, self.mesh_normals = vertices, normals
+            else:
+                keep = np.all(np.isfinite(vertices), axis=1) & np.all(np.isfinite(normals), axis=1)
+                self.mesh_vertices, self.mesh_normals = vertices[keep], normals[keep]
             if mesh_line_of_sight_clear is not None:
                 clear = np.asarray(mesh_line_of_sight_clear, dtype=np.float64).reshape(-1)
                 if clear.shape != (self.num_candidates,) or not np.all((clear >= 0.0) & (clear <= 1.0)):
                     raise ScoringInputError(f"mesh_line_of_sight_clear must be {self.num_candidates} values in "
                                             f"[0, 1], got shape {clear.shape}")
                 self.mesh_line_of_sight_clear = clear
+        self._buckets: Dict[str, Buckets] = {}
         self._mesh_counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
         self._in_view: Optional[np.ndarray] = None
         self._counts: Optional[Tuple[np.ndarray, np.ndarray]] = None
@@ -164,21 +178,41 @@ class ScoringContext:
     def num_targets(self) -> int:
         return int(self.targets.shape[0])
 
+    def buckets(self, name: str) -> Buckets:
+        """The cloud ``name`` ("targets", "background", "mesh" with its normals, "none": no points) sorted into
+        boxes once per context (the kernels skip or count whole boxes per candidate)."""
+        if name not in self._buckets:
+            if name == "mesh" and self.mesh_vertices is not None:
+                points, companions = self.mesh_vertices, self.mesh_normals
+            else:
+                points = {"targets": self.targets, "background": self.background}.get(name, _NO_ROWS)
+                companions = _NO_ROWS
+            self._buckets[name] = bucket_points(np.ascontiguousarray(points), np.ascontiguousarray(companions),
+                                                POINTS_PER_BOX, RUN_LENGTH)
+        return self._buckets[name]
+
+    def _kernel_counts(self, targets: str, background: str) -> Tuple[np.ndarray, np.ndarray]:
+        """(in_view, not_hidden) of :func:`leapnbv_planner.occlusion_kernel.count_visible_targets_bucketed`."""
+        fx, skew, cx, fy, cy, width, height = self.camera
+        target_points, target_normals, *target_boxes = self.buckets(targets)
+        background_points, _, *background_boxes = self.buckets(background)
+        facing = (run_facing_bounds(target_points, target_normals, target_boxes[2]) if len(target_normals)
+                  else np.zeros((0, 7)))
+        self.kernel_calls += 1
+        return count_visible_targets_bucketed(
+            target_points, target_normals, *target_boxes, facing, background_points, *background_boxes,
+            self.rotations, self.positions, fx, skew, cx, fy, cy, width, height, self.half_window)
+
     def visible_counts(self) -> Tuple[np.ndarray, np.ndarray]:
         """(in_view (C,) int64, not_hidden (C,) int64), from one occlusion-kernel call per context.
 
         In view: z > 0 and 0 <= u < W and 0 <= v < H. Not hidden: with pixel (i, j) and
         h = floor(delta_px), no background point with z_b > 0 has its pixel within the window
         |i_b - i| <= h, |j_b - j| <= h and z_b < z_t (see
-        :func:`leapnbv_planner.occlusion_kernel.count_visible_targets`).
+        :func:`leapnbv_planner.occlusion_kernel.count_visible_targets`, here its bucketed form).
         """
         if self._counts is None:
-            fx, skew, cx, fy, cy, width, height = self.camera
-            self._counts = count_visible_targets(
-                self.targets, self.background, self.rotations, self.positions,
-                fx, skew, cx, fy, cy, width, height, self.half_window, np.zeros((0, 3)),
-            )
-            self.kernel_calls += 1
+            self._counts = self._kernel_counts("targets", "background")
         return self._counts
 
     def in_view_counts(self) -> np.ndarray:
@@ -187,12 +221,7 @@ class ScoringContext:
         if self._counts is not None:
             return self._counts[0]
         if self._in_view is None:
-            fx, skew, cx, fy, cy, width, height = self.camera
-            self._in_view, _ = count_visible_targets(
-                self.targets, np.zeros((0, 3)), self.rotations, self.positions,
-                fx, skew, cx, fy, cy, width, height, self.half_window, np.zeros((0, 3)),
-            )
-            self.kernel_calls += 1
+            self._in_view, _ = self._kernel_counts("targets", "none")
         return self._in_view
 
     def mesh_counts(self) -> Tuple[np.ndarray, np.ndarray]:
@@ -208,16 +237,11 @@ class ScoringContext:
         if self.mesh_vertices is None:
             raise ScoringInputError("no body mesh in the scoring context")
         if self._mesh_counts is None:
-            fx, skew, cx, fy, cy, width, height = self.camera
-            _, not_hidden = count_visible_targets(
-                self.mesh_vertices, self.background, self.rotations, self.positions,
-                fx, skew, cx, fy, cy, width, height, self.half_window, self.mesh_normals,
-            )
+            _, not_hidden = self._kernel_counts("mesh", "background")
             # n . (t_c - v) > 0  <=>  n . t_c > n . v: one (C, 3) x (3, V) product.
             facing = np.count_nonzero(self.positions @ self.mesh_normals.T
                                       > np.einsum("vk,vk->v", self.mesh_normals, self.mesh_vertices), axis=1)
             self._mesh_counts = (facing.astype(np.int64), not_hidden)
-            self.kernel_calls += 1
         return self._mesh_counts
 
 
