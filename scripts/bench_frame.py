@@ -46,6 +46,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 # confidence (carry_min_confidence 0), to show the time a detection-free frame takes.
 DETECT_EVERY_3RD = ["detector_node.detect_every_n_frames=3", "detector_node.carry_max_age_s=3.0",
                     "detector_node.carry_min_confidence=0.0"]
+DETECT_EVERY_5TH = ["detector_node.detect_every_n_frames=5", "detector_node.carry_max_age_s=3.0",
+                    "detector_node.carry_min_confidence=0.0"]
 
 # name -> parameter overrides (node.param=value) on top of the engines' own settings
 CONFIGURATIONS: Dict[str, List[str]] = {
@@ -73,6 +75,8 @@ BODY_ONLY_CONFIGURATIONS: Dict[str, List[str]] = {
     # The detector runs on one frame in 3 only, so the HMR engine, which runs on every frame, gets both cores.
     "body-only HMR 2 threads, detector 1 thread, detect every 3rd frame": [
         "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_3RD],
+    "body-only HMR 2 threads, detector 1 thread, detect every 5th frame": [
+        "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_5TH],
 }
 
 
