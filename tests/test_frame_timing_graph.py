@@ -158,7 +158,8 @@ def test_every_output_records_the_stamps_of_its_own_frame(graph, scene):
         assert input_stamps(target) == [("human_mesh", stamp, SAME), ("depth", stamp, SAME),
                                         ("depth/camera_info", stamp, SAME), ("ground_plane", stamp, SAME)]
         (views,) = of_stamp(graph["candidates"], stamp)
-        assert input_stamps(views) == [("target_geometry", stamp, SAME), ("ground_plane", stamp, SAME)]
+        assert input_stamps(views) == [("target_geometry", stamp, SAME), ("ground_plane", stamp, SAME),
+                                       ("human_mesh_metric", stamp, SAME)]  # body_occlusion scores the frame's mesh
     # The second frame's floor fit left out the first frame's person.
     assert ("person_mask", stamps[0], InputStamp.EXCLUSION_HINT) in input_stamps(of_stamp(graph["planes"],
                                                                                           stamps[1])[0])
@@ -195,7 +196,8 @@ def test_a_stopped_ground_node_drops_frames_and_withdraws_the_goal_never_mixes_p
     # Running again: the next frame is planned with its own plane.
     stamp = planned_frame(graph, scene)
     (views,) = of_stamp(graph["candidates"], stamp)
-    assert input_stamps(views) == [("target_geometry", stamp, SAME), ("ground_plane", stamp, SAME)]
+    assert input_stamps(views) == [("target_geometry", stamp, SAME), ("ground_plane", stamp, SAME),
+                                   ("human_mesh_metric", stamp, SAME)]  # body_occlusion scores the frame's mesh
     assert probe.spin_until(lambda: any(m.state == GoalStatus.STATE_CURRENT and stamp_to_ns(m.goal_stamp) == stamp
                                         for m in graph["status"]), 5.0)
     for proc in graph["procs"].values():

@@ -94,9 +94,9 @@ class PlannerParams(CandidateRingParams):
     camera_pose_wait_s: float = param(0.1, "s: a frame planned with the obstacle map waits this long for its camera"
                                       " pose (DDS does not order topics); then it is planned without the map",
                                       min=0.0, max=10.0)
-    body_mesh_wait_s: float = param(1.0, "s: with body_occlusion scored, a frame waits this long for its metric body "
-                                    "mesh (human_mesh_metric), then is scored on the observed points", min=0.0,
-                                    max=10.0)
+    body_mesh_wait_s: float = param(0.2, "s: with body_occlusion scored and a human_mesh_metric publisher, a frame "
+                                    "waits this long for its metric body mesh (raster_node publishes it with the "
+                                    "target), then is scored on the observed points", min=0.0, max=10.0)
     camera_pose_source: str = param("topic", "where the camera pose of each frame comes from (a key of"
                                     " leapnbv_common.camera_pose.CAMERA_POSE_SOURCES)", read_only=True)
     camera_pose_cache: int = param(150, "camera poses remembered by stamp, to find the pose of each planned frame"

@@ -281,7 +281,8 @@ class NbvNode(Node):
         mesh = self.body_meshes.get(stamp)
         if mesh is not None:
             return True, mesh
-        if not mesh_waited and p.body_mesh_wait_s > 0:
+        # Wait only when some node publishes metric meshes (the graph's raster_node): without one, none comes.
+        if not mesh_waited and p.body_mesh_wait_s > 0 and self.count_publishers(topics.HUMAN_MESH_METRIC) > 0:
             self.waiting_for_mesh[stamp] = frame._replace(since_ns=self.now_ns())
             while len(self.waiting_for_mesh) > BODY_MESH_CACHE:
                 self.waiting_for_mesh.popitem(last=False)
