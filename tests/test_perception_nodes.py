@@ -238,8 +238,10 @@ def test_hmr_waits_briefly_for_an_image_that_comes_after_its_detections(graph):
         msg.detections = [PersonDetection(x_min=140.0, y_min=80.0, x_max=260.0, y_max=400.0, score=0.9)]
         return msg
 
+    probe.spin_for(0.5)  # the matching settles on hmr_node's side too (a message before that is lost)
     det_pub.publish(detections(3500))
-    probe.spin_for(0.05)  # the detections are at hmr_node before their image is sent
+    probe.spin_for(0.1)  # the detections are at hmr_node before their image is sent (the graph's detector
+    # then answers the image with its own detections of the stamp: dropped, the first ones wait)
     pub.publish(numpy_to_image(person_blob_image(150, 90)[0], "rgb8", make_header(3500)))
     assert probe.spin_until(lambda: by_stamp(graph["meshes"], (3500, 0)), 10.0), "no mesh for the late image"
     mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (3500, 0))[0])

@@ -244,6 +244,9 @@ class HmrNode(Node):
                 if self.info_timer.is_canceled():
                     self.info_timer.reset()
             return
+        if self.image_wait is not None and self.image_wait[0] == stamp:
+            self.diagnostics.drop("duplicate_stamp")  # the frame's first detections wait for its image
+            return
         image = self.images.pop(stamp)
         self.images.drop_older_than(stamp, "image_superseded")
         if self.image_wait is not None:
