@@ -259,6 +259,14 @@ _BOX_GROWTH = 1e-6
 
 
 @njit(cache=True)
+def _box_count(prefix: np.ndarray, lo0: int, hi0: int, lo1: int, hi1: int, lo2: int, hi2: int) -> int:
+    """Occupied voxels in the index box [lo, hi] per axis, from the inclusive 3-D prefix sums."""
+    return (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
+            - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
+            + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
+
+
+@njit(cache=True)
 def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, delta: np.ndarray, t_a: float,
                           t_b: float) -> bool:
     """Whether the cells of the bounding box of g([t_a, t_b]) (g(t) = start + t delta, grid coordinates), grown
@@ -277,10 +285,7 @@ def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarr
             lo1, hi1 = low, high
         else:
             lo2, hi2 = low, high
-    count = (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
-             - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
-             + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
-    return count > 0
+    return _box_count(prefix, lo0, hi0, lo1, hi1, lo2, hi2) > 0
 
 
 @njit(cache=True)
@@ -411,10 +416,7 @@ def _fan_piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.n
             lo1, hi1 = low, high
         else:
             lo2, hi2 = low, high
-    count = (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
-             - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
-             + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
-    return count > 0
+    return _box_count(prefix, lo0, hi0, lo1, hi1, lo2, hi2) > 0
 
 
 @njit(cache=True)

@@ -11,6 +11,37 @@ from leapnbv_planner.jit import njit
 
 
 @njit(cache=True)
+def _row_window_minima(depth: np.ndarray, region_height: int, region_width: int, window: int, half_window: int,
+                       first_occupied: np.ndarray, last_occupied: np.ndarray, prefix_min: np.ndarray,
+                       suffix_min: np.ndarray, row_min: np.ndarray, valid_lo: np.ndarray,
+                       valid_hi: np.ndarray) -> None:
+    """Running min along each row over ``window`` columns (van Herk / Gil-Werman):
+    row_min[rr, a + half_window] = min(depth[rr, a : a + window]), computed only for the window starts a
+    that reach an occupied column (valid_lo..valid_hi per row; outside them the row min is +inf)."""
+    for rr in range(region_height):
+        if last_occupied[rr] < 0:
+            valid_lo[rr] = 1
+            valid_hi[rr] = 0
+            continue
+        start_lo = max(0, first_occupied[rr] - 2 * half_window)
+        start_hi = min(last_occupied[rr], region_width - window)
+        block_lo = (start_lo // window) * window
+        block_hi = ((start_hi + 2 * half_window) // window + 1) * window
+        for block in range(block_lo, block_hi, window):
+            prefix_min[block] = depth[rr, block]
+            for cc in range(block + 1, block + window):
+                prefix_min[cc] = min(prefix_min[cc - 1], depth[rr, cc])
+            last = block + window - 1
+            suffix_min[last] = depth[rr, last]
+            for cc in range(last - 1, block - 1, -1):
+                suffix_min[cc] = min(suffix_min[cc + 1], depth[rr, cc])
+        for a in range(start_lo, start_hi + 1):
+            row_min[rr, a + half_window] = min(suffix_min[a], prefix_min[a + window - 1])
+        valid_lo[rr] = start_lo + half_window
+        valid_hi[rr] = start_hi + half_window
+
+
+@njit(cache=True)
 def count_visible_targets(
     target_points: np.ndarray,
     background_points: np.ndarray,
@@ -167,30 +198,8 @@ def count_visible_targets(
             first_occupied[rr] = min(first_occupied[rr], cc)
             last_occupied[rr] = max(last_occupied[rr], cc)
 
-        # Running min along each row over `window` columns (van Herk / Gil-Werman):
-        # row_min[rr, a + half_window] = min(depth[rr, a : a + window]), computed only for
-        # the window starts a that reach an occupied column (all others give +inf).
-        for rr in range(region_height):
-            if last_occupied[rr] < 0:
-                valid_lo[rr] = 1
-                valid_hi[rr] = 0
-                continue
-            start_lo = max(0, first_occupied[rr] - 2 * half_window)
-            start_hi = min(last_occupied[rr], region_width - window)
-            block_lo = (start_lo // window) * window
-            block_hi = ((start_hi + 2 * half_window) // window + 1) * window
-            for block in range(block_lo, block_hi, window):
-                prefix_min[block] = depth[rr, block]
-                for cc in range(block + 1, block + window):
-                    prefix_min[cc] = min(prefix_min[cc - 1], depth[rr, cc])
-                last = block + window - 1
-                suffix_min[last] = depth[rr, last]
-                for cc in range(last - 1, block - 1, -1):
-                    suffix_min[cc] = min(suffix_min[cc + 1], depth[rr, cc])
-            for a in range(start_lo, start_hi + 1):
-                row_min[rr, a + half_window] = min(suffix_min[a], prefix_min[a + window - 1])
-            valid_lo[rr] = start_lo + half_window
-            valid_hi[rr] = start_hi + half_window
+        _row_window_minima(depth, region_height, region_width, window, half_window, first_occupied, last_occupied,
+                           prefix_min, suffix_min, row_min, valid_lo, valid_hi)
 
         # Min over the window's rows at each target pixel, then the depth test.
         visible = 0
@@ -731,27 +740,8 @@ def count_visible_targets_bucketed(
                 row_work += 3 * (last_occupied[rr] - first_occupied[rr] + 3 * window)
         direct = num_near * window * window <= row_work + num_near * window
         if not direct:
-            for rr in range(region_height):
-                if last_occupied[rr] < 0:
-                    valid_lo[rr] = 1
-                    valid_hi[rr] = 0
-                    continue
-                start_lo = max(0, first_occupied[rr] - 2 * half_window)
-                start_hi = min(last_occupied[rr], region_width - window)
-                block_lo = (start_lo // window) * window
-                block_hi = ((start_hi + 2 * half_window) // window + 1) * window
-                for block in range(block_lo, block_hi, window):
-                    prefix_min[block] = depth[rr, block]
-                    for cc in range(block + 1, block + window):
-                        prefix_min[cc] = min(prefix_min[cc - 1], depth[rr, cc])
-                    last = block + window - 1
-                    suffix_min[last] = depth[rr, last]
-                    for cc in range(last - 1, block - 1, -1):
-                        suffix_min[cc] = min(suffix_min[cc + 1], depth[rr, cc])
-                for a in range(start_lo, start_hi + 1):
-                    row_min[rr, a + half_window] = min(suffix_min[a], prefix_min[a + window - 1])
-                valid_lo[rr] = start_lo + half_window
-                valid_hi[rr] = start_hi + half_window
+            _row_window_minima(depth, region_height, region_width, window, half_window, first_occupied,
+                               last_occupied, prefix_min, suffix_min, row_min, valid_lo, valid_hi)
         for near in range(num_near):
             n = near_targets[near]
             cc = target_col[n] - col_lo
