@@ -56,11 +56,13 @@ TOLERANCES: Dict[Tuple[str, str], float] = {
     ("ground_plane", "offset"): 1e-3,             # m
     ("ground_plane", "inlier_count"): 50,
     ("person_mask", "pixel_count"): 20,
-    ("view_candidates", "score"): 1e-4,
+    # The score sums S_o over the body mesh, a count over the ~8k mesh vertices facing a candidate: one vertex
+    # at the edge of the depth test (float32 rounding of an engine's threaded reductions) moves it 1.2e-4.
+    ("view_candidates", "score"): 1e-3,
     ("view_candidates", "s_visibility"): 1e-4,
     ("view_candidates", "s_area"): 1e-4,
     ("view_candidates", "s_occlusion"): 1e-4,
-    ("view_candidates", "s_body_occlusion"): 1e-4,
+    ("view_candidates", "s_body_occlusion"): 1e-3,
     ("view_candidates", "s_travel"): 1e-4,
     ("next_best_view", "position"): 0.01,         # 1 cm
     ("next_best_view", "heading_deg"): 1.0,       # 1 degree
