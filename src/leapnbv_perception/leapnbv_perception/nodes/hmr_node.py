@@ -72,8 +72,8 @@ class HmrNode(Node):
         self.info_wait: Optional[tuple] = None  # (stamp, (detections, truth), since): waits for its camera_info
         self.truth_wait: Optional[tuple] = None  # (stamp, since): detections waiting for their ground truth
         self.image_wait: Optional[tuple] = None  # (stamp, detections, since): detections waiting for their image
-        self.info_timer = self.create_timer(0.02, self.expire_info_wait)
-        self.info_timer.cancel()  # runs only while a frame waits
+        self.wait_timer = self.create_timer(0.02, self.expire_waits)
+        self.wait_timer.cancel()  # runs only while a frame waits
         self.engine = RetryingLoader(self, self.diagnostics, f"HMR engine {p.model_file_path!r} with body "
                                      f"model {p.body_model_path!r}", self.load_engine, p.model_retry_period_s)
         if self.ground_truth:
@@ -204,10 +204,13 @@ class HmrNode(Node):
         if self.info_wait is not None:
             self.diagnostics.drop("detections_superseded")  # an older frame still waiting for its camera_info
         self.info_wait = (stamp, pair, time.monotonic())
-        if self.info_timer.is_canceled():
-            self.info_timer.reset()
+        self.start_wait_timer()
 
-    def expire_info_wait(self) -> None:
+    def start_wait_timer(self) -> None:
+        if self.wait_timer.is_canceled():
+            self.wait_timer.reset()
+
+    def expire_waits(self) -> None:
         if self.waiting():
             self.pull_companions()
         if self.image_wait is not None and time.monotonic() - self.image_wait[2] >= IMAGE_WAIT_S:
@@ -221,7 +224,7 @@ class HmrNode(Node):
             self.info_wait = None
             self.estimate(*pair)  # with the latest camera_info (recorded as STATIC), or refused without one
         if not self.waiting():
-            self.info_timer.cancel()
+            self.wait_timer.cancel()
 
     @rejects_bad_input("bad_detections")
     def on_detections(self, msg: PersonDetections, info) -> None:
@@ -241,8 +244,7 @@ class HmrNode(Node):
                 self.estimate_with_camera_info(pair)
             else:  # its truth may still be on the way (DDS does not order topics): pulled again shortly
                 self.truth_wait = (stamp, time.monotonic())
-                if self.info_timer.is_canceled():
-                    self.info_timer.reset()
+                self.start_wait_timer()
             return
         if self.image_wait is not None and self.image_wait[0] == stamp:
             self.diagnostics.drop("duplicate_stamp")  # the frame's first detections wait for its image
@@ -254,8 +256,7 @@ class HmrNode(Node):
             self.diagnostics.drop("detections_superseded")  # an older frame still waiting for its image
         if image is None:  # its image may still be on the way: pulled again shortly (IMAGE_WAIT_S)
             self.image_wait = (stamp, msg, time.monotonic())
-            if self.info_timer.is_canceled():
-                self.info_timer.reset()
+            self.start_wait_timer()
             return
         self.estimate(msg, image)
 
