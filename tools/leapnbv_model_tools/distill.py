@@ -155,6 +155,15 @@ def crop_and_box(sample: Sample, input_hw: Tuple[int, int]) -> Tuple[np.ndarray,
     return engine_input[0], processed
 
 
+def ground_truth_meshes(layer, samples: List[Sample]) -> torch.Tensor:
+    """(B, V, 3) vertices of the samples' ground-truth parameters through the PyTorch SMPL-X layer."""
+    from leapnbv_model_tools.torch_smplx import mesh_from_axis_angle
+
+    with torch.no_grad():
+        return mesh_from_axis_angle(layer, {k: torch.from_numpy(np.stack([s.params[k] for s in samples])).float()
+                                            for k in PARAM_SIZES})
+
+
 def box_projection(vertices_camera: torch.Tensor, camera_k: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     """(B, V, 2) camera-frame vertices projected with K (B, 4: fx, fy, cx, cy), in units of the processed
     boxes (B, 4: x, y, w, h): (u - x) / w, (v - y) / h."""
@@ -406,7 +415,6 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     from leapnbv_model_tools.torch_smplx import (
         TorchSMPLX,
         centroid_relative,
-        mesh_from_axis_angle,
         mesh_from_outputs,
         vertex_loss,
     )
@@ -442,6 +450,8 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     layer = TorchSMPLX(body)
     train = read_manifest(config.train)
     val = read_manifest(config.val) if config.val else []
+    if config.projection_weight > 0 and any(s.params is None or s.camera_k is None for s in train):
+        raise DistillError(f"--projection-weight: manifest '{config.train}' has samples without params or camera")
     if not use_teacher and any(s.params is None for s in train):
         raise DistillError(f"--targets gt: manifest '{config.train}' has samples without params")
     if len(train) < config.batch_size:
@@ -456,6 +466,7 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     train_hashes = [crop_sha256(c) for c in train_crops]
     val_hashes = [crop_sha256(c) for c in val_crops]
     val_targets = None
+    train_gt = None  # the ground-truth meshes of the training crops, when a loss needs them
     cache = None
     if use_teacher:
         cache = TeacherCache(config.cache or str(out / "teacher_cache"), config.teacher_sha256,
@@ -465,25 +476,17 @@ def distill(config: DistillConfig) -> Dict[str, object]:
         train_targets = torch.from_numpy(cache.load(train_hashes))
         val_targets = cache.load(val_hashes) if val else None
     else:
-        with torch.no_grad():
-            train_targets = centroid_relative(mesh_from_axis_angle(
-                layer, {k: torch.from_numpy(np.stack([s.params[k] for s in train])).float() for k in PARAM_SIZES}))
-    val_gt = None
-    if val and all(s.params is not None for s in val):
-        with torch.no_grad():
-            val_gt = mesh_from_axis_angle(layer, {k: torch.from_numpy(np.stack([s.params[k] for s in val])).float()
-                                                  for k in PARAM_SIZES}).numpy()
+        train_gt = ground_truth_meshes(layer, train)
+        train_targets = centroid_relative(train_gt)
+    val_gt = ground_truth_meshes(layer, val).numpy() if val and all(s.params is not None for s in val) else None
     del teacher
 
     if config.init_mean:
         init_from_mean(student, train)
     train_projection = None
     if config.projection_weight > 0:
-        if any(s.params is None or s.camera_k is None for s in train):
-            raise DistillError(f"--projection-weight: manifest '{config.train}' has samples without params or camera")
         with torch.no_grad():
-            camera_vertices = mesh_from_axis_angle(
-                layer, {k: torch.from_numpy(np.stack([s.params[k] for s in train])).float() for k in PARAM_SIZES}) \
+            camera_vertices = (train_gt if train_gt is not None else ground_truth_meshes(layer, train)) \
                 + torch.from_numpy(np.stack([s.translation for s in train])).float()[:, None, :]
             intrinsics = torch.from_numpy(np.stack([s.camera_k for s in train])).float()
             boxes = torch.from_numpy(np.stack([box for _, box in train_cropped])).float()
