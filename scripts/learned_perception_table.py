@@ -29,12 +29,14 @@ def main(argv: List[str]) -> int:
         return 2
     lines = ["| perception | method | scenes | success (%) | coverage before -> after (%) | area before -> after "
              "(k px) | PA-MPVPE before -> after (mm) |", "|---|---|---:|---:|---:|---:|---:|"]
+    failures = []
     for variant in ("truth", "learned"):
         path = os.path.join(argv[0], variant, "run.json")
         if not os.path.exists(path):
             print(f"learned_perception_table: run not found: '{path}'", file=sys.stderr)
             return 2
         run = EvaluationRun.read(path)
+        failures.append(f"{variant}: {sum(1 for s in run.scenes if s.graph_failure)} of {len(run.scenes)}")
         per_method = aggregate_task_results(run)["per_method"]
         for method in METHODS:
             if method not in per_method:
@@ -45,10 +47,6 @@ def main(argv: List[str]) -> int:
             lines.append(f"| {run.perception} | {method} | {row['scenes']} | {_fmt(row['success_rate_pct'])} | "
                          f"{_fmt(row['coverage_before_pct'])} -> {_fmt(row['coverage_after_pct'])} | "
                          f"{_fmt(row['area_before_kpx'])} -> {_fmt(row['area_after_kpx'])} | {error} |")
-    failures = []
-    for variant in ("truth", "learned"):
-        run = EvaluationRun.read(os.path.join(argv[0], variant, "run.json"))
-        failures.append(f"{variant}: {sum(1 for s in run.scenes if s.graph_failure)} of {len(run.scenes)}")
     print("\n".join(lines))
     print(f"\ngraph failures: {'; '.join(failures)}")
     return 0
