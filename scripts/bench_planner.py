@@ -338,7 +338,7 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
     ground = SimpleNamespace(valid=True, normal=PLANE_NORMAL, offset=PLANE_OFFSET)
     mesh_vertices, mesh_faces = cylinder_mesh(10000)
     robot = dataclasses.replace(params, num_rings=3, min_radius=1.5, reachability=True,
-                                score_terms=["visibility", "area", "body_occlusion"])
+                                score_terms=["visibility", "area", "body_occlusion", "travel"])
     frame = SimpleNamespace(valid=True, target_points=target.astype(np.float32),
                             background_points=background.astype(np.float32), centroid=centroid,
                             k=INTRINSICS, width=WIDTH, height=HEIGHT)
@@ -354,8 +354,15 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
           f"{int((plan.feasibility.reasons == 3).sum())}, chosen {plan.chosen_index}, path "
           f"{0 if plan.base_path is None else len(plan.base_path)} cells")
     reference = reference_robot_terms(plan, target, background, mesh_vertices, mesh_faces, grid, robot)
+    scored = plan.feasibility.feasible  # infeasible candidates are not scored (score_infeasible off)
     for name, values in reference.items():
-        print(f"  {name}: max |plan - per-point reference| {np.max(np.abs(plan.scores.term(name) - values)):.1e}")
+        difference = np.max(np.abs(plan.scores.term(name)[scored] - values[scored]))
+        print(f"  {name}: max |plan - per-point reference| over the {int(scored.sum())} scored candidates "
+              f"{difference:.1e}")
+    every = dataclasses.replace(robot, score_infeasible=True)
+    median, p95 = time_call(partial(plan_views, frame, ground, every, None, None, (mesh_vertices, mesh_faces)),
+                            repeats)
+    print(f"  every candidate scored (score_infeasible), frame only: {median:7.2f} / {p95:7.2f}")
 
 
 def reference_robot_terms(plan, target: np.ndarray, background: np.ndarray, mesh_vertices: np.ndarray,

@@ -169,12 +169,14 @@ def test_evaluation_through_the_graph_is_complete_and_deterministic(tmp_path):
     assert elapsed < 240.0
 
     methods = first.methods
-    assert methods == ["leap_nbv", "stay", "random", "visibility_only", "area_only", "body_occlusion_only", "oracle"]
+    assert methods == ["leap_nbv", "stay", "random", "visibility_only", "area_only", "body_occlusion_only",
+                       "travel_only", "oracle"]
     assert len(first.scenes) == 3 and first.seeds == BENCHMARK_SEEDS[:3]
     for scene in first.scenes:
         assert scene.graph_failure is None, scene.graph_failure
         assert list(scene.per_method) == methods
-        assert scene.candidates is not None and scene.candidates.term_names == ["visibility", "area", "body_occlusion"]
+        assert scene.candidates is not None and scene.candidates.term_names == ["visibility", "area", "body_occlusion",
+                                                                                   "travel"]
         for row in scene.per_method.values():
             assert 0.0 <= row.after.surface_coverage <= 1.0
         stay = scene.per_method["stay"]

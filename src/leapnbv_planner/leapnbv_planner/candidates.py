@@ -222,6 +222,28 @@ def ring_radii(params: CandidateRingParams) -> np.ndarray:
     return np.linspace(float(params.min_radius), float(params.radius), rings)
 
 
+def cameras_at_feet(feet: np.ndarray, centroid: np.ndarray, unit_normal: np.ndarray, camera_height: float,
+                    params: CandidateRingParams) -> Tuple[np.ndarray, np.ndarray]:
+    """(rotations (N, 3, 3), positions (N, 3)) of the robot's camera standing at (N, 3) foot points.
+
+    The camera sits at the mounting height (``params.camera_height``, or ``camera_height``, the current
+    camera's, when that is 0) above its foot point and looks at the centroid (``camera_tilt`` look_at), or
+    turns toward it keeping the current camera's pitch (``fixed``).
+    """
+    mounting = float(getattr(params, "camera_height", 0.0))
+    positions = feet + (mounting if mounting > 0.0 else camera_height) * unit_normal[None, :]
+    aim = centroid
+    if getattr(params, "camera_tilt", "look_at") == "fixed":
+        # A head without tilt: aim along the level bearing to the target, pitched as the current camera is
+        # (sin(pitch) = -z.n for the current optical axis z = (0, 0, 1)).
+        sin_pitch = float(np.clip(-unit_normal[2], -0.999, 0.999))
+        level = centroid[None, :] - positions
+        level -= (level @ unit_normal)[:, None] * unit_normal[None, :]
+        level /= np.maximum(np.linalg.norm(level, axis=1), 1e-12)[:, None]
+        aim = positions + np.sqrt(1.0 - sin_pitch ** 2) * level - sin_pitch * unit_normal[None, :]
+    return _look_at_many(positions, aim, unit_normal), positions
+
+
 def generate_candidates(
     centroid: np.ndarray,
     plane_normal: np.ndarray,
@@ -282,18 +304,7 @@ def generate_candidates(
     ]
     ring_feet = np.concatenate(feet_per_ring, axis=0) if feet_per_ring else np.zeros((0, 3))
     num_ring = ring_feet.shape[0]
-    mounting = float(getattr(params, "camera_height", 0.0))
-    ring_positions = ring_feet + (mounting if mounting > 0.0 else camera_height) * unit_normal[None, :]
-    aim = centroid
-    if getattr(params, "camera_tilt", "look_at") == "fixed":
-        # A head without tilt: aim along the level bearing to the target, pitched as the current camera is
-        # (sin(pitch) = -z.n for the current optical axis z = (0, 0, 1)).
-        sin_pitch = float(np.clip(-unit_normal[2], -0.999, 0.999))
-        level = centroid[None, :] - ring_positions
-        level -= (level @ unit_normal)[:, None] * unit_normal[None, :]
-        level /= np.maximum(np.linalg.norm(level, axis=1), 1e-12)[:, None]
-        aim = ring_positions + np.sqrt(1.0 - sin_pitch ** 2) * level - sin_pitch * unit_normal[None, :]
-    ring_rotations = _look_at_many(ring_positions, aim, unit_normal)
+    ring_rotations, ring_positions = cameras_at_feet(ring_feet, centroid, unit_normal, camera_height, params)
 
     if params.include_current:
         rotations = np.concatenate([np.eye(3)[None], ring_rotations], axis=0)

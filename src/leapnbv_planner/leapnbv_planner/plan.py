@@ -23,10 +23,14 @@ from leapnbv_planner.candidates import (
     CandidateSet,
     FeasibilityReason,
     FeasibilityResult,
+    cameras_at_feet,
     check_feasibility,
     generate_candidates,
     normalize_plane,
+    plane_basis,
+    ring_radii,
 )
+from leapnbv_planner.footprint_kernel import footprints_blocked
 from leapnbv_planner.mesh_kernel import face_normal_sums, unit_normals
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
@@ -37,6 +41,9 @@ if TYPE_CHECKING:  # the core needs no ROS; only the conversion to the message a
     from leapnbv_common.conversions import ViewCandidatesArrays
 
 Frame = Tuple[np.ndarray, np.ndarray]  # (3, 3) rotation with axes as columns, (3,) position
+# Terms that never read the target points' line of sight through the map (body_occlusion reads the mesh's when the
+# frame has a mesh); with only these, that walk is skipped.
+_NO_TARGET_LINE_OF_SIGHT = ("visibility", "area", "body_occlusion", "travel")
 
 
 class PlanInputError(ValueError):
@@ -50,18 +57,23 @@ class Plan:
     Attributes:
         candidates: the candidate poses (rotations, positions, foot points, ring centre).
         feasibility: feasible (C,) and the infeasible reason codes (C,).
-        scores: term names, weights, (C, T) term values and the (C,) score.
+        scores: term names, weights, (C, T) term values and the (C,) score (0 for an infeasible candidate unless
+            score_infeasible is set: those are not scored).
         chosen_index: the chosen candidate, -1 when none is feasible.
         includes_current_view: candidate 0 is the current view.
         ring_radius: metres.
         up: (3,) the ground normal n as the plane gives it (pointing up, not necessarily unit length).
         base_goal: (rotation, position) of the robot base at the chosen view, None when none is chosen.
-        line_of_sight_clear: (C,) the obstacle map's clear share per candidate, None without the map.
+        line_of_sight_clear: (C,) the obstacle map's clear share of the target points per candidate (NaN for a
+            candidate that was not scored), None without the map or when no score term reads it (the body mesh
+            scored in place of the paper's S_o).
         path_lengths: (C,) metres of the robot's shortest free path to each candidate (0 for the current
             view, inf: none), None when reachability is off.
         base_path: (P, 3) floor points of the path to the chosen candidate (the robot's foot point first,
             the goal's last), None when reachability is off or nothing is chosen.
         reach: the path search (grid, parents), None when reachability is off.
+        mesh_line_of_sight_clear: (C,) the same share of the body mesh's vertices, None without map or mesh.
+        used_obstacle_map: the map (with the frame's camera pose) took part in the plan.
     """
 
     candidates: CandidateSet
@@ -76,10 +88,8 @@ class Plan:
     path_lengths: Optional[np.ndarray] = None
     base_path: Optional[np.ndarray] = None
     reach: Optional[Reachability] = None
-
-    @property
-    def used_obstacle_map(self) -> bool:
-        return self.line_of_sight_clear is not None
+    mesh_line_of_sight_clear: Optional[np.ndarray] = None
+    used_obstacle_map: bool = False
 
     def chosen_pose(self) -> Optional[Frame]:
         """(rotation, position) of the next-best view, None when none is feasible."""
@@ -208,28 +218,39 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     if body_mesh is not None and "body_occlusion" in params.score_terms:
         mesh_vertices = np.asarray(body_mesh[0], dtype=np.float64)
         mesh_normals = mesh_vertex_normals(mesh_vertices, body_mesh[1])
-    if obstacle_map is not None and camera_pose is not None:
+    with_map = obstacle_map is not None and camera_pose is not None
+    if with_map:
         rotation, position = _pose_arrays(camera_pose)
         obstacles = np.concatenate([background, centres_in_observation(obstacle_map, rotation, position)])
-        line_of_sight_clear = line_of_sight_clear_fraction(
-            obstacle_map, rotation, position, candidates.positions, target_points,
-            params.map_max_target_points, params.map_target_margin)
-        if mesh_vertices is not None:
-            mesh_clear = line_of_sight_clear_fraction(
-                obstacle_map, rotation, position, candidates.positions, mesh_vertices,
-                params.map_max_target_points, params.map_target_margin)
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
     reach, path_lengths = None, None
     if getattr(params, "reachability", False):
         feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, target_points, normal, offset,
                                           params)
+        if getattr(params, "fit_to_free_space", False):
+            candidates, feasibility = _fit_to_free_space(candidates, feasibility, reach, obstacles, centroid, normal,
+                                                         offset, params)
         path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
-    scores = score_candidates(target_points, background, candidates.rotations, candidates.positions, target.k,
-                              target.width, target.height, params.term_weights(), delta_px=params.delta_px,
-                              line_of_sight_clear=line_of_sight_clear, path_lengths=path_lengths,
-                              travel_scale=float(getattr(params, "max_path_length", 6.0)),
-                              mesh_vertices=mesh_vertices, mesh_normals=mesh_normals,
-                              mesh_line_of_sight_clear=mesh_clear)
+    # Only the candidates the robot can take are scored (the scoring kernels are most of a plan's time); the
+    # others keep score 0 unless score_infeasible asks for every candidate's terms (to look at them).
+    scored = np.ones(len(candidates), dtype=bool) if getattr(params, "score_infeasible", True) \
+        else np.asarray(feasibility.feasible, dtype=bool)
+    picked = np.flatnonzero(scored)
+    # The target points' line of sight serves the paper's S_o (and body_occlusion without a mesh); with the
+    # mesh scored in its place only the mesh vertices' is needed.
+    target_clear_used = mesh_vertices is None or any(name not in _NO_TARGET_LINE_OF_SIGHT
+                                                     for name in params.score_terms)
+    if with_map and target_clear_used:
+        line_of_sight_clear = _on_scored(line_of_sight_clear_fraction(
+            obstacle_map, rotation, position, candidates.positions[picked], target_points,
+            params.map_max_target_points, params.map_target_margin), picked, len(candidates), np.nan)
+    if with_map:
+        if mesh_vertices is not None:
+            mesh_clear = _on_scored(line_of_sight_clear_fraction(
+                obstacle_map, rotation, position, candidates.positions[picked], mesh_vertices,
+                params.map_max_target_points, params.map_target_margin), picked, len(candidates), np.nan)
+    scores = _score_picked(candidates, picked, target, target_points, background, params, line_of_sight_clear,
+                           path_lengths, mesh_vertices, mesh_normals, mesh_clear)
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
     base_goal, base_path = None, None
     if chosen >= 0:
@@ -239,7 +260,105 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     return Plan(candidates=candidates, feasibility=feasibility, scores=scores, chosen_index=int(chosen),
                 includes_current_view=bool(params.include_current), ring_radius=float(params.radius),
                 up=normal, base_goal=base_goal, line_of_sight_clear=line_of_sight_clear,
-                path_lengths=path_lengths, base_path=base_path, reach=reach)
+                path_lengths=path_lengths, base_path=base_path, reach=reach, mesh_line_of_sight_clear=mesh_clear,
+                used_obstacle_map=with_map)
+
+
+def _on_scored(values: np.ndarray, picked: np.ndarray, count: int, fill: float) -> np.ndarray:
+    """(count,) array with ``values`` at the picked candidates and ``fill`` elsewhere."""
+    full = np.full(count, fill, dtype=np.float64)
+    full[picked] = values
+    return full
+
+
+def _score_picked(candidates: CandidateSet, picked: np.ndarray, target: Any, target_points: np.ndarray,
+                  background: np.ndarray, params: PlannerParams, line_of_sight_clear: Optional[np.ndarray],
+                  path_lengths: Optional[np.ndarray], mesh_vertices: Optional[np.ndarray],
+                  mesh_normals: Optional[np.ndarray], mesh_clear: Optional[np.ndarray]) -> CandidateScores:
+    """The scores of the picked candidates; every other candidate's terms and score are 0."""
+    terms = params.term_weights()
+    count = len(candidates)
+    if len(picked) == 0:
+        return CandidateScores(term_names=[name for name, _ in terms],
+                               term_weights=np.array([weight for _, weight in terms], dtype=np.float64),
+                               term_scores=np.zeros((count, len(terms))), score=np.zeros(count))
+
+    def on_picked(values: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        return None if values is None else values[picked]
+
+    scores = score_candidates(target_points, background, candidates.rotations[picked], candidates.positions[picked],
+                              target.k, target.width, target.height, terms, delta_px=params.delta_px,
+                              line_of_sight_clear=on_picked(line_of_sight_clear), path_lengths=on_picked(path_lengths),
+                              travel_scale=float(getattr(params, "max_path_length", 6.0)),
+                              mesh_vertices=mesh_vertices, mesh_normals=mesh_normals,
+                              mesh_line_of_sight_clear=on_picked(mesh_clear))
+    if len(picked) == count:
+        return scores
+    term_scores = np.zeros((count, len(terms)))
+    term_scores[picked] = scores.term_scores
+    return CandidateScores(term_names=scores.term_names, term_weights=scores.term_weights, term_scores=term_scores,
+                           score=_on_scored(scores.score, picked, count, 0.0))
+
+
+def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult, reach: Reachability,
+                       obstacles: np.ndarray, centroid: np.ndarray, normal: np.ndarray, offset: float,
+                       params: PlannerParams) -> Tuple[CandidateSet, FeasibilityResult]:
+    """Ring candidates that stand in an obstacle or have no path move inward along their bearing from the ring
+    centre, to the outermost foot point that is free and reachable, within their ring's band: down to (not onto)
+    the next inner ring's radius, the innermost ring down to min_free_radius. Steps of one grid cell; a foot point
+    must be free on the floor grid, reached by a path of at most max_path_length, within max_travel, and pass the
+    exact footprint test. ``reach.path_lengths`` and ``reach.reachable`` are updated for the moved candidates."""
+    reasons = np.asarray(feasibility.reasons)
+    movable = (reasons == int(FeasibilityReason.OBSTACLE)) | (reasons == int(FeasibilityReason.UNREACHABLE))
+    first_ring = 1 if params.include_current else 0
+    per_ring = int(params.num_candidates)
+    radii = ring_radii(params)
+    step = float(reach.grid.cell)
+    unit_normal, unit_offset = normalize_plane(normal, offset)
+    current_foot = -unit_offset * unit_normal
+    owners, probes = [], []
+    for index in np.flatnonzero(movable):
+        ring = (int(index) - first_ring) // max(per_ring, 1)
+        if index < first_ring or ring >= len(radii):
+            continue
+        bearing = candidates.foot_points[index] - candidates.ring_center
+        bearing /= max(float(np.linalg.norm(bearing)), 1e-12)
+        lowest = float(radii[ring - 1]) + 1e-9 if ring > 0 else float(params.min_free_radius)
+        for radius in np.arange(float(radii[ring]) - step, lowest - 1e-9, -step):
+            owners.append(int(index))
+            probes.append(candidates.ring_center + radius * bearing)
+    if not probes:
+        return candidates, feasibility
+    owners_array, feet = np.asarray(owners), np.asarray(probes)
+    lengths = reach.path_lengths_at(feet)
+    ok = (np.isfinite(lengths) & (lengths <= float(params.max_path_length))
+          & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel)))
+    if np.any(ok):
+        e1, e2 = plane_basis(unit_normal)
+        tested = np.flatnonzero(ok)
+        ok[tested] = ~footprints_blocked(np.ascontiguousarray(obstacles), unit_normal, unit_offset,
+                                         float(params.floor_clearance), e1, e2,
+                                         np.ascontiguousarray(feet[tested] @ e1), np.ascontiguousarray(feet[tested] @ e2),
+                                         float(params.robot_radius))
+    moved = {}
+    for probe in np.flatnonzero(ok):  # a candidate's probes go inward from its ring: its first good one is outermost
+        moved.setdefault(int(owners_array[probe]), int(probe))
+    if not moved:
+        return candidates, feasibility
+    indices = np.fromiter(moved.keys(), dtype=np.int64)
+    chosen = np.fromiter(moved.values(), dtype=np.int64)
+    rotations, positions = cameras_at_feet(feet[chosen], centroid, unit_normal, candidates.camera_height, params)
+    fitted = CandidateSet(rotations=candidates.rotations.copy(), positions=candidates.positions.copy(),
+                          foot_points=candidates.foot_points.copy(), ring_center=candidates.ring_center,
+                          camera_height=candidates.camera_height, is_current=candidates.is_current)
+    fitted.rotations[indices], fitted.positions[indices], fitted.foot_points[indices] = rotations, positions, \
+        feet[chosen]
+    reach.path_lengths = reach.path_lengths.copy()
+    reach.reachable = reach.reachable.copy()
+    reach.path_lengths[indices], reach.reachable[indices] = lengths[chosen], True
+    reasons = reasons.copy()
+    reasons[indices] = int(FeasibilityReason.OK)
+    return fitted, FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons)
 
 
 def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles: np.ndarray, target: Any,

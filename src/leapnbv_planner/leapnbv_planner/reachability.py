@@ -88,6 +88,7 @@ class Reachability:
         grid: the grid the paths were found on.
         parents: (R, C) flat index of each cell's predecessor on its shortest path (-1: none).
         start_cell: (row, col) of the robot's foot point.
+        distances: (R, C) metres of the shortest free path to each cell's centre (inf: none).
     """
 
     path_lengths: np.ndarray
@@ -95,6 +96,12 @@ class Reachability:
     grid: OccupancyGrid
     parents: np.ndarray
     start_cell: Tuple[int, int]
+    distances: Optional[np.ndarray] = None
+
+    def path_lengths_at(self, foot_points: np.ndarray) -> np.ndarray:
+        """(N,) path lengths to (N, 3) floor points (their cells'; inf off the grid or without a path)."""
+        rows, cols, inside = self.grid.cells_of(np.asarray(foot_points, dtype=np.float64).reshape(-1, 3))
+        return np.where(inside, self.distances[rows, cols], np.inf)
 
     def path_to(self, foot_point: np.ndarray) -> Optional[np.ndarray]:
         """(P, 3) floor points (cell centres) from the robot to ``foot_point`` (its exact point last); None
@@ -228,9 +235,8 @@ def reachability(grid: OccupancyGrid, start_foot: np.ndarray, feet: np.ndarray, 
     free |= near_start & ~grid.occupied
     free[start] = True
     distances, parents = grid_distances(free, start[0], start[1], grid.cell)
-    feet = np.asarray(feet, dtype=np.float64).reshape(-1, 3)
-    rows, cols, inside = grid.cells_of(feet)
-    lengths = np.where(inside, distances[rows, cols], np.inf)
-    # Exact at the ends: the path runs between cell centres, the robot from and to its foot points.
-    reachable = np.isfinite(lengths) & (lengths <= float(max_path_length))
-    return Reachability(path_lengths=lengths, reachable=reachable, grid=grid, parents=parents, start_cell=start)
+    reach = Reachability(path_lengths=np.zeros(0), reachable=np.zeros(0, dtype=bool), grid=grid, parents=parents,
+                         start_cell=start, distances=distances)
+    reach.path_lengths = reach.path_lengths_at(feet)
+    reach.reachable = np.isfinite(reach.path_lengths) & (reach.path_lengths <= float(max_path_length))
+    return reach

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -48,7 +49,8 @@ def obstacle_map():
 @pytest.mark.parametrize("radius", [1.5, 2.5])
 def test_plan_views_is_the_step_by_step_pipeline(with_map, radius):
     target, ground = frame()
-    params = nbv_params_class()(radius=radius, min_radius=1.0, reachability=False)  # the paper's steps: no path search
+    # The paper's steps: no path search, every candidate scored.
+    params = nbv_params_class()(radius=radius, min_radius=1.0, reachability=False, score_infeasible=True)
     grid = obstacle_map() if with_map else None
     plan = plan_views(target, ground, params, grid, CAMERA_IN_MAP if with_map else None)
 
@@ -79,6 +81,26 @@ def test_plan_views_is_the_step_by_step_pipeline(with_map, radius):
     np.testing.assert_array_equal(position, candidates.foot_points[chosen])
     np.testing.assert_allclose(rotation[:, 2], UP)
     np.testing.assert_array_equal(plan.chosen_pose()[1], candidates.positions[chosen])
+
+
+@pytest.mark.parametrize("with_map", [False, True])
+def test_only_feasible_candidates_are_scored_by_default(with_map):
+    target, ground = frame()
+    grid, pose = (obstacle_map(), CAMERA_IN_MAP) if with_map else (None, None)
+    params = nbv_params_class()(min_radius=1.0)
+    plan = plan_views(target, ground, params, grid, pose)
+    every = plan_views(target, ground, dataclasses.replace(params, score_infeasible=True), grid, pose)
+    scored = plan.feasibility.feasible
+    assert 0 < scored.sum() < len(scored)  # the scene has infeasible candidates
+    np.testing.assert_array_equal(plan.feasibility.reasons, every.feasibility.reasons)
+    np.testing.assert_array_equal(plan.scores.term_scores[scored], every.scores.term_scores[scored])
+    np.testing.assert_array_equal(plan.scores.score[scored], every.scores.score[scored])
+    assert np.all(plan.scores.term_scores[~scored] == 0.0) and np.all(plan.scores.score[~scored] == 0.0)
+    assert np.any(every.scores.score[~scored] > 0.0)
+    assert plan.chosen_index == every.chosen_index >= 1
+    if with_map:
+        np.testing.assert_array_equal(plan.line_of_sight_clear[scored], every.line_of_sight_clear[scored])
+        assert np.all(np.isnan(plan.line_of_sight_clear[~scored]))
 
 
 def test_camera_pose_as_an_object_or_a_pair_and_map_only_with_a_pose():
@@ -114,7 +136,7 @@ def test_plan_converts_to_the_view_candidates_arrays():
     plan = plan_views(target, ground)
     views = plan.to_arrays()
     assert isinstance(views, conversions.ViewCandidatesArrays)
-    assert views.term_names == ["visibility", "area", "body_occlusion"] and views.chosen_index == plan.chosen_index
+    assert views.term_names == ["visibility", "area", "body_occlusion", "travel"] and views.chosen_index == plan.chosen_index
     np.testing.assert_array_equal(views.term("body_occlusion"), plan.scores.term("body_occlusion"))
     np.testing.assert_array_equal(views.infeasible_reason, plan.feasibility.reasons.astype(np.uint8))
     assert views.ring_radius == 2.5 and views.includes_current_view

@@ -1,6 +1,7 @@
 """Tests of leapnbv_planner.reachability: the floor grid, shortest free paths, and plan_views with reachability."""
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -102,8 +103,12 @@ def test_plan_views_marks_candidates_behind_a_wall_unreachable_and_returns_the_p
     plan = plan_views(target, ground, params)
     travel = plan.scores.term("travel")
     finite = np.isfinite(plan.path_lengths)
-    np.testing.assert_allclose(travel[finite], 1.0 - np.minimum(1.0, plan.path_lengths[finite] / 6.0))
-    assert travel[0] == 1.0 and np.all(travel[~finite] == 0.0)
+    scored = plan.feasibility.feasible  # the others are not scored: 0
+    np.testing.assert_allclose(travel[scored], 1.0 - np.minimum(1.0, plan.path_lengths[scored] / 6.0))
+    assert travel[0] == 1.0 and np.all(travel[~scored] == 0.0) and np.all(scored <= finite)
+    every = plan_views(target, ground, dataclasses.replace(params, score_infeasible=True)).scores.term("travel")
+    np.testing.assert_allclose(every[finite], 1.0 - np.minimum(1.0, plan.path_lengths[finite] / 6.0))
+    assert np.all(every[~finite] == 0.0) and np.any(every[finite & ~scored] > 0.0)
 
 
 def test_the_ring_rotations_are_camera_look_at_bit_for_bit():
@@ -139,3 +144,43 @@ def test_mounting_height_and_a_fixed_head():
     cosine = np.sum(bearing * level_axes, axis=1) / np.linalg.norm(bearing, axis=1) / np.linalg.norm(level_axes, axis=1)
     np.testing.assert_allclose(cosine, 1.0, atol=1e-12)  # turned toward the target
     np.testing.assert_allclose(fixed.rotations[1:, :, 0] @ up, 0.0, atol=1e-12)  # no roll
+
+
+def test_candidates_in_the_walls_move_inward_to_free_reachable_floor():
+    # The corridor of the test above (walls at x = +-1.2, person at 3 m): with fit_to_free_space the ring
+    # candidates in or behind a wall move inward along their bearing, within their ring's band.
+    rng = np.random.default_rng(0)
+    person = np.column_stack([rng.uniform(-0.2, 0.2, 800), rng.uniform(-0.5, 1.1, 800), rng.uniform(2.9, 3.1, 800)])
+    side = [np.column_stack([np.full(3000, x), rng.uniform(-0.5, 1.1, 3000), rng.uniform(-4.0, 9.0, 3000)])
+            for x in (-1.2, 1.2)]
+    target = SimpleNamespace(valid=True, centroid=np.array([0.0, 0.3, 3.0]), target_points=person.astype(np.float32),
+                             background_points=np.vstack(side).astype(np.float32), k=K, width=640, height=480)
+    ground = SimpleNamespace(valid=True, normal=UP, offset=HEIGHT)
+    params = dataclasses.replace(default_nbv_params(), num_rings=3, min_radius=1.5, radius=2.5)
+    fixed = plan_views(target, ground, dataclasses.replace(params, fit_to_free_space=False))
+    fitted = plan_views(target, ground, params)
+    moved = np.any(fitted.candidates.foot_points != fixed.candidates.foot_points, axis=1)
+    assert moved.sum() >= 8 and not fixed.feasibility.feasible[moved].any() and fitted.feasibility.feasible[moved].all()
+    unmoved = ~moved
+    np.testing.assert_array_equal(fitted.feasibility.reasons[unmoved], fixed.feasibility.reasons[unmoved])
+    np.testing.assert_array_equal(fitted.candidates.rotations[unmoved], fixed.candidates.rotations[unmoved])
+    centre = fitted.candidates.ring_center
+    for index in np.flatnonzero(moved):
+        ring = (index - 1) // params.num_candidates
+        before = np.linalg.norm(fixed.candidates.foot_points[index] - centre)
+        after = np.linalg.norm(fitted.candidates.foot_points[index] - centre)
+        lowest = [params.min_free_radius, 1.5, 2.0][ring]
+        assert lowest - 1e-9 <= after < before and np.isclose(before, [1.5, 2.0, 2.5][ring])
+        # the same bearing, the foot clear of the walls by the robot's radius, reached by a path
+        bearing = (fitted.candidates.foot_points[index] - centre) / after
+        np.testing.assert_allclose(bearing, (fixed.candidates.foot_points[index] - centre) / before, atol=1e-12)
+        assert abs(fitted.candidates.foot_points[index][0]) < 1.2 - params.robot_radius
+        assert np.isfinite(fitted.path_lengths[index]) and fitted.path_lengths[index] <= params.max_path_length
+        # the camera at the current height above its foot point, looking at the centroid
+        np.testing.assert_allclose(fitted.candidates.positions[index],
+                                   fitted.candidates.foot_points[index] + HEIGHT * UP, atol=1e-12)
+        view = target.centroid - fitted.candidates.positions[index]
+        np.testing.assert_allclose(fitted.candidates.rotations[index][:, 2], view / np.linalg.norm(view), atol=1e-12)
+    # The candidates straight beside the person cannot come closer than min_free_radius: they stay blocked.
+    beside = np.abs(fixed.candidates.foot_points[:, 0] - centre[0]) > 1.4
+    assert beside.any() and not fitted.feasibility.feasible[beside & ~moved].any()

@@ -450,7 +450,8 @@ def candidate_markers(header, out: ViewCandidates, plan: Plan) -> MarkerArray:
     clear = Marker(header=header, ns="leapnbv_candidates", action=Marker.DELETEALL)
     markers.markers.append(clear)
     scores = np.asarray(out.score, dtype=np.float64)
-    lo, hi = (float(scores.min()), float(scores.max())) if scores.size else (0.0, 1.0)
+    shown = scores[np.asarray(out.feasible, dtype=bool)]  # the colour scale of the candidates that were scored
+    lo, hi = (float(shown.min()), float(shown.max())) if shown.size else (0.0, 1.0)
     for i, pose in enumerate(out.poses):
         m = Marker(header=header, ns="leapnbv_candidates", id=i, pose=pose)
         m.frame_locked = False
