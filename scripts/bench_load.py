@@ -414,6 +414,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--py-spy", default=shutil.which("py-spy") or "", help="py-spy executable")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
+    from leapnbv_evaluation.parallel import own_domain
+
+    # A domain of its own ($ROS_DOMAIN_ID when set, else a free one): its camera topics must not reach another
+    # graph on this machine, nor another graph's outputs its figures.
+    with own_domain() as domain:
+        print(f"[bench] ROS domain {domain}", flush=True)
+        return measure(args)
+
+
+def measure(args) -> int:
+    """Render, start the graph, publish for args.duration, print and write the figures."""
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor

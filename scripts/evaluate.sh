@@ -8,6 +8,8 @@
 # (or $LEAPNBV_EVAL_DOMAIN_BASE=D), else N free domains in 1..101 claimed with lock files in
 # $TMPDIR/leapnbv-ros-domains/ (as the test suite does) for the run. Their logs are in
 # --out/workers/worker_<k>/. The tables and chosen views are the same as with one worker.
+# One worker: domain D when given, else $ROS_DOMAIN_ID when set, else a free domain claimed the same way
+# (printed), so a run never shares a domain with another graph on this machine.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"

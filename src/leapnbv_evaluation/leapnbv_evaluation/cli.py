@@ -34,7 +34,7 @@ from leapnbv_evaluation.benchmark_set import (
 )
 from leapnbv_evaluation.episode import EvaluationError
 from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
-from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, run_in_workers
+from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, own_domain, run_in_workers
 from leapnbv_evaluation.results import EvaluationRun
 from leapnbv_evaluation.task_report import task_table_markdown, write_evaluation_outputs
 from leapnbv_perception.smplx_layer import SMPLXModel
@@ -76,8 +76,10 @@ def run_evaluation(seeds: Sequence[int], out_dir: str, options: Optional[Evaluat
     else:
         if options.log_dir is None:
             options.log_dir = os.path.join(out_dir, "logs")
-        with ClosedLoopEvaluator(options) as evaluator:
-            run = evaluator.evaluate(seeds)
+        with own_domain(domain_base) as domain:
+            print(f"[evaluation] ROS domain {domain}", flush=True)
+            with ClosedLoopEvaluator(options) as evaluator:
+                run = evaluator.evaluate(seeds)
     run.total_wall_s = time.monotonic() - started
     write_evaluation_outputs(out_dir, run)
     return run
@@ -93,8 +95,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--workers", type=int, default=1,
                         help="worker processes, each with its own graph and ROS domain (default 1: this process)")
     parser.add_argument("--domain-base", type=int, default=None,
-                        help=f"ROS domain of worker 0 (worker k: base + k); default ${DOMAIN_BASE_ENV}, else free "
-                             "domains claimed with locks (see leapnbv_evaluation.parallel)")
+                        help=f"ROS domain of worker 0 (worker k: base + k) or of the one-process run; default "
+                             f"${DOMAIN_BASE_ENV}, else (one process) $ROS_DOMAIN_ID when set, else free domains "
+                             "claimed with locks (see leapnbv_evaluation.parallel)")
     parser.add_argument("--perception", choices=["ground_truth", "onnxruntime", "tensorrt"], default="ground_truth")
     parser.add_argument("--detector-backend", choices=["ground_truth", "onnxruntime", "tensorrt"], default=None,
                         help="the detector's backend when it differs from --perception: ground_truth gives a real "

@@ -6,6 +6,9 @@ other only (the stamps of two runs are the same, so two runs on one domain would
 The domains:
 
 * ``--domain-base D`` or ``$LEAPNBV_EVAL_DOMAIN_BASE=D``: worker k uses D + k, as given;
+* a one-process run uses ``D`` when given, else ``$ROS_DOMAIN_ID`` when it is set, else claims one free
+  domain as below (:func:`own_domain`): the simulator publishes camera topics, which must never reach
+  another graph on the machine (a robot's, or a second run's) on everyone's default domain 0;
 * else the parent claims N free domains for the run: it holds an exclusive lock on
   ``$TMPDIR/leapnbv-ros-domains/<domain>.lock`` (the lock folder the test suite's conftest uses for
   its own domain), searching 1..101 upward from its own ``ROS_DOMAIN_ID`` + 1 and skipping its own
@@ -22,6 +25,7 @@ run would show it; the parent merges the workers' runs in seed order into one
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import json
@@ -31,7 +35,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import IO, Dict, List, Optional, Sequence, Tuple
+from typing import IO, Dict, Iterator, List, Optional, Sequence, Tuple
 
 from leapnbv_evaluation.episode import EvaluationError
 from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
@@ -123,6 +127,42 @@ def claim_domains(count: int, environ: Optional[Dict[str, str]] = None) -> Tuple
 def release_domains(handles: Sequence[IO[str]]) -> None:
     for handle in handles:
         handle.close()  # closing the file releases its lock
+
+
+@contextlib.contextmanager
+def own_domain(explicit: Optional[int] = None) -> Iterator[int]:
+    """Run a one-process graph on a ROS domain of its own; yields the domain.
+
+    ``explicit`` (or $LEAPNBV_EVAL_DOMAIN_BASE) when given, else $ROS_DOMAIN_ID when it is set (the caller chose),
+    else a free domain claimed with a lock (claim_domains) and set in ``os.environ["ROS_DOMAIN_ID"]`` (what
+    rclpy and the graph's node processes read) until the block ends.
+
+    Raises:
+        EvaluationError: A bad domain value, or no free domain.
+    """
+    first = explicit_domain_base(explicit)
+    previous = os.environ.get("ROS_DOMAIN_ID")
+    handles: List[IO[str]] = []
+    if first is not None:
+        if not 0 <= first <= MAX_DOMAIN_ID:
+            raise EvaluationError(f"ROS domain {first} is outside 0..{MAX_DOMAIN_ID}")
+        domain = first
+    elif previous is not None and previous.strip():
+        try:
+            domain = int(previous)
+        except ValueError as error:
+            raise EvaluationError(f"$ROS_DOMAIN_ID must be an integer, got {previous!r}") from error
+    else:
+        (domain,), handles = claim_domains(1)
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    try:
+        yield domain
+    finally:
+        release_domains(handles)
+        if previous is None:
+            os.environ.pop("ROS_DOMAIN_ID", None)
+        else:
+            os.environ["ROS_DOMAIN_ID"] = previous
 
 
 def worker_dir(out_dir: str, index: int) -> str:

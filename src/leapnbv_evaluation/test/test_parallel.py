@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from leapnbv_evaluation.episode import EvaluationError
@@ -9,6 +11,7 @@ from leapnbv_evaluation.parallel import (
     DOMAIN_BASE_ENV,
     claim_domains,
     explicit_domain_base,
+    own_domain,
     release_domains,
     shares,
     worker_dir,
@@ -59,3 +62,28 @@ def test_claimed_domains_skip_the_own_and_the_locked_ones_and_are_released(tmp_p
 def test_each_worker_has_its_own_folder() -> None:
     assert worker_dir("out/eval", 0) != worker_dir("out/eval", 1)
     assert worker_dir("out/eval", 1).startswith("out/eval")
+
+
+def test_a_one_process_run_gets_a_domain_of_its_own(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.delenv(DOMAIN_BASE_ENV, raising=False)
+    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
+    others = {"TMPDIR": str(tmp_path), "ROS_DOMAIN_ID": "0"}
+    with own_domain() as domain:  # nobody chose: a free one, locked, in the environment the graph inherits
+        assert domain == 1 and os.environ["ROS_DOMAIN_ID"] == "1"
+        taken, handles = claim_domains(1, others)
+        assert taken == [2]
+        release_domains(handles)
+    assert "ROS_DOMAIN_ID" not in os.environ
+    freed, handles = claim_domains(1, others)
+    assert freed == [1]
+    release_domains(handles)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "23")  # the caller chose (the test suite does)
+    with own_domain() as domain:
+        assert domain == 23
+    with own_domain(40) as domain:  # --domain-base
+        assert domain == 40 and os.environ["ROS_DOMAIN_ID"] == "40"
+    assert os.environ["ROS_DOMAIN_ID"] == "23"
+    with pytest.raises(EvaluationError, match="outside"):
+        with own_domain(500):
+            pass
