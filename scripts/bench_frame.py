@@ -77,6 +77,11 @@ BODY_ONLY_CONFIGURATIONS: Dict[str, List[str]] = {
         "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_3RD],
     "body-only HMR 2 threads, detector 1 thread, detect every 5th frame": [
         "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_5TH],
+    # The same with the engines' idle threads asleep (thread_spinning false): raster and nbv run on the cores
+    # the HMR engine's second thread would spin on between runs.
+    "body-only HMR 2 threads, detector 1 thread, detect every 5th frame, threads sleep": [
+        "detector_node.intra_op_threads=1", "hmr_node.intra_op_threads=2", *DETECT_EVERY_5TH,
+        "detector_node.thread_spinning=false", "hmr_node.thread_spinning=false"],
 }
 
 

@@ -42,6 +42,9 @@ class EngineParams:
                                      "(inter_op_threads) instead of operator after operator", read_only=True)
     inter_op_threads: int = param(1, "onnxruntime inter-op threads for parallel_execution (0 = its default)", min=0,
                                   max=THREADS_MAX, read_only=True)
+    thread_spinning: bool = param(True, "onnxruntime: idle intra-op threads spin for work (faster hand-over inside "
+                                  "one run); off: they sleep, leaving the cores to the other nodes between runs",
+                                  read_only=True)
     model_retry_period_s: float = param(5.0, "s: retry loading a missing or broken model this often (0 = never)",
                                         min=0.0, max=RETRY_PERIOD_MAX_S, read_only=True)
 

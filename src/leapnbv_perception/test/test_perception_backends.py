@@ -819,5 +819,10 @@ def test_onnxruntime_session_settings_change_speed_not_results(models) -> None:
             got = backend.run(feed)
             for name, value in expected.items():
                 np.testing.assert_allclose(got[name], value, rtol=1e-5, atol=1e-5)
+    # Sleeping worker threads: set in the session, the same outputs.
+    sleeping = create_backend("onnxruntime", path, intra_op_threads=2, thread_spinning=False)
+    assert sleeping._session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    for name, value in sleeping.run(feed).items():
+        np.testing.assert_allclose(value, expected[name], rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="graph_optimization 'fastest' is not one of"):
         OnnxRuntimeBackend(path, graph_optimization="fastest")

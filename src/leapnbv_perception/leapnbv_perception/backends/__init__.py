@@ -27,6 +27,7 @@ def create_backend(
     graph_optimization: str = "all",
     parallel_execution: bool = False,
     inter_op_threads: int = 1,
+    thread_spinning: bool = True,
 ) -> EngineBackend:
     """Create the named backend for one ONNX model.
 
@@ -39,7 +40,7 @@ def create_backend(
         intra_op_threads: onnxruntime intra-op threads (0 = its default).
         precision_plan_path: TensorRT FP16 precision plan JSON (layers kept in FP32; see
             backends/precision_plan.py); None or "" for none. onnxruntime ignores it.
-        graph_optimization, parallel_execution, inter_op_threads: onnxruntime's session settings
+        graph_optimization, parallel_execution, inter_op_threads, thread_spinning: onnxruntime's session settings
             (OnnxRuntimeBackend); TensorRT ignores them.
 
     Returns:
@@ -61,7 +62,7 @@ def create_backend(
         return OnnxRuntimeBackend(
             model_path, providers=providers, intra_op_threads=intra_op_threads, precision=precision,
             graph_optimization=graph_optimization, parallel_execution=parallel_execution,
-            inter_op_threads=inter_op_threads,
+            inter_op_threads=inter_op_threads, thread_spinning=thread_spinning,
         )
     from leapnbv_perception.backends.tensorrt_backend import TensorRTBackend
 

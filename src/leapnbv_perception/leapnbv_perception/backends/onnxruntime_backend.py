@@ -44,6 +44,8 @@ class OnnxRuntimeBackend(EngineBackend):
         parallel_execution: run independent branches of the graph in parallel (inter_op_threads
             threads) instead of one operator after the other.
         inter_op_threads: threads for parallel execution (0 = onnxruntime's default).
+        thread_spinning: idle worker threads spin waiting for work (onnxruntime's default); False makes them
+            sleep (session.intra_op / inter_op.allow_spinning = 0), so they take no CPU from other processes.
 
     Raises:
         ModelFileNotFoundError: when model_path does not exist.
@@ -59,6 +61,7 @@ class OnnxRuntimeBackend(EngineBackend):
         graph_optimization: str = "all",
         parallel_execution: bool = False,
         inter_op_threads: int = 1,
+        thread_spinning: bool = True,
     ) -> None:
         import onnxruntime
 
@@ -72,6 +75,9 @@ class OnnxRuntimeBackend(EngineBackend):
                                   else onnxruntime.ExecutionMode.ORT_SEQUENTIAL)
         options.graph_optimization_level = getattr(onnxruntime.GraphOptimizationLevel,
                                                    GRAPH_OPTIMIZATIONS[graph_optimization])
+        if not thread_spinning:
+            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            options.add_session_config_entry("session.inter_op.allow_spinning", "0")
         self._providers = list(providers) if providers else ["CPUExecutionProvider"]
         try:
             self._session = onnxruntime.InferenceSession(

@@ -50,4 +50,4 @@ def create_engine_backend(params: EngineParams):
                           intra_op_threads=params.intra_op_threads,
                           precision_plan_path=params.precision_plan_path or None,
                           graph_optimization=params.graph_optimization, parallel_execution=params.parallel_execution,
-                          inter_op_threads=params.inter_op_threads)
+                          inter_op_threads=params.inter_op_threads, thread_spinning=params.thread_spinning)
