@@ -40,8 +40,9 @@ def main(argv=None) -> int:
         print(f"reachable_ceiling: room must be one of {ROOMS}", file=sys.stderr)
         return 2
     body = SMPLXModel.load(ensure_stand_in_body_model("small"))
-    print("| seed | before (%) | best reachable (%) | its path (m) | best anywhere (%) | success possible |")
-    print("|---:|---:|---:|---:|---:|---|")
+    print("| seed | before (%) | best reachable (%) | its path (m) | its distance to the person (m) | start's "
+          "distance (m) | best anywhere (%) | success possible |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---|")
     for seed in args.seeds:
         scene = benchmark_scene(seed, body, args.room)
         start = scene.start_camera
@@ -52,16 +53,18 @@ def main(argv=None) -> int:
         grid = np.array([[centre[0] + dx, centre[1] + dy] for dx in offsets for dy in offsets
                          if 1.0 <= np.hypot(dx, dy) <= 5.0])
         paths = true_path_lengths(scene, start.position[:2], grid)
-        best_reach, best_path, best_any = 0.0, float("nan"), 0.0
+        best_reach, best_path, best_any, best_xy = 0.0, float("nan"), 0.0, centre[:2]
         for xy, path in zip(grid, paths):
             coverage = view_metrics(scene, scene.render(look_at_pose(np.array([xy[0], xy[1], height]), centre))) \
                 .surface_coverage
             best_any = max(best_any, coverage)
             if path <= args.max_path and coverage > best_reach:
-                best_reach, best_path = coverage, float(path)
+                best_reach, best_path, best_xy = coverage, float(path), xy
         possible = is_success(before, best_reach)
-        print(f"| {seed} | {100 * before:.1f} | {100 * best_reach:.1f} | {best_path:.2f} | {100 * best_any:.1f} | "
-              f"{'yes' if possible else 'no'} |", flush=True)
+        distance = float(np.hypot(*(best_xy - centre[:2])))
+        start_distance = float(np.hypot(*(start.position[:2] - centre[:2])))
+        print(f"| {seed} | {100 * before:.1f} | {100 * best_reach:.1f} | {best_path:.2f} | {distance:.2f} | "
+              f"{start_distance:.2f} | {100 * best_any:.1f} | {'yes' if possible else 'no'} |", flush=True)
     return 0
 
 

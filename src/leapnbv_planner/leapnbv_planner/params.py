@@ -62,8 +62,9 @@ class CandidateRingParams:
     max_path_length: float = param(6.0, "metres: longest path to a reachable candidate (also the travel term's "
                                    "scale)", min=0.1, max=100.0)
     fit_to_free_space: bool = param(True, "with reachability: a ring candidate in an obstacle or without a path moves "
-                                    "inward along its bearing to the outermost free, reachable foot point within its "
-                                    "ring's band (down to the next inner ring; the innermost down to min_free_radius)")
+                                    "to the nearest free, reachable foot point of its patch: radius within its ring's "
+                                    "band (down to the next inner ring; the innermost down to min_free_radius), "
+                                    "bearing within half the angle between candidates")
     min_free_radius: float = param(1.0, "metres: the nearest to the target a candidate moved by fit_to_free_space "
                                    "may stand", min=0.1, max=20.0)
     grid_resolution: float = param(0.1, "metres: cell edge of the floor grid of the path search", min=0.02,

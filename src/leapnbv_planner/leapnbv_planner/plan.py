@@ -44,6 +44,8 @@ Frame = Tuple[np.ndarray, np.ndarray]  # (3, 3) rotation with axes as columns, (
 # Terms that never read the target points' line of sight through the map (body_occlusion reads the mesh's when the
 # frame has a mesh); with only these, that walk is skipped.
 _NO_TARGET_LINE_OF_SIGHT = ("visibility", "area", "body_occlusion", "travel")
+# fit_to_free_space: the nearest probes of a candidate that are free on the floor grid and get the exact footprint test.
+_EXACT_TESTS_PER_CANDIDATE = 16
 
 
 class PlanInputError(ValueError):
@@ -303,46 +305,67 @@ def _score_picked(candidates: CandidateSet, picked: np.ndarray, target: Any, tar
 def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult, reach: Reachability,
                        obstacles: np.ndarray, centroid: np.ndarray, normal: np.ndarray, offset: float,
                        params: PlannerParams) -> Tuple[CandidateSet, FeasibilityResult]:
-    """Ring candidates that stand in an obstacle or have no path move inward along their bearing from the ring
-    centre, to the outermost foot point that is free and reachable, within their ring's band: down to (not onto)
-    the next inner ring's radius, the innermost ring down to min_free_radius. Steps of one grid cell; a foot point
-    must be free on the floor grid, reached by a path of at most max_path_length, within max_travel, and pass the
-    exact footprint test. ``reach.path_lengths`` and ``reach.reachable`` are updated for the moved candidates."""
+    """Ring candidates that stand in an obstacle or have no path move to the nearest foot point (to where they
+    stood) that is free and reachable within their own patch of the rings: radius in their ring's band (down to,
+    not onto, the next inner ring's radius; the innermost ring down to min_free_radius; never outward), bearing
+    within half the angle between two candidates of their own. Probes one grid cell apart (radially, and along
+    the arc); a foot point must be free on the floor grid, reached by a path of at most max_path_length, within
+    max_travel, and pass the exact footprint test. ``reach.path_lengths`` and ``reach.reachable`` are updated
+    for the moved candidates."""
     reasons = np.asarray(feasibility.reasons)
     movable = (reasons == int(FeasibilityReason.OBSTACLE)) | (reasons == int(FeasibilityReason.UNREACHABLE))
     first_ring = 1 if params.include_current else 0
     per_ring = int(params.num_candidates)
     radii = ring_radii(params)
     step = float(reach.grid.cell)
+    half_gap = np.pi / max(per_ring, 1)
     unit_normal, unit_offset = normalize_plane(normal, offset)
     current_foot = -unit_offset * unit_normal
-    owners, probes = [], []
-    for index in np.flatnonzero(movable):
-        ring = (int(index) - first_ring) // max(per_ring, 1)
-        if index < first_ring or ring >= len(radii):
+    owners, probes, shifts = [], [], []
+    movable[:first_ring] = False
+    ring_of = (np.arange(len(reasons)) - first_ring) // max(per_ring, 1)
+    for ring, outer in enumerate(radii):
+        members = np.flatnonzero(movable & (ring_of == ring))
+        if members.size == 0:
             continue
-        bearing = candidates.foot_points[index] - candidates.ring_center
-        bearing /= max(float(np.linalg.norm(bearing)), 1e-12)
+        # The ring's patch as (radius, angle) offsets, the same for each of its candidates.
         lowest = float(radii[ring - 1]) + 1e-9 if ring > 0 else float(params.min_free_radius)
-        for radius in np.arange(float(radii[ring]) - step, lowest - 1e-9, -step):
-            owners.append(int(index))
-            probes.append(candidates.ring_center + radius * bearing)
+        radius = np.arange(float(outer), lowest - 1e-9, -step)[:, None]
+        reach_cells = np.floor(half_gap * float(outer) / step)
+        arc = np.arange(-reach_cells, reach_cells + 1) * step
+        inside = np.abs(arc[None, :]) < half_gap * radius  # the arc ends where the neighbours' patches begin
+        angle = (arc[None, :] / radius)[inside]
+        length = np.broadcast_to(radius, inside.shape)[inside]
+        feet = candidates.foot_points[members]
+        bearing = feet - candidates.ring_center
+        bearing /= np.maximum(np.linalg.norm(bearing, axis=1), 1e-12)[:, None]
+        side = np.cross(unit_normal[None, :], bearing)
+        points = (candidates.ring_center[None, None, :]
+                  + (length * np.cos(angle))[None, :, None] * bearing[:, None, :]
+                  + (length * np.sin(angle))[None, :, None] * side[:, None, :])  # (members, probes, 3)
+        owners.append(np.repeat(members, len(angle)))
+        probes.append(points.reshape(-1, 3))
+        shifts.append(np.linalg.norm(points - feet[:, None, :], axis=2).reshape(-1))
     if not probes:
         return candidates, feasibility
-    owners_array, feet = np.asarray(owners), np.asarray(probes)
+    owners_array, feet, shift = np.concatenate(owners), np.concatenate(probes), np.concatenate(shifts)
     lengths = reach.path_lengths_at(feet)
-    ok = (np.isfinite(lengths) & (lengths <= float(params.max_path_length))
-          & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel)))
-    if np.any(ok):
-        e1, e2 = plane_basis(unit_normal)
-        tested = np.flatnonzero(ok)
-        ok[tested] = ~footprints_blocked(np.ascontiguousarray(obstacles), unit_normal, unit_offset,
-                                         float(params.floor_clearance), e1, e2,
-                                         np.ascontiguousarray(feet[tested] @ e1), np.ascontiguousarray(feet[tested] @ e2),
-                                         float(params.robot_radius))
+    ok = (shift > 1e-9) & np.isfinite(lengths) & (lengths <= float(params.max_path_length)) \
+        & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel))
+    # Per candidate, its few nearest probes that pass on the grid go to the exact footprint test (one call).
+    order = np.lexsort((shift, owners_array))
+    order = order[ok[order]]
+    tested = np.concatenate([group[:_EXACT_TESTS_PER_CANDIDATE] for group in
+                             np.split(order, np.flatnonzero(np.diff(owners_array[order])) + 1)]) if order.size \
+        else order
     moved = {}
-    for probe in np.flatnonzero(ok):  # a candidate's probes go inward from its ring: its first good one is outermost
-        moved.setdefault(int(owners_array[probe]), int(probe))
+    if tested.size:
+        e1, e2 = plane_basis(unit_normal)
+        blocked = footprints_blocked(np.ascontiguousarray(obstacles), unit_normal, unit_offset,
+                                     float(params.floor_clearance), e1, e2, np.ascontiguousarray(feet[tested] @ e1),
+                                     np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
+        for probe in tested[~blocked]:  # nearest first within each candidate's group
+            moved.setdefault(int(owners_array[probe]), int(probe))
     if not moved:
         return candidates, feasibility
     indices = np.fromiter(moved.keys(), dtype=np.int64)

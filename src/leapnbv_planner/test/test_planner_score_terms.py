@@ -58,7 +58,8 @@ def test_built_in_terms_have_todays_names_and_default_weights():
     assert {term.name: term.default_weight for term in registered_terms()} == {
         "visibility": 0.03, "area": 0.14, "occlusion": 0.83, "travel": 0.05, "body_occlusion": 0.83}
     defaults = nbv_params_class()()
-    assert defaults.term_weights() == [("visibility", 0.03), ("area", 0.14), ("body_occlusion", 0.83)]
+    assert defaults.term_weights() == [("visibility", 0.03), ("area", 0.14), ("body_occlusion", 0.83),
+                                       ("travel", 0.05)]
     assert defaults.score_terms == DEFAULT_SCORE_TERMS == ["visibility", "area", "body_occlusion", "travel"]
 
 
@@ -137,7 +138,8 @@ def test_a_term_registered_from_a_test_file_gets_its_weight_parameter_and_is_pla
     spec = {f.name: f for f in __import__("dataclasses").fields(params_class)}["weight_closeness"]
     assert spec.default == 0.25 and "closeness" in spec.metadata["description"]
     target, ground = frame()
-    base = plan_views(target, ground, params_class(score_infeasible=True))
+    base = plan_views(target, ground, params_class(score_terms=["visibility", "area", "occlusion"],
+                                                   score_infeasible=True))
     params = params_class(score_terms=["visibility", "area", "occlusion", "closeness"], weight_closeness=0.5,
                           score_infeasible=True)
     plan = plan_views(target, ground, params)
