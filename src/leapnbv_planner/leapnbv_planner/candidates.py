@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import NamedTuple, Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 
-from leapnbv_planner.footprint_kernel import footprints_blocked
+from leapnbv_planner.footprint_kernel import elevated_plane_points, footprints_blocked_in_plane
 from leapnbv_planner.params import CandidateRingParams
 
 # Everything here lives in the camera optical frame of the observation (x right, y down,
@@ -331,6 +331,7 @@ def check_feasibility(
     plane_normal: np.ndarray,
     plane_offset: float,
     params: CandidateRingParams,
+    obstacle_plane_points: Optional[np.ndarray] = None,
 ) -> FeasibilityResult:
     """Which candidates the robot can stand at.
 
@@ -351,6 +352,9 @@ def check_feasibility(
         plane_normal: (3,) ground normal n pointing up.
         plane_offset: ground offset d.
         params: robot_radius, floor_clearance and max_travel are used.
+        obstacle_plane_points: the background points higher than floor_clearance as (M, 2) plane coordinates
+            (footprint_kernel.elevated_plane_points with plane_basis of the unit normal), when the caller made them
+            already; then background_points is only checked for its shape.
 
     Returns:
         FeasibilityResult(feasible (C,) bool, reasons (C,) int8 FeasibilityReason codes).
@@ -375,11 +379,12 @@ def check_feasibility(
 
     # Obstacles: points above the floor clearance within the robot radius, in the plane.
     e1, e2 = plane_basis(unit_normal)
-    blocked = footprints_blocked(
-        np.ascontiguousarray(points), unit_normal, offset, float(params.floor_clearance),
-        e1, e2, np.ascontiguousarray(foot_points @ e1), np.ascontiguousarray(foot_points @ e2),
-        float(params.robot_radius),
-    )
+    if obstacle_plane_points is None:
+        obstacle_plane_points = elevated_plane_points(np.ascontiguousarray(points), unit_normal, offset,
+                                                      float(params.floor_clearance), e1, e2)
+    blocked = footprints_blocked_in_plane(
+        np.ascontiguousarray(obstacle_plane_points, dtype=np.float64), np.ascontiguousarray(foot_points @ e1),
+        np.ascontiguousarray(foot_points @ e2), float(params.robot_radius))
 
     reasons[blocked] = int(FeasibilityReason.OBSTACLE)
     reasons[out_of_range] = int(FeasibilityReason.OUT_OF_TRAVEL_RANGE)

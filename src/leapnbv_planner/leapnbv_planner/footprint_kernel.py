@@ -19,6 +19,32 @@ def _cells_near(foot_u: float, foot_v: float, u_lo: float, v_lo: float, size: fl
 
 
 @njit(cache=True)
+def elevated_plane_points(points: np.ndarray, unit_normal: np.ndarray, plane_offset: float, min_height: float,
+                          plane_axis_u: np.ndarray, plane_axis_v: np.ndarray) -> np.ndarray:
+    """(M, 2) plane coordinates (p.a_u, p.a_v) of the finite points higher than min_height above the plane
+    (n.p + d > min_height), in input order: what the footprint test and the floor grid read of an obstacle cloud,
+    made once for both.
+
+    Args:
+        points: (K, 3) float64 points.
+        unit_normal: (3,) unit ground normal n.
+        plane_offset: ground offset d.
+        min_height: height above which a point is kept.
+        plane_axis_u, plane_axis_v: (3,) orthonormal vectors spanning the plane.
+    """
+    out = np.empty((points.shape[0], 2))
+    count = 0
+    for k in range(points.shape[0]):
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        height = unit_normal[0] * x + unit_normal[1] * y + unit_normal[2] * z + plane_offset
+        if not height > min_height:  # also drops NaN
+            continue
+        out[count, 0] = plane_axis_u[0] * x + plane_axis_u[1] * y + plane_axis_u[2] * z
+        out[count, 1] = plane_axis_v[0] * x + plane_axis_v[1] * y + plane_axis_v[2] * z
+        count += 1
+    return out[:count]
+
+
 def footprints_blocked(
     points: np.ndarray,
     unit_normal: np.ndarray,
@@ -47,6 +73,19 @@ def footprints_blocked(
 
     Returns:
         (C,) bool, True where the footprint holds an obstacle point.
+    """
+    return footprints_blocked_in_plane(
+        elevated_plane_points(points, unit_normal, plane_offset, floor_clearance, plane_axis_u, plane_axis_v),
+        feet_u, feet_v, robot_radius)
+
+
+@njit(cache=True)
+def footprints_blocked_in_plane(plane_points: np.ndarray, feet_u: np.ndarray, feet_v: np.ndarray,
+                                robot_radius: float) -> np.ndarray:
+    """footprints_blocked over the obstacle points' plane coordinates (from :func:`elevated_plane_points`).
+
+    Returns:
+        (C,) bool, True where some point lies within robot_radius of the foot point (a distance equal to it counts).
     """
     num_feet = feet_u.shape[0]
     blocked = np.zeros(num_feet, dtype=np.bool_)
@@ -79,13 +118,9 @@ def footprints_blocked(
             for col in range(col_a, col_b + 1):
                 listed[fill[row * cols + col]] = c
                 fill[row * cols + col] += 1
-    for k in range(points.shape[0]):
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        height = unit_normal[0] * x + unit_normal[1] * y + unit_normal[2] * z + plane_offset
-        if not height > floor_clearance:  # also drops NaN
-            continue
-        u = plane_axis_u[0] * x + plane_axis_u[1] * y + plane_axis_u[2] * z
-        v = plane_axis_v[0] * x + plane_axis_v[1] * y + plane_axis_v[2] * z
+    for k in range(plane_points.shape[0]):
+        u = plane_points[k, 0]
+        v = plane_points[k, 1]
         if not (u >= u_lo and u <= u_hi and v >= v_lo and v <= v_hi):
             continue
         cell = min(int((v - v_lo) / size), rows - 1) * cols + min(int((u - u_lo) / size), cols - 1)

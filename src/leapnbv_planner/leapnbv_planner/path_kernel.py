@@ -57,6 +57,18 @@ def grid_distances(free: np.ndarray, start_row: int, start_col: int, cell: float
 
 
 @njit(cache=True)
+def mark_occupied_in_plane(plane_points: np.ndarray, origin: np.ndarray, cell: float, occupied: np.ndarray) -> None:
+    """mark_occupied over points' plane coordinates (p.e1, p.e2) already filtered by height (in place)."""
+    rows, cols = occupied.shape
+    for k in range(plane_points.shape[0]):
+        u = (plane_points[k, 0] - origin[0]) / cell
+        v = (plane_points[k, 1] - origin[1]) / cell
+        if not (u >= 0.0 and v >= 0.0 and u < cols and v < rows):
+            continue
+        occupied[int(v), int(u)] = True
+
+
+@njit(cache=True)
 def mark_occupied(points: np.ndarray, unit_normal: np.ndarray, offset: float, min_height: float, axes: np.ndarray,
                   origin: np.ndarray, cell: float, occupied: np.ndarray) -> None:
     """Mark the grid cell of every finite point higher than ``min_height`` above the floor (in place).

@@ -30,7 +30,7 @@ from leapnbv_planner.candidates import (
     plane_basis,
     ring_radii,
 )
-from leapnbv_planner.footprint_kernel import footprints_blocked
+from leapnbv_planner.footprint_kernel import elevated_plane_points, footprints_blocked_in_plane
 from leapnbv_planner.mesh_kernel import face_normal_sums, unit_normals
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
 from leapnbv_planner.params import PlannerParams, default_nbv_params
@@ -224,14 +224,18 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     if with_map:
         rotation, position = _pose_arrays(camera_pose)
         obstacles = np.concatenate([background, centres_in_observation(obstacle_map, rotation, position)])
-    feasibility = check_feasibility(candidates, obstacles, normal, offset, params)
+    # The obstacles above the floor clearance in plane coordinates, once for the footprint tests and the grid.
+    unit_normal, unit_offset = normalize_plane(normal, offset)
+    obstacles_in_plane = elevated_plane_points(obstacles, unit_normal, unit_offset, float(params.floor_clearance),
+                                               *plane_basis(unit_normal))
+    feasibility = check_feasibility(candidates, obstacles, normal, offset, params, obstacles_in_plane)
     reach, path_lengths = None, None
     if getattr(params, "reachability", False):
-        feasibility, reach = _check_paths(candidates, feasibility, obstacles, target, target_points, normal, offset,
-                                          params)
+        feasibility, reach = _check_paths(candidates, feasibility, obstacles_in_plane, target, target_points, normal,
+                                          offset, params)
         if getattr(params, "fit_to_free_space", False):
-            candidates, feasibility = _fit_to_free_space(candidates, feasibility, reach, obstacles, centroid, normal,
-                                                         offset, params)
+            candidates, feasibility = _fit_to_free_space(candidates, feasibility, reach, obstacles_in_plane,
+                                                         centroid, normal, offset, params)
         path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
     # Only the candidates the robot can take are scored (the scoring kernels are most of a plan's time); the
     # others keep score 0 unless score_infeasible asks for every candidate's terms (to look at them).
@@ -303,7 +307,7 @@ def _score_picked(candidates: CandidateSet, picked: np.ndarray, target: Any, tar
 
 
 def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult, reach: Reachability,
-                       obstacles: np.ndarray, centroid: np.ndarray, normal: np.ndarray, offset: float,
+                       obstacles_in_plane: np.ndarray, centroid: np.ndarray, normal: np.ndarray, offset: float,
                        params: PlannerParams) -> Tuple[CandidateSet, FeasibilityResult]:
     """Ring candidates that stand in an obstacle or have no path move to the nearest foot point (to where they
     stood) that is free and reachable within their own patch of the rings: radius in their ring's band (down to,
@@ -361,9 +365,8 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
     moved = {}
     if tested.size:
         e1, e2 = plane_basis(unit_normal)
-        blocked = footprints_blocked(np.ascontiguousarray(obstacles), unit_normal, unit_offset,
-                                     float(params.floor_clearance), e1, e2, np.ascontiguousarray(feet[tested] @ e1),
-                                     np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
+        blocked = footprints_blocked_in_plane(obstacles_in_plane, np.ascontiguousarray(feet[tested] @ e1),
+                                              np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
         for probe in tested[~blocked]:  # nearest first within each candidate's group
             moved.setdefault(int(owners_array[probe]), int(probe))
     if not moved:
@@ -384,17 +387,17 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
     return fitted, FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons)
 
 
-def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles: np.ndarray, target: Any,
-                 target_points: np.ndarray, normal: np.ndarray, offset: float,
+def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles_in_plane: np.ndarray,
+                 target: Any, target_points: np.ndarray, normal: np.ndarray, offset: float,
                  params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
     """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
     unit_normal, unit_offset = normalize_plane(normal, offset)
     current_foot = -unit_offset * unit_normal
-    grid = build_occupancy_grid(obstacles, target_points, unit_normal, unit_offset,
+    grid = build_occupancy_grid(np.zeros((0, 3)), target_points, unit_normal, unit_offset,
                                 np.vstack([candidates.foot_points, current_foot[None]]), params.grid_resolution,
                                 params.robot_radius, params.floor_clearance, params.unknown_space,
                                 camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),
-                                        int(target.height)))
+                                        int(target.height)), obstacle_plane_points=obstacles_in_plane)
     reach = reachability(grid, current_foot, candidates.foot_points, params.max_path_length, params.robot_radius)
     reasons = np.asarray(feasibility.reasons).copy()
     unreachable = (reasons == int(FeasibilityReason.OK)) & ~reach.reachable & ~np.asarray(candidates.is_current)

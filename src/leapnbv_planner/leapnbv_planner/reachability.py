@@ -24,7 +24,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from leapnbv_planner.candidates import plane_basis
-from leapnbv_planner.path_kernel import grid_distances, mark_occupied
+from leapnbv_planner.path_kernel import grid_distances, mark_occupied, mark_occupied_in_plane
 
 UNKNOWN_SPACE_CHOICES = ("free", "occupied")
 GRID_MARGIN_M = 1.0  # the grid reaches this far beyond the outermost candidate and the robot
@@ -154,6 +154,7 @@ def build_occupancy_grid(
     floor_clearance: float,
     unknown_space: str = "free",
     camera: Optional[Tuple[np.ndarray, int, int]] = None,
+    obstacle_plane_points: Optional[np.ndarray] = None,
 ) -> OccupancyGrid:
     """The floor grid around ``cover_points`` (the robot's and the candidates' foot points).
 
@@ -168,6 +169,9 @@ def build_occupancy_grid(
         unknown_space: "free" or "occupied": cells outside the current view's field of view.
         camera: (K, width, height) of the current view; None counts every cell as seen (the height is unused:
             see the module's note on the field of view).
+        obstacle_plane_points: the obstacle points higher than floor_clearance as (M, 2) plane coordinates (p.e1,
+            p.e2), when the caller made them already (footprint_kernel.elevated_plane_points, the same basis); then
+            obstacle_points is not read.
 
     Returns:
         The grid.
@@ -189,7 +193,12 @@ def build_occupancy_grid(
     grid = OccupancyGrid(unit_normal=np.asarray(unit_normal, dtype=np.float64), offset=float(offset), axes=axes,
                          origin=low, cell=cell, occupied=np.zeros(shape, dtype=bool),
                          seen=np.ones(shape, dtype=bool), free=np.ones(shape, dtype=bool))
-    for cloud, min_height in ((obstacle_points, float(floor_clearance)), (person_points, -np.inf)):
+    if obstacle_plane_points is not None:
+        mark_occupied_in_plane(np.ascontiguousarray(obstacle_plane_points, dtype=np.float64),
+                               np.asarray(low, dtype=np.float64), float(cell), grid.occupied)
+    clouds = ((person_points, -np.inf),) if obstacle_plane_points is not None else \
+        ((obstacle_points, float(floor_clearance)), (person_points, -np.inf))
+    for cloud, min_height in clouds:
         mark_occupied(np.ascontiguousarray(np.asarray(cloud, dtype=np.float64).reshape(-1, 3)), grid.unit_normal,
                       float(offset), min_height, axes, np.asarray(low, dtype=np.float64), float(cell), grid.occupied)
     if camera is not None:

@@ -152,6 +152,33 @@ def test_footprints_blocked_equals_every_point_against_every_foot():
             assert 0 < expected.sum() < len(expected)
 
 
+def test_the_floor_grid_from_plane_points_equals_the_one_from_the_cloud():
+    # plan_views makes the obstacles' plane coordinates once (elevated_plane_points) for the footprint tests and the
+    # grid: the grid must be the one build_occupancy_grid makes from the points themselves, cell for cell.
+    from leapnbv_planner.candidates import plane_basis
+    from leapnbv_planner.footprint_kernel import elevated_plane_points
+    from leapnbv_planner.reachability import build_occupancy_grid
+
+    rng = np.random.default_rng(11)
+    normal = np.array([0.05, -0.99, 0.1])
+    normal /= np.linalg.norm(normal)
+    offset, clearance, cell = 1.2, 0.05, 0.1
+    points = rng.uniform([-4.0, -1.0, 0.5], [4.0, 1.3, 8.0], size=(20000, 3))
+    points[::97] = np.nan
+    person = rng.uniform([-0.3, -0.5, 2.8], [0.3, 1.1, 3.2], size=(500, 3))
+    cover = rng.uniform([-3.0, 1.2, 0.5], [3.0, 1.2, 6.0], size=(30, 3))
+    e1, e2 = plane_basis(normal)
+    plane_points = elevated_plane_points(points, normal, offset, clearance, e1, e2)
+    height = points @ normal + offset
+    assert len(plane_points) == np.count_nonzero(height > clearance) < len(points)
+    from_points = build_occupancy_grid(points, person, normal, offset, cover, cell, 0.3, clearance)
+    from_plane = build_occupancy_grid(np.zeros((0, 3)), person, normal, offset, cover, cell, 0.3, clearance,
+                                      obstacle_plane_points=plane_points)
+    assert from_points.occupied.any() and not from_points.occupied.all()
+    np.testing.assert_array_equal(from_plane.occupied, from_points.occupied)
+    np.testing.assert_array_equal(from_plane.free, from_points.free)
+
+
 @pytest.mark.parametrize("density", [0.002, 0.02, 0.2])
 def test_segment_walk_with_empty_box_skipping_equals_the_plain_walk(density):
     from leapnbv_planner.obstacle_map import segments_clear, segments_clear_skipping_empty, voxel_map_from_centres

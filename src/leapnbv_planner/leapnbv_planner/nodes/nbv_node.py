@@ -388,24 +388,27 @@ class NbvNode(Node):
             inputs.append(("obstacle_map", self.obstacle_map_stamp, InputStamp.STATIC))
         plan = plan_views(target_arrays, frame.floor, self.params.value,
                           self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh)
-        out = arrays_to_view_candidates(plan.to_arrays(), target.header, (time.perf_counter() - started) * 1e3,
-                                        inputs=inputs)
-        self.candidates_pub.publish(out)
+        compute_time_ms = (time.perf_counter() - started) * 1e3
+        # The goal first (what the motion stack waits for), then the candidates, the path and the markers.
         if plan.chosen_index < 0:
             self.diagnostics.reject("no_feasible_view", "every candidate is infeasible: no goal published")
         elif self.too_old(stamp):
             self.diagnostics.drop("goal_too_old")  # planning took it past the limit: no goal of it
         else:
-            self.goal_pub.publish(PoseStamped(header=target.header, pose=out.poses[plan.chosen_index]))
+            self.goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.chosen_pose())))
             self.base_goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.base_goal)))
-            path = plan.base_path_frames()
-            if path is not None:
-                self.base_path_pub.publish(path_msg(*path, target.header))
             self.goal_stamp, self.goal_frame = stamp, target.header.frame_id
             self.publish_status(GoalStatus.STATE_CURRENT, "goal published")
             if self.params.value.max_goal_age_s > 0 and self.age_timer.is_canceled():
                 self.age_timer.reset()
-        self.markers_pub.publish(candidate_markers(target.header, out, plan))
+        out = arrays_to_view_candidates(plan.to_arrays(), target.header, compute_time_ms, inputs=inputs)
+        self.candidates_pub.publish(out)
+        if self.goal_stamp == stamp and plan.chosen_index >= 0:
+            path = plan.base_path_frames()
+            if path is not None:
+                self.base_path_pub.publish(path_msg(*path, target.header))
+        if self.markers_pub.get_subscription_count() > 0:  # built and sent only while RViz / Foxglove listens
+            self.markers_pub.publish(candidate_markers(target.header, out, plan))
         self.diagnostics.frame_out(target.header.stamp, out.compute_time_ms)
 
     def check_goal_age(self) -> None:
