@@ -89,6 +89,18 @@ def _as_vector3(value: object, name: str) -> np.ndarray:
     return vector
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross over the last axis (3-vectors, or rows of them, broadcast), the same arithmetic (each component
+    a_i b_j - a_j b_i, the products rounded first) without np.cross's per-call overhead (~0.1 ms)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    out = np.empty(np.broadcast(a, b).shape)
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def normalize_plane(plane_normal: np.ndarray, plane_offset: float) -> Tuple[np.ndarray, float]:
     """Scale the plane n.x + d = 0 so that |n| = 1.
 
@@ -125,7 +137,7 @@ def plane_basis(unit_normal: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     seed = np.eye(3)[int(np.argmin(np.abs(unit_normal)))]
     e1 = seed - float(seed @ unit_normal) * unit_normal
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(unit_normal, e1)
+    e2 = cross(unit_normal, e1)
     return e1, e2
 
 
@@ -184,10 +196,10 @@ def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray
     view = targets - positions
     distance = np.linalg.norm(view, axis=1)
     z_axis = view / np.where(distance > 0, distance, 1.0)[:, None]
-    x_axis = np.cross(z_axis, unit_up[None, :])
+    x_axis = cross(z_axis, unit_up[None, :])
     x_length = np.linalg.norm(x_axis, axis=1)
     x_axis = x_axis / np.where(x_length > 0, x_length, 1.0)[:, None]
-    y_axis = np.cross(z_axis, x_axis)
+    y_axis = cross(z_axis, x_axis)
     rotations = np.stack([x_axis, y_axis, z_axis], axis=2)
     for index in np.flatnonzero((distance < _DEGENERATE_NORM) | (x_length < _DEGENERATE_NORM)):
         rotations[index] = camera_look_at(positions[index], targets[index], unit_up)
@@ -294,7 +306,7 @@ def generate_candidates(
     ring_center = centroid - (float(unit_normal @ centroid) + offset) * unit_normal
     current_foot = -offset * unit_normal
     start = _ring_start_direction(ring_center, current_foot, unit_normal)
-    side = np.cross(unit_normal, start)
+    side = cross(unit_normal, start)
     angles = 2.0 * np.pi * np.arange(num_ring) / max(num_ring, 1)
     feet_per_ring = [
         ring_center[None, :]

@@ -25,6 +25,7 @@ from leapnbv_planner.candidates import (
     FeasibilityResult,
     cameras_at_feet,
     check_feasibility,
+    cross,
     generate_candidates,
     normalize_plane,
     plane_basis,
@@ -343,7 +344,7 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
         feet = candidates.foot_points[members]
         bearing = feet - candidates.ring_center
         bearing /= np.maximum(np.linalg.norm(bearing, axis=1), 1e-12)[:, None]
-        side = np.cross(unit_normal[None, :], bearing)
+        side = cross(unit_normal[None, :], bearing)
         points = (candidates.ring_center[None, None, :]
                   + (length * np.cos(angle))[None, :, None] * bearing[:, None, :]
                   + (length * np.sin(angle))[None, :, None] * side[:, None, :])  # (members, probes, 3)
