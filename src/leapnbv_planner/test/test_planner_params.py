@@ -40,10 +40,12 @@ def test_defaults_are_the_robot_values_and_valid():
     assert names - NODE_PARAMETER_NAMES == {
         "score_terms", "camera_pose_source", "max_goal_age_s", "camera_pose_wait_s", "body_mesh_wait_s",
         "weight_travel", "weight_body_occlusion", "num_rings", "min_radius", "reachability", "max_path_length",
-        "grid_resolution", "unknown_space", "camera_height", "camera_tilt", "score_infeasible", "fit_to_free_space", "min_free_radius"}
+        "grid_resolution", "unknown_space", "camera_height", "camera_tilt", "score_infeasible", "fit_to_free_space",
+        "min_free_radius"}
     for name, value in ROBOT_VALUES.items():
         assert getattr(params, name) == value, name
-    assert params.score_terms == ["visibility", "area", "body_occlusion", "travel"] and params.camera_pose_source == "topic"
+    assert params.score_terms == ["visibility", "area", "body_occlusion", "travel"]
+    assert params.camera_pose_source == "topic"
     for spec in param_specs(type(params)):
         assert spec.description, spec.name
 

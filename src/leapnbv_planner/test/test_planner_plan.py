@@ -136,7 +136,8 @@ def test_plan_converts_to_the_view_candidates_arrays():
     plan = plan_views(target, ground)
     views = plan.to_arrays()
     assert isinstance(views, conversions.ViewCandidatesArrays)
-    assert views.term_names == ["visibility", "area", "body_occlusion", "travel"] and views.chosen_index == plan.chosen_index
+    assert views.term_names == ["visibility", "area", "body_occlusion", "travel"]
+    assert views.chosen_index == plan.chosen_index
     np.testing.assert_array_equal(views.term("body_occlusion"), plan.scores.term("body_occlusion"))
     np.testing.assert_array_equal(views.infeasible_reason, plan.feasibility.reasons.astype(np.uint8))
     assert views.ring_radius == 2.5 and views.includes_current_view
