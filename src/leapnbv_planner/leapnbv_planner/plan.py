@@ -334,8 +334,12 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
         if members.size == 0:
             continue
         # The ring's patch as (radius, angle) offsets, the same for each of its candidates.
-        lowest = float(radii[ring - 1]) + 1e-9 if ring > 0 else float(params.min_free_radius)
-        radius = np.arange(float(outer), lowest - 1e-9, -step)[:, None]
+        radius = np.arange(float(outer), 0.0, -step)
+        radius = radius[radius > float(radii[ring - 1]) + 1e-6] if ring > 0 else \
+            radius[radius >= float(params.min_free_radius) - 1e-9]  # never onto the inner ring
+        if radius.size == 0:
+            continue
+        radius = radius[:, None]
         reach_cells = np.floor(half_gap * float(outer) / step)
         arc = np.arange(-reach_cells, reach_cells + 1) * step
         inside = np.abs(arc[None, :]) < half_gap * radius  # the arc ends where the neighbours' patches begin
