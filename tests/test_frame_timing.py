@@ -153,7 +153,9 @@ def test_a_frame_is_planned_with_its_own_plane_and_records_it(graph):
     graph["ground_pub"].publish(plane)
     probe.spin_for(0.05)
     graph["target_pub"].publish(target)
-    assert probe.spin_until(lambda: of_stamp(graph["goals"], stamp), 10.0), read_log(graph["procs"][NODE])[-2000:]
+    # the goal first, then the candidates
+    assert probe.spin_until(lambda: of_stamp(graph["goals"], stamp) and of_stamp(graph["candidates"], stamp), 10.0), \
+        read_log(graph["procs"][NODE])[-2000:]
     (views,) = of_stamp(graph["candidates"], stamp)
     assert input_stamps(views) == [("target_geometry", stamp, InputStamp.SAME_FRAME),
                                    ("ground_plane", stamp, InputStamp.SAME_FRAME)]
@@ -204,7 +206,8 @@ def test_an_older_plane_is_carried_by_the_camera_pose_delta_and_recorded_as_carr
     graph["pose_pub"].publish(pose_message(stamp_b, rotation_b, position_b))
     probe.spin_for(0.05)
     graph["target_pub"].publish(target_b)  # its own plane never comes
-    assert probe.spin_until(lambda: of_stamp(graph["base_goals"], stamp_b), 10.0), \
+    assert probe.spin_until(lambda: of_stamp(graph["base_goals"], stamp_b) and of_stamp(graph["candidates"], stamp_b),
+                            10.0), \
         read_log(graph["procs"][NODE])[-2000:]
     (views,) = of_stamp(graph["candidates"], stamp_b)
     assert input_stamps(views) == [("target_geometry", stamp_b, InputStamp.SAME_FRAME),

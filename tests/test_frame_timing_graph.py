@@ -125,10 +125,12 @@ def send(graph, scene) -> int:
 
 
 def planned_frame(graph, scene, attempts: int = 3) -> int:
-    """Send frames until one gets its goal (a best-effort depth frame can be lost on a busy machine)."""
+    """Send frames until one gets its goal and candidates (a best-effort depth frame can be lost on a busy machine;
+    nbv_node publishes the goal first)."""
     for _ in range(attempts):
         stamp = send(graph, scene)
-        if graph["probe"].spin_until(lambda stamp=stamp: of_stamp(graph["goals"], stamp), 8.0):
+        if graph["probe"].spin_until(lambda stamp=stamp: of_stamp(graph["goals"], stamp)
+                                     and of_stamp(graph["candidates"], stamp), 8.0):
             return stamp
     raise AssertionError("no goal for any frame: " + "\n".join(read_log(p)[-1500:] for p in graph["procs"].values()))
 
