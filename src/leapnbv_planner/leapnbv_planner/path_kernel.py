@@ -58,32 +58,13 @@ def grid_distances(free: np.ndarray, start_row: int, start_col: int, cell: float
 
 @njit(cache=True)
 def mark_occupied_in_plane(plane_points: np.ndarray, origin: np.ndarray, cell: float, occupied: np.ndarray) -> None:
-    """mark_occupied over points' plane coordinates (p.e1, p.e2) already filtered by height (in place)."""
+    """Mark the grid cell of every point (in place), given as plane coordinates (p.e1, p.e2) of the points already
+    kept by height (footprint_kernel.elevated_plane_points): cell (floor((v - o_v) / cell), floor((u - o_u) / cell));
+    points off the grid are skipped."""
     rows, cols = occupied.shape
     for k in range(plane_points.shape[0]):
         u = (plane_points[k, 0] - origin[0]) / cell
         v = (plane_points[k, 1] - origin[1]) / cell
-        if not (u >= 0.0 and v >= 0.0 and u < cols and v < rows):
-            continue
-        occupied[int(v), int(u)] = True
-
-
-@njit(cache=True)
-def mark_occupied(points: np.ndarray, unit_normal: np.ndarray, offset: float, min_height: float, axes: np.ndarray,
-                  origin: np.ndarray, cell: float, occupied: np.ndarray) -> None:
-    """Mark the grid cell of every finite point higher than ``min_height`` above the floor (in place).
-
-    A point p falls in cell (floor((p.e2 - o_v) / cell), floor((p.e1 - o_u) / cell)); points off the grid
-    are skipped. ``min_height`` = -inf marks every finite point.
-    """
-    rows, cols = occupied.shape
-    for k in range(points.shape[0]):
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        height = unit_normal[0] * x + unit_normal[1] * y + unit_normal[2] * z + offset
-        if not height > min_height:  # also drops NaN
-            continue
-        u = (axes[0, 0] * x + axes[0, 1] * y + axes[0, 2] * z - origin[0]) / cell
-        v = (axes[1, 0] * x + axes[1, 1] * y + axes[1, 2] * z - origin[1]) / cell
         if not (u >= 0.0 and v >= 0.0 and u < cols and v < rows):
             continue
         occupied[int(v), int(u)] = True

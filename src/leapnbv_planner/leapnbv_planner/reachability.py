@@ -24,7 +24,8 @@ from typing import Optional, Tuple
 import numpy as np
 
 from leapnbv_planner.candidates import plane_basis
-from leapnbv_planner.path_kernel import grid_distances, mark_occupied, mark_occupied_in_plane
+from leapnbv_planner.footprint_kernel import elevated_plane_points
+from leapnbv_planner.path_kernel import grid_distances, mark_occupied_in_plane
 
 UNKNOWN_SPACE_CHOICES = ("free", "occupied")
 GRID_MARGIN_M = 1.0  # the grid reaches this far beyond the outermost candidate and the robot
@@ -100,8 +101,7 @@ class Reachability:
 
     def path_lengths_at(self, foot_points: np.ndarray) -> np.ndarray:
         """(N,) path lengths to (N, 3) floor points (their cells'; inf off the grid or without a path)."""
-        rows, cols, inside = self.grid.cells_of(np.asarray(foot_points, dtype=np.float64).reshape(-1, 3))
-        return np.where(inside, self.distances[rows, cols], np.inf)
+        return _lengths_at(self.grid, self.distances, foot_points)
 
     def path_to(self, foot_point: np.ndarray) -> Optional[np.ndarray]:
         """(P, 3) floor points (cell centres) from the robot to ``foot_point`` (its exact point last); None
@@ -193,14 +193,16 @@ def build_occupancy_grid(
     grid = OccupancyGrid(unit_normal=np.asarray(unit_normal, dtype=np.float64), offset=float(offset), axes=axes,
                          origin=low, cell=cell, occupied=np.zeros(shape, dtype=bool),
                          seen=np.ones(shape, dtype=bool), free=np.ones(shape, dtype=bool))
-    if obstacle_plane_points is not None:
-        mark_occupied_in_plane(np.ascontiguousarray(obstacle_plane_points, dtype=np.float64),
-                               np.asarray(low, dtype=np.float64), float(cell), grid.occupied)
-    clouds = ((person_points, -np.inf),) if obstacle_plane_points is not None else \
-        ((obstacle_points, float(floor_clearance)), (person_points, -np.inf))
-    for cloud, min_height in clouds:
-        mark_occupied(np.ascontiguousarray(np.asarray(cloud, dtype=np.float64).reshape(-1, 3)), grid.unit_normal,
-                      float(offset), min_height, axes, np.asarray(low, dtype=np.float64), float(cell), grid.occupied)
+
+    def in_plane(cloud: np.ndarray, min_height: float) -> np.ndarray:
+        return elevated_plane_points(np.ascontiguousarray(np.asarray(cloud, dtype=np.float64).reshape(-1, 3)),
+                                     grid.unit_normal, float(offset), min_height, e1, e2)
+
+    if obstacle_plane_points is None:
+        obstacle_plane_points = in_plane(obstacle_points, float(floor_clearance))
+    for plane_points in (obstacle_plane_points, in_plane(person_points, -np.inf)):  # the person: every point
+        mark_occupied_in_plane(np.ascontiguousarray(plane_points, dtype=np.float64), np.asarray(low, dtype=np.float64),
+                               float(cell), grid.occupied)
     if camera is not None:
         k, width, height = camera
         all_rows, all_cols = np.indices(shape)
@@ -244,8 +246,12 @@ def reachability(grid: OccupancyGrid, start_foot: np.ndarray, feet: np.ndarray, 
     free |= near_start & ~grid.occupied
     free[start] = True
     distances, parents = grid_distances(free, start[0], start[1], grid.cell)
-    reach = Reachability(path_lengths=np.zeros(0), reachable=np.zeros(0, dtype=bool), grid=grid, parents=parents,
-                         start_cell=start, distances=distances)
-    reach.path_lengths = reach.path_lengths_at(feet)
-    reach.reachable = np.isfinite(reach.path_lengths) & (reach.path_lengths <= float(max_path_length))
-    return reach
+    lengths = _lengths_at(grid, distances, feet)
+    return Reachability(path_lengths=lengths, reachable=np.isfinite(lengths) & (lengths <= float(max_path_length)),
+                        grid=grid, parents=parents, start_cell=start, distances=distances)
+
+
+def _lengths_at(grid: OccupancyGrid, distances: np.ndarray, foot_points: np.ndarray) -> np.ndarray:
+    """(N,) path lengths to (N, 3) floor points: their cells' distances; inf off the grid or without a path."""
+    rows, cols, inside = grid.cells_of(np.asarray(foot_points, dtype=np.float64).reshape(-1, 3))
+    return np.where(inside, distances[rows, cols], np.inf)
