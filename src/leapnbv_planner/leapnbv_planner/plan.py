@@ -247,15 +247,17 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     # mesh scored in its place only the mesh vertices' is needed.
     target_clear_used = mesh_vertices is None or any(name not in _NO_TARGET_LINE_OF_SIGHT
                                                      for name in params.score_terms)
+
+    def clear_share(points: np.ndarray) -> np.ndarray:
+        """The map's clear line-of-sight share of ``points`` from each scored candidate (NaN for the others)."""
+        return _on_scored(line_of_sight_clear_fraction(
+            obstacle_map, rotation, position, candidates.positions[picked], points, params.map_max_target_points,
+            params.map_target_margin), picked, len(candidates), np.nan)
+
     if with_map and target_clear_used:
-        line_of_sight_clear = _on_scored(line_of_sight_clear_fraction(
-            obstacle_map, rotation, position, candidates.positions[picked], target_points,
-            params.map_max_target_points, params.map_target_margin), picked, len(candidates), np.nan)
-    if with_map:
-        if mesh_vertices is not None:
-            mesh_clear = _on_scored(line_of_sight_clear_fraction(
-                obstacle_map, rotation, position, candidates.positions[picked], mesh_vertices,
-                params.map_max_target_points, params.map_target_margin), picked, len(candidates), np.nan)
+        line_of_sight_clear = clear_share(target_points)
+    if with_map and mesh_vertices is not None:
+        mesh_clear = clear_share(mesh_vertices)
     scores = _score_picked(candidates, picked, target, target_points, background, params, line_of_sight_clear,
                            path_lengths, mesh_vertices, mesh_normals, mesh_clear)
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
