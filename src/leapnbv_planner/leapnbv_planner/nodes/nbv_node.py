@@ -390,6 +390,7 @@ class NbvNode(Node):
                           self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh)
         compute_time_ms = (time.perf_counter() - started) * 1e3
         # The goal first (what the motion stack waits for), then the candidates, the path and the markers.
+        goal_published = False
         if plan.chosen_index < 0:
             self.diagnostics.reject("no_feasible_view", "every candidate is infeasible: no goal published")
         elif self.too_old(stamp):
@@ -398,12 +399,13 @@ class NbvNode(Node):
             self.goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.chosen_pose())))
             self.base_goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.base_goal)))
             self.goal_stamp, self.goal_frame = stamp, target.header.frame_id
+            goal_published = True
             self.publish_status(GoalStatus.STATE_CURRENT, "goal published")
             if self.params.value.max_goal_age_s > 0 and self.age_timer.is_canceled():
                 self.age_timer.reset()
         out = arrays_to_view_candidates(plan.to_arrays(), target.header, compute_time_ms, inputs=inputs)
         self.candidates_pub.publish(out)
-        if self.goal_stamp == stamp and plan.chosen_index >= 0:
+        if goal_published:
             path = plan.base_path_frames()
             if path is not None:
                 self.base_path_pub.publish(path_msg(*path, target.header))
