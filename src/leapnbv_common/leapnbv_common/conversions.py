@@ -436,23 +436,33 @@ def stamp_to_ns(stamp) -> int:
 
 def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     """(x, y, z, w) unit quaternion of a 3x3 rotation matrix (Shepperd's method, w >= 0)."""
-    m = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q, dtype=np.float64)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    return rotations_to_quaternions(np.asarray(rotation, dtype=np.float64).reshape(1, 3, 3))[0]
+
+
+def rotations_to_quaternions(rotations: np.ndarray) -> np.ndarray:
+    """(N, 4) (x, y, z, w) unit quaternions of (N, 3, 3) rotation matrices (Shepperd's method, w >= 0).
+
+    Per matrix the largest of trace, m00, m11, m22 picks the formula whose divisor is far from 0;
+    every formula is evaluated on every row (a few vector operations instead of a Python loop per
+    pose) and each row keeps its own."""
+    m = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+    m00, m01, m02 = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    m10, m11, m12 = m[:, 1, 0], m[:, 1, 1], m[:, 1, 2]
+    m20, m21, m22 = m[:, 2, 0], m[:, 2, 1], m[:, 2, 2]
+    trace = m00 + m11 + m22
+    case = np.where(trace > 0, 0, np.where((m00 > m11) & (m00 > m22), 1, np.where(m11 > m22, 2, 3)))
+    with np.errstate(invalid="ignore", divide="ignore"):  # the rows a formula is not picked for
+        s = 2.0 * np.sqrt(np.stack([trace + 1.0, 1.0 + m00 - m11 - m22, 1.0 + m11 - m00 - m22,
+                                    1.0 + m22 - m00 - m11]))
+        formulas = np.stack([
+            [(m21 - m12) / s[0], (m02 - m20) / s[0], (m10 - m01) / s[0], 0.25 * s[0]],
+            [0.25 * s[1], (m01 + m10) / s[1], (m02 + m20) / s[1], (m21 - m12) / s[1]],
+            [(m01 + m10) / s[2], 0.25 * s[2], (m12 + m21) / s[2], (m02 - m20) / s[2]],
+            [(m02 + m20) / s[3], (m12 + m21) / s[3], 0.25 * s[3], (m10 - m01) / s[3]],
+        ])  # (4 formulas, 4 components, N)
+    q = formulas[case, :, np.arange(len(m))]
+    q /= np.sqrt(np.sum(q * q, axis=1))[:, None]
+    return np.where(q[:, 3:4] < 0, -q, q)
 
 
 def quaternion_to_rotation(xyzw: np.ndarray) -> np.ndarray:
@@ -467,8 +477,15 @@ def quaternion_to_rotation(xyzw: np.ndarray) -> np.ndarray:
 
 def pose_msg(rotation: np.ndarray, position: np.ndarray) -> Pose:
     """geometry_msgs/Pose from a rotation matrix (columns = the body's axes) and a position."""
-    qx, qy, qz, qw = (float(v) for v in rotation_to_quaternion(rotation))
-    return Pose(position=point_msg(position), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return pose_msgs(np.asarray(rotation).reshape(1, 3, 3), np.asarray(position).reshape(1, 3))[0]
+
+
+def pose_msgs(rotations: np.ndarray, positions: np.ndarray) -> List[Pose]:
+    """geometry_msgs/Pose messages of (N, 3, 3) rotations and (N, 3) positions (the quaternions in one pass)."""
+    quaternions = rotations_to_quaternions(rotations).tolist()
+    points = np.asarray(positions, dtype=np.float64).reshape(-1, 3).tolist()
+    return [Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+            for (x, y, z), (qx, qy, qz, qw) in zip(points, quaternions)]
 
 
 def pose_to_numpy(pose: Pose) -> Tuple[np.ndarray, np.ndarray]:
@@ -786,7 +803,7 @@ def arrays_to_view_candidates(views: ViewCandidatesArrays, header: Optional[Head
                          inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
-    msg.poses = [pose_msg(r, p) for r, p in zip(views.rotations, views.positions)]
+    msg.poses = pose_msgs(views.rotations, views.positions)
     msg.term_names = [str(name) for name in views.term_names]
     msg.term_weights = float32_sequence(views.term_weights)
     msg.term_scores = float32_sequence(np.asarray(views.term_scores).reshape(-1))
@@ -888,7 +905,7 @@ def path_msg(rotations: np.ndarray, positions: np.ndarray, header: Optional[Head
     msg = Path()
     if header is not None:
         msg.header = header
-    msg.poses = [PoseStamped(header=msg.header, pose=pose_msg(r, p)) for r, p in zip(rotations, positions)]
+    msg.poses = [PoseStamped(header=msg.header, pose=pose) for pose in pose_msgs(rotations, positions)]
     return msg
 
 

@@ -107,8 +107,7 @@ class Plan:
             return None
         points = np.asarray(self.base_path, dtype=np.float64)
         rotations = np.empty((len(points), 3, 3))
-        for index in range(len(points) - 1):
-            rotations[index] = base_goal_frame(points[index], points[index + 1], self.up)[0]
+        rotations[:-1] = level_frames(points[:-1], points[1:], self.up)
         rotations[-1] = self.base_goal[0]
         return rotations, points
 
@@ -131,14 +130,26 @@ class Plan:
 
 def base_goal_frame(foot_point: np.ndarray, ring_center: np.ndarray, up: np.ndarray) -> Frame:
     """The robot base goal: on the ground under the camera, x toward the target, z up (REP 103 base)."""
-    up = up / np.linalg.norm(up)
-    heading = ring_center - foot_point
-    heading = heading - up * float(heading @ up)
-    if np.linalg.norm(heading) < 1e-9:  # standing on the ring centre: keep any level heading
-        heading = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 0.0, 1.0])
-    x_axis = heading / np.linalg.norm(heading)
-    y_axis = np.cross(up, x_axis)
-    return np.column_stack([x_axis, y_axis, up]), np.asarray(foot_point, dtype=np.float64)
+    foot_point = np.asarray(foot_point, dtype=np.float64)
+    return level_frames(foot_point.reshape(1, 3), np.asarray(ring_center, dtype=np.float64).reshape(1, 3), up)[0], \
+        foot_point
+
+
+def level_frames(points: np.ndarray, towards: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(P, 3, 3) level frames (axes as columns): z along ``up``, x toward ``towards`` seen from ``points`` in the
+    plane, y = z x x; where the two are on one vertical, any level x."""
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    heading = np.asarray(towards, dtype=np.float64) - np.asarray(points, dtype=np.float64)
+    heading = heading - (heading @ up)[:, None] * up[None, :]
+    length = np.sqrt(np.sum(heading * heading, axis=1))
+    vertical = length < 1e-9
+    if vertical.any():  # standing on the point: keep any level heading
+        any_level = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 0.0, 1.0])
+        heading[vertical] = any_level
+        length[vertical] = np.linalg.norm(any_level)
+    x_axis = heading / length[:, None]
+    up_rows = np.broadcast_to(up, x_axis.shape)
+    return np.stack([x_axis, cross(up_rows, x_axis), up_rows], axis=2)
 
 
 def _pose_arrays(camera_pose: Any) -> Frame:
