@@ -101,6 +101,14 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def norm3(v: np.ndarray) -> np.ndarray:
+    """Euclidean length of 3-vectors over the last axis, as elementwise arithmetic: the same bits for one vector
+    and for rows of them on every CPU (np.linalg.norm of one vector goes through BLAS, whose summation order
+    depends on the CPU's vector width)."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+
+
 def normalize_plane(plane_normal: np.ndarray, plane_offset: float) -> Tuple[np.ndarray, float]:
     """Scale the plane n.x + d = 0 so that |n| = 1.
 
@@ -170,12 +178,12 @@ def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarr
         raise CandidateGenerationError("up_normal has zero length")
     up = up / up_length
     view = target - position
-    distance = float(np.linalg.norm(view))
+    distance = float(norm3(view))
     if distance < _DEGENERATE_NORM:
         raise CandidateGenerationError("camera position coincides with the look-at target")
     z_axis = view / distance
-    x_axis = np.cross(z_axis, up)
-    x_length = float(np.linalg.norm(x_axis))
+    x_axis = cross(z_axis, up)
+    x_length = float(norm3(x_axis))
     if x_length < _DEGENERATE_NORM:
         for fallback in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])):
             x_axis = fallback - float(fallback @ z_axis) * z_axis
@@ -183,7 +191,7 @@ def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarr
             if x_length > 1e-3:
                 break
     x_axis = x_axis / x_length
-    y_axis = np.cross(z_axis, x_axis)
+    y_axis = cross(z_axis, x_axis)
     return np.stack([x_axis, y_axis, z_axis], axis=1)
 
 
@@ -194,10 +202,10 @@ def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray
     unit_up = unit_up / float(np.linalg.norm(unit_up))  # as camera_look_at does, for the same bits
     targets = np.broadcast_to(np.asarray(target, dtype=np.float64), positions.shape)
     view = targets - positions
-    distance = np.linalg.norm(view, axis=1)
+    distance = norm3(view)
     z_axis = view / np.where(distance > 0, distance, 1.0)[:, None]
     x_axis = cross(z_axis, unit_up[None, :])
-    x_length = np.linalg.norm(x_axis, axis=1)
+    x_length = norm3(x_axis)
     x_axis = x_axis / np.where(x_length > 0, x_length, 1.0)[:, None]
     y_axis = cross(z_axis, x_axis)
     rotations = np.stack([x_axis, y_axis, z_axis], axis=2)
