@@ -160,6 +160,30 @@ def test_pose_round_trip_through_quaternion():
     np.testing.assert_allclose(rot, np.diag([1.0, -1.0, -1.0]), atol=1e-12)
 
 
+def test_rotations_to_quaternions_every_branch_and_the_message_list():
+    from leapnbv_common.conversions import pose_msgs, poses_to_numpy, quaternion_to_rotation, rotations_to_quaternions
+
+    rng = np.random.default_rng(7)
+    quaternions = rng.normal(size=(400, 4))
+    quaternions /= np.linalg.norm(quaternions, axis=1)[:, None]
+    # 180-degree turns about x, y, z and the identity: the four formulas (largest of trace, m00, m11, m22)
+    specials = [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]), np.eye(3)]
+    rotations = np.concatenate([[quaternion_to_rotation(q) for q in quaternions], specials])
+    diagonal = np.stack([np.trace(rotations, axis1=1, axis2=2), *np.diagonal(rotations, axis1=1, axis2=2).T[:3]])
+    assert set(np.argmax(diagonal, axis=0)) == {0, 1, 2, 3}  # every formula is exercised
+    out = rotations_to_quaternions(rotations)
+    assert np.all(out[:, 3] >= 0.0)
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(np.abs(np.sum(out[:400] * quaternions, axis=1)), 1.0, atol=1e-12)  # q or -q
+    np.testing.assert_allclose([quaternion_to_rotation(q) for q in out], rotations, atol=1e-12)
+    positions = rng.normal(size=(len(rotations), 3))
+    back_rotations, back_positions = poses_to_numpy(pose_msgs(rotations, positions))
+    np.testing.assert_allclose(back_rotations, rotations, atol=1e-12)
+    np.testing.assert_array_equal(back_positions, positions)
+    assert rotations_to_quaternions(np.zeros((0, 3, 3))).shape == (0, 4) and pose_msgs(np.zeros((0, 3, 3)),
+                                                                                       np.zeros((0, 3))) == []
+
+
 def _rotation(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])

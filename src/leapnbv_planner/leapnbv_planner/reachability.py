@@ -188,10 +188,15 @@ def build_occupancy_grid(
     cover = np.asarray(cover_points, dtype=np.float64).reshape(-1, 3) @ axes.T
     low = cover.min(axis=0) - GRID_MARGIN_M - robot_radius
     high = cover.max(axis=0) + GRID_MARGIN_M + robot_radius
-    cell = max(float(cell), float(np.max(high - low)) / MAX_GRID_CELLS)
-    shape = (int(np.ceil((high[1] - low[1]) / cell)), int(np.ceil((high[0] - low[0]) / cell)))
+    cell = max(float(cell), float(np.max(high - low)) / (MAX_GRID_CELLS - 1))  # the origin below adds a cell
+    # Cell edges at odd multiples of half a cell in plane coordinates: the robot's own foot point (plane
+    # coordinates 0, 0) is a cell centre, and no foot point sits on an edge by construction (an origin at the
+    # lowest foot point less a whole number of cells put that point on an edge, where the last bit of
+    # rounding, which differs between CPUs, chose its cell).
+    origin = (np.floor(low / cell - 0.5) + 0.5) * cell
+    shape = (int(np.ceil((high[1] - origin[1]) / cell)), int(np.ceil((high[0] - origin[0]) / cell)))
     grid = OccupancyGrid(unit_normal=np.asarray(unit_normal, dtype=np.float64), offset=float(offset), axes=axes,
-                         origin=low, cell=cell, occupied=np.zeros(shape, dtype=bool),
+                         origin=origin, cell=cell, occupied=np.zeros(shape, dtype=bool),
                          seen=np.ones(shape, dtype=bool), free=np.ones(shape, dtype=bool))
 
     def in_plane(cloud: np.ndarray, min_height: float) -> np.ndarray:
@@ -201,7 +206,7 @@ def build_occupancy_grid(
     if obstacle_plane_points is None:
         obstacle_plane_points = in_plane(obstacle_points, float(floor_clearance))
     for plane_points in (obstacle_plane_points, in_plane(person_points, -np.inf)):  # the person: every point
-        mark_occupied_in_plane(np.ascontiguousarray(plane_points, dtype=np.float64), np.asarray(low, dtype=np.float64),
+        mark_occupied_in_plane(np.ascontiguousarray(plane_points, dtype=np.float64), origin,
                                float(cell), grid.occupied)
     if camera is not None:
         k, width, height = camera

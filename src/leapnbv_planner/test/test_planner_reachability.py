@@ -98,6 +98,18 @@ def test_plan_views_marks_candidates_behind_a_wall_unreachable_and_returns_the_p
     assert plan.chosen_index >= 0 and plan.base_path is not None
     np.testing.assert_array_equal(plan.base_path[-1], plan.candidates.foot_points[plan.chosen_index])
     assert np.all(np.abs(plan.base_path[:, 0]) < 1.2 - 0.2)  # the path stays in the corridor
+    # The path's poses: level (z up), x along the path toward the next point, right-handed; the goal's own last.
+    rotations, points = plan.base_path_frames()
+    np.testing.assert_array_equal(points, plan.base_path)
+    np.testing.assert_array_equal(rotations[-1], plan.base_goal[0])
+    up = np.asarray(UP, dtype=np.float64) / np.linalg.norm(UP)
+    step = np.diff(points, axis=0)
+    step -= (step @ up)[:, None] * up
+    np.testing.assert_allclose(rotations[:-1, :, 0], step / np.linalg.norm(step, axis=1)[:, None], atol=1e-12)
+    np.testing.assert_allclose(rotations[:, :, 2], np.broadcast_to(up, points.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(rotations), 1.0, atol=1e-12)
+    np.testing.assert_allclose(rotations.transpose(0, 2, 1) @ rotations, np.broadcast_to(np.eye(3), rotations.shape),
+                               atol=1e-12)
     # Travel: the term is in the registry; scored when listed, from the path lengths.
     params.score_terms = ["visibility", "area", "occlusion", "travel"]
     plan = plan_views(target, ground, params)
@@ -106,9 +118,11 @@ def test_plan_views_marks_candidates_behind_a_wall_unreachable_and_returns_the_p
     scored = plan.feasibility.feasible  # the others are not scored: 0
     np.testing.assert_allclose(travel[scored], 1.0 - np.minimum(1.0, plan.path_lengths[scored] / 6.0))
     assert travel[0] == 1.0 and np.all(travel[~scored] == 0.0) and np.all(scored <= finite)
-    every = plan_views(target, ground, dataclasses.replace(params, score_infeasible=True)).scores.term("travel")
+    every_plan = plan_views(target, ground, dataclasses.replace(params, score_infeasible=True))
+    every = every_plan.scores.term("travel")
     np.testing.assert_allclose(every[finite], 1.0 - np.minimum(1.0, plan.path_lengths[finite] / 6.0))
-    assert np.all(every[~finite] == 0.0) and np.any(every[finite & ~scored] > 0.0)
+    assert np.all(every[~finite] == 0.0)
+    assert np.any(every_plan.scores.term("visibility")[~scored] > 0.0)  # the infeasible ones are scored too
 
 
 def test_the_ring_rotations_are_camera_look_at_bit_for_bit():
@@ -188,3 +202,20 @@ def test_candidates_in_the_walls_move_to_free_reachable_floor_within_their_patch
     index = np.flatnonzero(moved)[0]
     shift = np.linalg.norm(fitted.candidates.foot_points[index] - fixed.candidates.foot_points[index])
     assert shift < 1.0
+
+
+def test_grid_cell_edges_stay_off_the_robot_and_the_candidates():
+    # Cell edges lie at odd multiples of half a cell in plane coordinates: the robot's foot point (plane coordinates
+    # 0, 0) is a cell centre, and the outermost foot point, which sets the grid's extent with a whole number of
+    # cells of margin (1.0 m + 0.3 m robot radius = 13 cells), is not on an edge, where rounding would pick its cell.
+    tilted = np.array([0.0, -0.98, 0.2]) / np.linalg.norm([0.0, -0.98, 0.2])
+    for up, height in ((UP, HEIGHT), (tilted, 1.25)):
+        feet = np.array([[1.3, 0.0, 2.0], [-2.2, 0.0, 4.5], [0.4, 0.0, 0.7]])
+        feet -= ((feet @ up) + height)[:, None] * up  # onto the floor
+        grid = build_occupancy_grid(np.zeros((0, 3)), np.zeros((0, 3)), up, height,
+                                    np.vstack([feet, -height * up]), 0.1, 0.3, 0.1)
+        uv = (grid.plane_coordinates(np.vstack([feet, -height * up])) - grid.origin) / grid.cell
+        np.testing.assert_allclose(uv[-1] - np.floor(uv[-1]), 0.5, atol=1e-9)  # the robot: a cell centre
+        fraction = uv - np.floor(uv)
+        assert np.all(np.abs(fraction - np.round(fraction)) > 1e-6)  # no foot point on an edge
+        assert max(grid.free.shape) <= 400 and np.all(uv >= 13.0) and np.all(uv <= np.array(grid.free.shape)[::-1] - 13)
