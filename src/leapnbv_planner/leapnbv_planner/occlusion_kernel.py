@@ -241,6 +241,58 @@ def axis_aligned_bounds(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return lower, upper
 
 
+@njit(cache=True)
+def points_in_box(points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The rows of (N, 3) ``points`` inside the closed box [lower, upper], in their order (a copy)."""
+    out = np.empty_like(points)
+    kept = 0
+    for n in range(points.shape[0]):
+        if lower[0] <= points[n, 0] <= upper[0] and lower[1] <= points[n, 1] <= upper[1] \
+                and lower[2] <= points[n, 2] <= upper[2]:
+            for a in range(3):
+                out[kept, a] = points[n, a]
+            kept += 1
+    return out[:kept]
+
+
+def possible_occluders(background: np.ndarray, positions: np.ndarray, targets: list, fx: float, skew: float,
+                       fy: float, half_window: int) -> np.ndarray:
+    """The background points that can hide some target point from some candidate camera; the others are left out
+    (in order), so that the counts of count_visible_targets are the same without them.
+
+    A background point b hides target t from camera c only when b's pixel is within the window of t's
+    (|floor(u_b) - floor(u_t)| <= half_window, the same for v) and 0 < z_b < z_t. Then |u_b - u_t| and
+    |v_b - v_t| are below h = half_window + 1 pixels, so b's normalized image coordinates differ from t's by at
+    most h / fy in y and h / fx + |skew| h / (fx fy) in x, and b lies within z_b (h / fx + |skew| h / (fx fy) +
+    h / fy) of the point of the segment c-t at its own depth z_b < z_t <= |t - c|. Every camera and target is in
+    their bounding box, so is the segment, and |t - c| is at most the box's diagonal D: b is in the box grown by
+    D (h / fx + |skew| h / (fx fy) + h / fy) on every side (and a little more for rounding).
+
+    Args:
+        background: (K, 3) float64 points.
+        positions: (C, 3) candidate camera centres.
+        targets: (N_i, 3) float64 arrays of every point whose visibility is counted (target points, mesh vertices).
+        fx, skew, fy: the intrinsics the candidates project with (fx, fy > 0).
+        half_window: the window's half-width in pixels (>= 0).
+
+    Returns:
+        (K', 3) float64, the points that may hide something (all of them when there is nothing to bound).
+    """
+    clouds = [np.asarray(positions, dtype=np.float64).reshape(-1, 3)] + \
+        [np.ascontiguousarray(cloud, dtype=np.float64) for cloud in targets if len(cloud)]
+    if len(clouds) < 2 or len(clouds[0]) == 0 or len(background) == 0:
+        return background
+    bounds = [axis_aligned_bounds(cloud) for cloud in clouds]
+    lower = np.min([low for low, _ in bounds], axis=0)
+    upper = np.max([high for _, high in bounds], axis=0)
+    diagonal = float(np.sqrt(np.sum(np.square(upper - lower))))
+    reach = half_window + 1.0
+    margin = diagonal * reach * (1.0 / fx + abs(skew) / (fx * fy) + 1.0 / fy)
+    slack = 1e-6 * (1.0 + diagonal + float(np.max(np.abs(np.concatenate([lower, upper])))))
+    return points_in_box(np.ascontiguousarray(background, dtype=np.float64), lower - margin - slack,
+                         upper + margin + slack)
+
+
 # ---------------------------------------------------------------------------------------------
 # The same counts over points bucketed into boxes: whole boxes that cannot matter to a candidate
 # are skipped, whole boxes that are surely in view are counted without projecting their points.

@@ -227,3 +227,49 @@ def test_mesh_vertex_normals_equal_the_numpy_expression():
         if float(np.sum(expected * (vertices - vertices.mean(axis=0)))) < 0.0:
             expected = -expected
         np.testing.assert_array_equal(mesh_vertex_normals(vertices, faces), expected)
+
+
+def test_possible_occluders_leave_out_only_points_that_hide_nothing():
+    # A point in the window of a target point and nearer than it must stay, also just outside the box of cameras and
+    # targets (at the window's edge beside an outermost target point); far walls and the ceiling go.
+    from leapnbv_planner.occlusion_kernel import possible_occluders
+
+    rng = np.random.default_rng(5)
+    centre = np.array([0.0, 0.3, 3.0])
+    fx, skew, cx, fy, cy, width, height = 250.0, 3.0, 150.0, 240.0, 95.0, 300, 200
+    targets = rng.normal(size=(2000, 3)) * [0.3, 0.6, 0.2] + centre
+    rotations, positions = random_views(rng, 10, centre)
+    half_window = 4
+    edge = half_window + 0.99
+    edge_points = []
+    for c in range(len(positions)):
+        local = (targets - positions[c]) @ rotations[c]  # camera coordinates of every target point
+        local = local[local[:, 2] > 0.0]
+        for du, dv in ((edge, 0.0), (-edge, 0.0), (0.0, edge), (0.0, -edge), (edge, edge), (-edge, -edge)):
+            # the pixel (u_t + du, v_t + dv) at 0.999 of t's depth: in t's window unless floor() moves it out
+            yn = local[:, 1] / local[:, 2] + dv / fy
+            xn = local[:, 0] / local[:, 2] + (du - skew * dv / fy) / fx
+            z = 0.999 * local[:, 2]
+            edge_points.append(positions[c] + np.column_stack([xn * z, yn * z, z]) @ rotations[c].T)
+    edge_points = np.concatenate(edge_points)
+    low, high = np.min(np.vstack([positions, targets]), axis=0), np.max(np.vstack([positions, targets]), axis=0)
+    outside = ~np.all((edge_points >= low) & (edge_points <= high), axis=1)
+    assert outside.sum() >= 20  # the margin is exercised: some lie outside the box itself
+    assert len(possible_occluders(edge_points, positions, [targets], fx, skew, fy, half_window)) == len(edge_points)
+    assert len(possible_occluders(edge_points, positions, [targets], fx, skew, fy, 0)) < len(edge_points)
+
+    # The counts: the same with and without the points left out, where the edge points do hide some targets.
+    background = np.concatenate([rng.uniform([-9, -5, -6], [9, 5, 12], size=(20000, 3)), edge_points[::97]])
+    kept = possible_occluders(background, positions, [targets], fx, skew, fy, half_window)
+    assert len(kept) < len(background) - 12000  # most of the far volume goes
+    camera = (fx, skew, cx, fy, cy, width, height)
+    reference = count_visible_targets(targets, background, rotations, positions, fx, skew, cx, fy, cy, width, height,
+                                      half_window, NONE)
+    filtered = count_visible_targets(targets, kept, rotations, positions, fx, skew, cx, fy, cy, width, height,
+                                     half_window, NONE)
+    np.testing.assert_array_equal(filtered[1], reference[1])
+    _, fast = both(targets, NONE, kept, rotations, positions, camera, half_window, 64)
+    np.testing.assert_array_equal(fast[1], reference[1])
+    volume_only = count_visible_targets(targets, background[:20000], rotations, positions, fx, skew, cx, fy, cy,
+                                        width, height, half_window, NONE)
+    assert np.any(volume_only[1] != reference[1])

@@ -25,6 +25,7 @@ from leapnbv_planner.occlusion_kernel import (
     RUN_LENGTH,
     bucket_points,
     count_visible_targets_bucketed,
+    possible_occluders,
     run_facing_bounds,
 )
 
@@ -180,12 +181,19 @@ class ScoringContext:
 
     def buckets(self, name: str) -> Buckets:
         """The cloud ``name`` ("targets", "background", "mesh" with its normals, "none": no points) sorted into
-        boxes once per context (the kernels skip or count whole boxes per candidate)."""
+        boxes once per context (the kernels skip or count whole boxes per candidate). The background keeps only
+        the points that can hide a target point or mesh vertex from a candidate (``possible_occluders``: the
+        counts are the same)."""
         if name not in self._buckets:
             if name == "mesh" and self.mesh_vertices is not None:
                 points, companions = self.mesh_vertices, self.mesh_normals
+            elif name == "background":  # only the points that can hide a target or mesh point from a candidate
+                fx, skew, _, fy, _, _, _ = self.camera
+                points = possible_occluders(self.background, self.positions, [self.targets] + (
+                    [self.mesh_vertices] if self.mesh_vertices is not None else []), fx, skew, fy, self.half_window)
+                companions = _NO_ROWS
             else:
-                points = {"targets": self.targets, "background": self.background}.get(name, _NO_ROWS)
+                points = {"targets": self.targets}.get(name, _NO_ROWS)
                 companions = _NO_ROWS
             self._buckets[name] = bucket_points(np.ascontiguousarray(points), np.ascontiguousarray(companions),
                                                 POINTS_PER_BOX, RUN_LENGTH)
