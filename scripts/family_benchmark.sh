@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The benchmark families at the robot's mounting height, leap_nbv with the paper's S_o and with the mesh S_o.
-# Usage: scripts/family_benchmark.sh [SCENES (default 30)] [OUT (default out/families)] [FAMILIES...]
+# Usage: scripts/family_benchmark.sh [SCENES (default 40: every committed seed)] [OUT (default out/families)] [FAMILIES...]
 # Each family runs twice through scripts/evaluate.sh (several rings, reachability on): OUT/<family>/paper
 # (score_terms [visibility, area, occlusion, travel]: the paper's S_o over the observed points) and
 # OUT/<family>/mesh (the default terms [visibility, area, body_occlusion, travel]); then scripts/family_table.py OUT prints the
@@ -9,7 +9,7 @@
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
-SCENES=${1:-30}
+SCENES=${1:-40}
 OUT=${2:-out/families}
 shift $(( $# > 2 ? 2 : $# ))
 FAMILIES=("$@")
