@@ -434,11 +434,6 @@ def stamp_to_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """(x, y, z, w) unit quaternion of a 3x3 rotation matrix (Shepperd's method, w >= 0)."""
-    return rotations_to_quaternions(np.asarray(rotation, dtype=np.float64).reshape(1, 3, 3))[0]
-
-
 def rotations_to_quaternions(rotations: np.ndarray) -> np.ndarray:
     """(N, 4) (x, y, z, w) unit quaternions of (N, 3, 3) rotation matrices (Shepperd's method, w >= 0).
 
