@@ -25,7 +25,11 @@ from typing import Callable, List, Tuple  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src", "leapnbv_perception"))
+_PERCEPTION = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src", "leapnbv_perception")
+sys.path.insert(0, _PERCEPTION)
+sys.path.insert(0, os.path.join(_PERCEPTION, "test"))  # reference_smplx: the tests' slow LBS
+
+from reference_smplx import forward_reference  # noqa: E402
 
 from leapnbv_perception.detector_families.yolov8 import decode_person_boxes, letterbox  # noqa: E402
 from leapnbv_perception.hmr_crop import crop_for_hmr, fit_to_engine_input, process_box  # noqa: E402
@@ -112,7 +116,7 @@ def main() -> int:
             betas=heads["betas"],
             expression=heads["expression"],
         )
-        posed = model.forward_reference(params) if reference else model.forward(params)
+        posed = forward_reference(model, params) if reference else model.forward(params)
         matrix_to_axis_angle(params.body_rotations)
         return posed.vertices + camera_translation(heads["cam_param"]).astype(np.float32)
 

@@ -501,23 +501,3 @@ class SMPLXModel:
         posed_joints, transforms = batch_rigid_transform(rotations, joints, self.parents)
         vertices = skinning(v_posed, transforms, self.weights)
         return SMPLXOutput(vertices=vertices.astype(np.float32, copy=False), joints=posed_joints.astype(np.float32))
-
-    def forward_reference(self, params: SMPLXParams, add_hand_mean: bool = True) -> SMPLXOutput:
-        """Straightforward LBS (joint regression from vertices, per-joint skinning loop).
-
-        Same result as `forward`; kept as the reference the tests and the benchmark
-        compare against.
-        """
-        rotations = self.full_pose_rotations(params, add_hand_mean)
-        coefficients = self.shape_coefficients(params).astype(np.float64)
-        shape_dirs = self.shape_dirs_flat.astype(np.float64)
-        v_shaped = self.v_template.astype(np.float64) + blend_shapes(coefficients, shape_dirs)
-        joints = vertices2joints(self.joint_regressor, v_shaped)
-        v_posed = v_shaped + pose_blend(rotations, self.pose_dirs_flat.astype(np.float64))
-        posed_joints, transforms = batch_rigid_transform(rotations, joints, self.parents)
-        homogeneous = np.concatenate([v_posed, np.ones((v_posed.shape[0], 1))], axis=1)
-        vertices = np.zeros_like(v_posed)
-        for joint in range(NUM_JOINTS):
-            moved = (homogeneous @ transforms[joint].T)[:, :3]
-            vertices += self.weights[:, joint : joint + 1].astype(np.float64) * moved
-        return SMPLXOutput(vertices=vertices.astype(np.float32), joints=posed_joints.astype(np.float32))
