@@ -34,9 +34,9 @@ for its pose; without one (or without a map) the node plans from the frame alone
 """
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections import OrderedDict
-from typing import Dict, List, NamedTuple, Optional, Set, Tuple
+from typing import List, Optional, Set, Tuple
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -48,7 +48,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from leapnbv_common import topics
 from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_source
-from leapnbv_common.contracts import DuplicateStampGuard, check_same_frame, refused
+from leapnbv_common.contracts import check_same_frame, refused
 from leapnbv_common.conversions import (
     GroundPlaneArrays,
     arrays_to_view_candidates,
@@ -64,19 +64,24 @@ from leapnbv_common.conversions import (
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.process_tuning import tune_node_process
-from leapnbv_common.pulled_input import HOUSEKEEPING_PERIOD_S, PulledInput
+from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import latched_goal_qos, latched_map_qos, stage_input_qos, stage_output_qos
-from leapnbv_common.stamp_cache import CompanionWait
+from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
 from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, InputStamp, TargetGeometry, ViewCandidates
 from leapnbv_planner.obstacle_map import voxel_map_from_centres, warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
 from leapnbv_planner.plan import Plan, base_goal_frame, plan_views
 from leapnbv_planner.scoring import warm_up_scoring
 
-WAIT_CHECK_PERIOD_S = 0.02  # how often waiting targets are checked (the timer runs only while one waits)
 GOAL_AGE_CHECK_PERIOD_S = 0.1  # how often the latched goal's age is checked (only while a goal is current)
 PLANE_CACHE = 30  # ground planes remembered by stamp (to pair, and to carry an older one)
 BODY_MESH_CACHE = 30  # body meshes (and frames waiting for theirs) remembered by stamp
+
+
+def body_mesh_arrays(msg: HumanMesh) -> Tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) float64, faces (F, 3)) of a metric body mesh, checked (the body_occlusion term's input)."""
+    mesh = human_mesh_to_arrays(msg)
+    return mesh.vertices.astype(np.float64), mesh.faces.reshape(-1, 3)
 
 
 def carry_plane(normal: np.ndarray, offset: float, pose_from: StampedCameraPose,
@@ -94,27 +99,16 @@ def carry_plane(normal: np.ndarray, offset: float, pose_from: StampedCameraPose,
     return n_to, d_to
 
 
-class ReadyFrame(NamedTuple):
-    """A target with the floor it will be planned on, and the inputs so far (waiting for its camera pose)."""
-
-    target: TargetGeometry
-    floor: GroundPlaneArrays
-    inputs: List[tuple]
-    since_ns: int
-
-
 class NbvNode(Node):
     def __init__(self) -> None:
         super().__init__("nbv_node")
         self.diagnostics = StageDiagnostics(self)
         self.params: NodeParams = NodeParams(self, nbv_params_class(), self.on_params_change)
+        self.configure_stage()
+        self.activate_stage()
+
+    def configure_stage(self) -> None:
         p = self.params.value
-        # Targets wait here for the plane of their stamp (planes are cached by stamp).
-        self.ground = CompanionWait(int(p.ground_wait_s * 1e9), capacity=PLANE_CACHE, frame_name="target",
-                                    companion_name="ground_plane", on_drop=self.diagnostics.drop_callback())
-        self.pose_wait: Optional[ReadyFrame] = None  # a frame with its floor, waiting for its camera pose
-        self.stamps = DuplicateStampGuard()  # one content per stamp and input (contracts)
-        self.last_planned: Optional[int] = None
         self.candidates_pub = self.create_publisher(ViewCandidates, topics.VIEW_CANDIDATES, stage_output_qos())
         self.goal_pub = self.create_publisher(PoseStamped, topics.NEXT_BEST_VIEW, latched_goal_qos())
         self.base_goal_pub = self.create_publisher(PoseStamped, topics.BASE_GOAL, latched_goal_qos())
@@ -132,25 +126,35 @@ class NbvNode(Node):
         self.obstacle_map_points: Optional[np.ndarray] = None
         self.obstacle_map_frame = ""
         self.obstacle_map_stamp = 0
-        # The camera poses also carry an older ground plane into a frame whose own plane never came.
+        # The target starts the work (the newest only); it takes the plane of its own frame (waited for),
+        # its camera pose while a map is in use (DDS does not order topics: waited for briefly) and its
+        # metric body mesh while body_occlusion is scored and some node publishes them.
+        self.stage = Stage(self, KeyInput("target_geometry", TargetGeometry, topics.TARGET_GEOMETRY,
+                                          target_geometry_to_arrays, stage_input_qos(1), bad_reason="bad_target",
+                                          frame_name="target", accept=self.accept_target), [
+            Companion("ground_plane", GroundPlane, topics.GROUND_PLANE, ground_plane_to_arrays,
+                      stage_input_qos(PLANE_CACHE), wait_s=lambda f: self.params.value.ground_wait_s,
+                      capacity=PLANE_CACHE),
+            Companion("camera_pose", lookup=self.frame_camera_pose, needed=lambda f: self.map_in_use(),
+                      wait_s=lambda f: self.params.value.camera_pose_wait_s,
+                      expect=lambda f: self.camera_poses.expect(f.stamp_ns, f.header.frame_id)),
+            Companion(topics.HUMAN_MESH_METRIC, HumanMesh, topics.HUMAN_MESH_METRIC, body_mesh_arrays,
+                      stage_input_qos(5), needed=lambda f: "body_occlusion" in self.params.value.score_terms,
+                      wait_s=self.body_mesh_wait_s, missing_reason="no_body_mesh",
+                      missing_detail=lambda f: "no metric body mesh of this frame: body_occlusion scored the observed"
+                      " points", capacity=BODY_MESH_CACHE, bad_reason="bad_body_mesh"),
+        ], self.plan, capacity=PLANE_CACHE)
+        # The camera poses also carry an older ground plane into a frame whose own plane never came. They
+        # come at camera rate and are pulled when a frame needs one (leapnbv_common.pulled_input).
         self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, p.camera_pose_cache,
-                                                      self.on_camera_pose)
-        # The poses come at camera rate; they are pulled when a frame needs one (leapnbv_common.pulled_input).
-        self.pose_input = PulledInput.adopt(self, self.camera_poses)  # None for a source without a subscription
-        if p.use_obstacle_map:
+                                                      lambda pose: self.stage.companion_arrived("camera_pose"))
+        self.stage.add_pulled(PulledInput.adopt(self, self.camera_poses))  # None for a source without one
+
+    def activate_stage(self) -> None:
+        if self.params.value.use_obstacle_map:
             self.create_subscription(PointCloud2, topics.OBSTACLE_MAP, self.on_obstacle_map, latched_map_qos())
-        # The person's metric body mesh by stamp (the body_occlusion term), and frames waiting for theirs.
-        self.body_meshes: Dict[int, tuple] = OrderedDict()  # oldest first
-        self.waiting_for_mesh: Dict[int, ReadyFrame] = OrderedDict()  # oldest first
-        self.create_subscription(HumanMesh, topics.HUMAN_MESH_METRIC, self.on_body_mesh, stage_input_qos(5))
-        self.create_subscription(TargetGeometry, topics.TARGET_GEOMETRY, self.on_target, stage_input_qos(1))
-        self.create_subscription(GroundPlane, topics.GROUND_PLANE, self.on_ground, stage_input_qos(PLANE_CACHE))
-        # Ready once the stages before are connected.
+        self.stage.start()
         self.diagnostics.await_publishers(topics.TARGET_GEOMETRY, topics.GROUND_PLANE)
-        self.wait_timer = self.create_timer(WAIT_CHECK_PERIOD_S, self.expire_waits)
-        self.wait_timer.cancel()  # runs only while a target waits: an idle node does not wake up
-        # A bad camera pose is counted within HOUSEKEEPING_PERIOD_S even while no frame is planned.
-        self.create_timer(HOUSEKEEPING_PERIOD_S, self.pull_poses)
         self.age_timer = self.create_timer(GOAL_AGE_CHECK_PERIOD_S, self.check_goal_age)
         self.age_timer.cancel()  # runs only while a goal is current
         self.publish_status(GoalStatus.STATE_NONE, "no goal planned yet")
@@ -162,17 +166,11 @@ class NbvNode(Node):
             self.obstacle_map = voxel_map_from_centres(self.obstacle_map_points, new.obstacle_map_resolution)
             self.get_logger().info(f"obstacle map rebuilt: {self.obstacle_map.voxel_count} voxels of"
                                    f" {new.obstacle_map_resolution} m")
-        if "ground_wait_s" in changed:
-            self.ground.wait_ns = int(new.ground_wait_s * 1e9)  # frames already waiting keep their place
         if "max_goal_age_s" in changed and self.goal_state == GoalStatus.STATE_CURRENT and new.max_goal_age_s > 0:
             self.age_timer.reset()  # the next check applies the new limit to the latched goal
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
-
-    def start_wait_timer(self) -> None:
-        if self.wait_timer.is_canceled():
-            self.wait_timer.reset()
 
     @rejects_bad_input("bad_obstacle_map")
     def on_obstacle_map(self, msg: PointCloud2) -> None:
@@ -186,15 +184,25 @@ class NbvNode(Node):
     def map_in_use(self) -> bool:
         return self.obstacle_map is not None and self.params.value.use_obstacle_map
 
-    def pull_poses(self) -> None:
-        if self.pose_input is not None:
-            self.pose_input.drain()
+    def body_mesh_wait_s(self, frame: Frame) -> float:
+        """Wait for a body mesh only while some node publishes them (the graph's raster_node): else none comes."""
+        if self.count_publishers(topics.HUMAN_MESH_METRIC) == 0:
+            return 0.0
+        return self.params.value.body_mesh_wait_s
 
-    def camera_pose_for_frame(self, stamp_ns: int, camera_frame: str) -> Optional[StampedCameraPose]:
+    def frame_camera_pose(self, frame: Frame) -> Optional[Received]:
+        pose = self.camera_poses.pose_at(frame.stamp_ns, frame.header.frame_id)
+        return None if pose is None else Received(pose.stamp_ns, frame.header, pose)
+
+    def accept_target(self, target: Received) -> Optional[str]:
+        """Drop a frame that is already too old for a goal before any work (a drop reason, or None)."""
+        return "too_old_to_plan" if self.too_old(target.stamp_ns) else None
+
+    def camera_pose_for_frame(self, frame: Frame) -> Optional[StampedCameraPose]:
         """The frame's camera pose in the obstacle map's frame, or None when the frame cannot use the map."""
         if not self.map_in_use():
             return None
-        pose = self.camera_poses.pose_at(stamp_ns, camera_frame)
+        pose = frame["camera_pose"]
         if pose is None:
             self.diagnostics.reject("no_camera_pose", "no camera pose with this frame's stamp: planned without the map")
             return None
@@ -204,113 +212,24 @@ class NbvNode(Node):
             return None
         return pose
 
-    # ------------------------------------------------------------------ pairing a target with its plane
-
-    @rejects_bad_input("bad_ground_plane")
-    def on_ground(self, msg: GroundPlane) -> None:
-        # The contract: unit normal pointing up toward the camera, camera above it
-        if refused(self.diagnostics, "bad_ground_plane", ground_plane_to_arrays, msg) or \
-                refused(self.diagnostics, "bad_ground_plane", self.stamps.check, "ground_plane", msg):
-            return
-        ready = self.ground.add_companion(stamp_to_ns(msg.header.stamp), msg)
-        if ready is not None:
-            self.with_floor(*ready)
-
-    @rejects_bad_input("bad_target")
-    def on_target(self, msg: TargetGeometry, info) -> None:
-        self.diagnostics.frame_in()
-        self.diagnostics.input_seen("target_geometry", info)
-        # The contract: finite points and box, its camera_info in its frame
-        if refused(self.diagnostics, "bad_target", target_geometry_to_arrays, msg) or \
-                refused(self.diagnostics, "bad_target", self.stamps.check, "target_geometry", msg):
-            return
-        stamp = stamp_to_ns(msg.header.stamp)
-        if self.last_planned is not None and stamp <= self.last_planned:
-            if self.last_planned - stamp < self.ground.restart_ns:
-                self.diagnostics.drop("duplicate_stamp" if stamp == self.last_planned else "older_than_published")
-                return
-            self.last_planned = None  # the stamps started over (a replay from its start)
-        if self.too_old(stamp):
-            self.diagnostics.drop("too_old_to_plan")  # no goal could come of it: skip the work
-            return
-        ready = self.ground.add_frame(stamp, msg, self.now_ns())
-        if ready is not None:
-            self.with_floor(*ready)
-        elif self.ground.waiting():
-            self.start_wait_timer()
-
-    def on_camera_pose(self, pose: StampedCameraPose) -> None:
-        """A frame waiting for its camera pose is planned as soon as the pose is here."""
-        if self.pose_wait is not None and pose.stamp_ns == stamp_to_ns(self.pose_wait.target.header.stamp):
-            frame, self.pose_wait = self.pose_wait, None
-            self.plan(frame)
-
-    def expire_waits(self) -> None:
-        if self.pose_wait is not None:
-            self.pull_poses()  # its pose may be in the reader now (on_camera_pose plans it)
-        for _, target in self.ground.expire(self.now_ns()):
-            self.with_floor(target, None)
-        if self.pose_wait is not None and \
-                self.now_ns() - self.pose_wait.since_ns >= self.params.value.camera_pose_wait_s * 1e9:
-            frame, self.pose_wait = self.pose_wait, None
-            self.plan(frame)  # without the map (counted as no_camera_pose)
-        wait_ns = self.params.value.body_mesh_wait_s * 1e9
-        for stamp in [s for s, f in self.waiting_for_mesh.items() if self.now_ns() - f.since_ns >= wait_ns]:
-            self.plan(self.waiting_for_mesh.pop(stamp), mesh_waited=True)
-        if not self.ground.waiting() and self.pose_wait is None and not self.waiting_for_mesh:
-            self.wait_timer.cancel()
-
-    @rejects_bad_input("bad_body_mesh")
-    def on_body_mesh(self, msg: HumanMesh) -> None:
-        mesh = human_mesh_to_arrays(msg)
-        stamp = stamp_to_ns(msg.header.stamp)
-        self.body_meshes[stamp] = (mesh.vertices.astype(np.float64), mesh.faces.reshape(-1, 3))
-        while len(self.body_meshes) > BODY_MESH_CACHE:
-            self.body_meshes.popitem(last=False)
-        waiting = self.waiting_for_mesh.pop(stamp, None)
-        if waiting is not None:
-            self.plan(waiting)
-
-    def body_mesh_for(self, frame: ReadyFrame, mesh_waited: bool):
-        """(found, mesh): the frame's body mesh when body_occlusion is scored; (False, None) puts the frame on
-        hold until its mesh comes or body_mesh_wait_s runs out (then it is planned without: the paper's S_o)."""
-        p = self.params.value
-        if "body_occlusion" not in p.score_terms:
-            return True, None
-        stamp = stamp_to_ns(frame.target.header.stamp)
-        mesh = self.body_meshes.get(stamp)
-        if mesh is not None:
-            return True, mesh
-        # Wait only when some node publishes metric meshes (the graph's raster_node): without one, none comes.
-        if not mesh_waited and p.body_mesh_wait_s > 0 and self.count_publishers(topics.HUMAN_MESH_METRIC) > 0:
-            self.waiting_for_mesh[stamp] = frame._replace(since_ns=self.now_ns())
-            while len(self.waiting_for_mesh) > BODY_MESH_CACHE:
-                self.waiting_for_mesh.popitem(last=False)
-            self.start_wait_timer()
-            return False, None
-        self.diagnostics.reject("no_body_mesh", "no metric body mesh of this frame: body_occlusion scored the "
-                                "observed points")
-        return True, None
-
-    def carried_plane(self, target: TargetGeometry) -> Optional[Tuple[GroundPlaneArrays, List[tuple]]]:
+    def carried_plane(self, frame: Frame) -> Optional[Tuple[GroundPlaneArrays, List[tuple]]]:
         """The newest valid plane of an older frame (at most ground_max_age_s older), moved into this
         frame by the camera-pose delta, and the inputs it stands for; None when there is none."""
         p = self.params.value
-        frame_stamp = stamp_to_ns(target.header.stamp)
-        plane_stamp = frame_stamp
-        self.pull_poses()
-        pose_to = self.camera_poses.pose_at(frame_stamp, target.header.frame_id)
+        frame_stamp = frame.stamp_ns
+        self.stage.pull()
+        pose_to = self.camera_poses.pose_at(frame_stamp, frame.header.frame_id)
         if pose_to is None or p.ground_max_age_s <= 0:
             return None
-        for stamp, plane in sorted(self.ground.companions.items(), key=lambda item: -item[0]):
-            if stamp >= plane_stamp or not plane.valid:
+        for stamp, plane in sorted(self.stage.caches["ground_plane"].items(), key=lambda item: -item[0]):
+            if stamp >= frame_stamp or not plane.value.valid:
                 continue
-            if plane_stamp - stamp > p.ground_max_age_s * 1e9:
+            if frame_stamp - stamp > p.ground_max_age_s * 1e9:
                 break
-            pose_from = self.camera_poses.pose_at(stamp, plane.header.frame_id)
+            pose_from = self.camera_poses.pose_at(stamp, plane.frame_id)
             if pose_from is None or pose_from.frame_id != pose_to.frame_id:
                 continue
-            arrays = ground_plane_to_arrays(plane)
+            arrays = dataclasses.replace(plane.value)
             arrays.normal, arrays.offset = carry_plane(arrays.normal, arrays.offset, pose_from, pose_to)
             return arrays, [("ground_plane", stamp, InputStamp.CARRIED), ("camera_pose", stamp, InputStamp.CARRIED),
                             ("camera_pose", frame_stamp, InputStamp.SAME_FRAME)]
@@ -323,70 +242,47 @@ class NbvNode(Node):
         limit = self.params.value.max_goal_age_s
         return limit > 0 and self.now_ns() - stamp_ns > limit * 1e9
 
-    @rejects_bad_input("bad_target")
-    def with_floor(self, target: TargetGeometry, ground: Optional[GroundPlane]) -> None:
-        """The target and its own plane (None: it never came): the floor to plan on, or the frame is dropped."""
-        stamp = stamp_to_ns(target.header.stamp)
-        if self.last_planned is not None and stamp <= self.last_planned:
-            self.diagnostics.drop("older_than_published")
+    def frame_floor(self, frame: Frame) -> Optional[Tuple[GroundPlaneArrays, List[tuple]]]:
+        """The floor to plan the frame on and the inputs it stands for: the frame's own valid plane, else an
+        older one carried into it by the camera poses; None (counted): the frame gets no goal."""
+        ground = frame.received("ground_plane")
+        if ground is not None and refused(self.diagnostics, "bad_target", check_same_frame, "target_geometry",
+                                          frame.header.frame_id, "ground_plane", ground.frame_id):
+            return None
+        if ground is not None and ground.value.valid:
+            return ground.value, [("ground_plane", ground.stamp_ns, InputStamp.SAME_FRAME)]
+        carried = self.carried_plane(frame)
+        if carried is None:
+            if ground is None:
+                self.diagnostics.reject("ground_plane_late", "no ground plane of this frame in time and none to"
+                                        " carry by the camera pose: frame dropped, no goal")
+            else:
+                self.diagnostics.reject("no_ground_plane", "no valid ground plane for this frame: no goal published")
+        return carried
+
+    def plan(self, frame: Frame) -> None:
+        started = time.perf_counter()
+        target: TargetGeometry = frame.key.message
+        stamp = frame.stamp_ns
+        if self.too_old(stamp):
+            self.diagnostics.drop("too_old_to_plan")
             return
         if not target.valid:
             self.diagnostics.reject("empty_target", "no person points in this frame: no goal")
             return
-        inputs: List[tuple] = [("target_geometry", stamp)]
-        if ground is not None and refused(self.diagnostics, "bad_target", check_same_frame, "target_geometry",
-                                          target.header.frame_id, "ground_plane", ground.header.frame_id):
+        floor = self.frame_floor(frame)
+        if floor is None:
             return
-        if ground is not None and ground.valid:
-            floor = ground_plane_to_arrays(ground)
-            inputs.append(("ground_plane", stamp_to_ns(ground.header.stamp)))
-        else:
-            carried = self.carried_plane(target)
-            if carried is None:
-                if ground is None:
-                    self.diagnostics.reject("ground_plane_late", "no ground plane of this frame in time and none to"
-                                            " carry by the camera pose: frame dropped, no goal")
-                else:
-                    self.diagnostics.reject("no_ground_plane", "no valid ground plane for this frame: no goal"
-                                            " published")
-                return
-            floor, carried_inputs = carried
-            inputs += carried_inputs
-        self.last_planned = stamp
-        frame = ReadyFrame(target, floor, inputs, self.now_ns())
-        if self.pose_wait is not None:
-            self.pose_wait = None
-            self.diagnostics.drop("target_superseded")  # still waiting for its pose: this newer frame wins
-        if self.map_in_use():
-            self.pull_poses()
-        if self.map_in_use() and self.camera_poses.pose_at(stamp, target.header.frame_id) is None \
-                and self.params.value.camera_pose_wait_s > 0:
-            self.pose_wait = frame  # DDS does not order topics: its pose may still be on the way
-            self.camera_poses.expect(stamp, target.header.frame_id)
-            self.start_wait_timer()
-            return
-        self.plan(frame)
-
-    @rejects_bad_input("bad_target")
-    def plan(self, frame: ReadyFrame, mesh_waited: bool = False) -> None:
-        started = time.perf_counter()
-        target, inputs = frame.target, list(frame.inputs)
-        stamp = stamp_to_ns(target.header.stamp)
-        if self.too_old(stamp):
-            self.diagnostics.drop("too_old_to_plan")
-            return
-        found, body_mesh = self.body_mesh_for(frame, mesh_waited)
-        if not found:
-            return  # planned when the frame's body mesh comes (or the wait runs out)
+        inputs: List[tuple] = [("target_geometry", stamp), *floor[1]]
+        body_mesh = frame[topics.HUMAN_MESH_METRIC]
         if body_mesh is not None:
             inputs.append((topics.HUMAN_MESH_METRIC, stamp))
-        target_arrays = target_geometry_to_arrays(target)
-        camera_pose = self.camera_pose_for_frame(stamp, target.header.frame_id)
+        camera_pose = self.camera_pose_for_frame(frame)
         if camera_pose is not None:
             if ("camera_pose", stamp, InputStamp.SAME_FRAME) not in inputs:
                 inputs.append(("camera_pose", stamp))
             inputs.append(("obstacle_map", self.obstacle_map_stamp, InputStamp.STATIC))
-        plan = plan_views(target_arrays, frame.floor, self.params.value,
+        plan = plan_views(frame["target_geometry"], floor[0], self.params.value,
                           self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh)
         compute_time_ms = (time.perf_counter() - started) * 1e3
         # The goal first (what the motion stack waits for), then the candidates, the path and the markers.
