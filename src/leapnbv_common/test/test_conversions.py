@@ -307,3 +307,38 @@ def test_path_round_trip():
     np.testing.assert_array_equal(back_p, positions)
     with pytest.raises(cv.ConversionError, match="2 rotations for 3 positions"):
         cv.path_msg(rotations[:2], positions)
+
+
+@pytest.mark.parametrize("stamp_ns", [0, 1, 999_999_999, 1_000_000_000, 1_700_000_000_123_456_789, -1, -1_500_000_000])
+def test_ns_to_stamp_and_set_stamp_invert_stamp_to_ns(stamp_ns):
+    from builtin_interfaces.msg import Time
+
+    from leapnbv_msgs.msg import InputStamp
+
+    stamp = cv.ns_to_stamp(stamp_ns)
+    assert isinstance(stamp, Time) and 0 <= stamp.nanosec < 1_000_000_000
+    assert cv.stamp_to_ns(stamp) == stamp_ns
+    assert (stamp.sec, stamp.nanosec) == divmod(stamp_ns, 1_000_000_000)
+    filled = InputStamp()
+    cv.set_stamp(filled.stamp, stamp_ns)  # in place, in any message's Time field
+    assert filled.stamp == stamp == cv.header_with_stamp(stamp_ns, "cam").stamp
+    assert cv.input_stamp_msgs([("x", stamp_ns)])[0].stamp == stamp
+
+
+def test_every_name_of_the_single_module_is_still_importable_from_the_package():
+    # What `from leapnbv_common.conversions import X` gave when conversions was one module.
+    names = """COLOUR_ENCODINGS ConversionError DEPTH_ENCODINGS GROUND_PLANE_SOURCES GroundPlaneArrays HumanMeshArrays
+        IMAGE_ENCODINGS SceneGroundTruthArrays SerializedImage TargetGeometryArrays ViewCandidatesArrays
+        arrays_to_ground_plane arrays_to_human_mesh arrays_to_scene_ground_truth arrays_to_target_geometry
+        arrays_to_view_candidates box_to_detection camera_info_to_k check_image depth_to_metres detection_to_box
+        detections_to_boxes float32_sequence ground_plane_to_arrays header_with_stamp human_mesh_to_arrays image_size
+        image_to_numpy image_to_rgb input_stamp_msgs input_stamps make_camera_info numpy_to_image
+        obstacle_map_to_points path_msg path_to_numpy point_msg point_to_numpy pointcloud2_to_xyz pose_msg pose_msgs
+        pose_to_numpy poses_to_numpy quaternion_to_rotation rotations_to_quaternions scene_ground_truth_to_arrays
+        serialized_header_stamp_ns serialized_image_header stamp_to_ns target_geometry_to_arrays uint32_sequence
+        view_candidates_to_arrays xyz_to_pointcloud2""".split()
+    assert set(names) <= set(cv.__all__)
+    assert all(getattr(cv, name) is not None for name in cv.__all__)
+    from leapnbv_common import rotations
+
+    assert cv.rotations_to_quaternions is rotations.rotations_to_quaternions  # one definition of the math

@@ -1,0 +1,220 @@
+"""The person: PersonDetections, HumanMesh and SceneGroundTruth (with the SMPL-X body parameters) <-> arrays."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Dict, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+from std_msgs.msg import Header
+
+from leapnbv_common.contracts import ContractError, check_boxes
+from leapnbv_common.conversions.base import (
+    ConversionError,
+    check_finite_fields,
+    float32_sequence,
+    uint32_sequence,
+)
+from leapnbv_common.conversions.stamps import input_stamp_msgs
+from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+
+def box_to_detection(box_xyxy_score: npt.ArrayLike) -> PersonDetection:
+    """PersonDetection from [x_min, y_min, x_max, y_max, score]."""
+    x0, y0, x1, y1, score = (float(v) for v in np.asarray(box_xyxy_score).reshape(5))
+    return PersonDetection(x_min=x0, y_min=y0, x_max=x1, y_max=y1, score=score)
+
+
+def detection_to_box(det: PersonDetection) -> npt.NDArray[np.float32]:
+    """(5,) float32 [x_min, y_min, x_max, y_max, score] from a PersonDetection."""
+    return np.array([det.x_min, det.y_min, det.x_max, det.y_max, det.score], dtype=np.float32)
+
+
+def detections_to_boxes(msg: PersonDetections) -> npt.NDArray[np.float32]:
+    """(N, 5) float32 [x_min, y_min, x_max, y_max, score] of a PersonDetections, checked.
+
+    Raises:
+        ConversionError: an empty image size, or a detection that is not finite, has a score outside
+            [0, 1], an empty or inverted box, or a box outside the image (contracts.check_boxes).
+    """
+    size = (int(msg.image_width), int(msg.image_height))
+    if size[0] <= 0 or size[1] <= 0:
+        raise ConversionError(f"PersonDetections image size {size[0]}x{size[1]} is empty")
+    boxes = np.array([detection_to_box(d) for d in msg.detections], np.float32).reshape(-1, 5)
+    try:
+        return check_boxes(boxes, size)
+    except ContractError as error:
+        raise ConversionError(str(error)) from None
+
+
+# --------------------------------------------------------------------------- HumanMesh
+
+
+@dataclass
+class HumanMeshArrays:
+    """The arrays of a HumanMesh message.
+
+    vertices (V, 3) float32 in the virtual crop camera, faces (F, 3) uint32, virtual intrinsics
+    (fx, fy, cx, cy), the body parameters as axis-angle, and the camera translation (float32 when
+    read from a message; any float array when written).
+    """
+
+    vertices: npt.NDArray[Any]
+    faces: npt.NDArray[Any]
+    virtual_intrinsics: Tuple[float, float, float, float]
+    image_size: Tuple[int, int]
+    detection: npt.NDArray[Any]
+    processed_box: npt.NDArray[Any]
+    root_pose: npt.NDArray[Any]
+    body_pose: npt.NDArray[Any]
+    left_hand_pose: npt.NDArray[Any]
+    right_hand_pose: npt.NDArray[Any]
+    jaw_pose: npt.NDArray[Any]
+    betas: npt.NDArray[Any]
+    expression: npt.NDArray[Any]
+    cam_translation: npt.NDArray[Any]
+    model_id: str = ""
+
+
+# SMPL-X body parameters (axis-angle poses, shape, expression) carried by HumanMesh and SceneGroundTruth.
+_BODY_PARAM_SIZES: Dict[str, int] = {
+    "root_pose": 3,
+    "body_pose": 63,
+    "left_hand_pose": 45,
+    "right_hand_pose": 45,
+    "jaw_pose": 3,
+    "betas": 10,
+    "expression": 10,
+}
+_MESH_PARAM_SIZES = {"processed_box": 4, **_BODY_PARAM_SIZES, "cam_translation": 3}
+
+
+def _read_float32_fields(msg: Any, sizes: Mapping[str, int]) -> Dict[str, npt.NDArray[np.float32]]:
+    """name -> (size,) float32 array of the fixed-size float fields of a message."""
+    return {name: np.asarray(getattr(msg, name), dtype=np.float32).reshape(size) for name, size in sizes.items()}
+
+
+def _write_float32_fields(msg: Any, values: Any, sizes: Mapping[str, int]) -> None:
+    """Set the fixed-size float fields of a message from an object with attributes of the same names."""
+    for name, size in sizes.items():
+        setattr(msg, name, np.asarray(getattr(values, name), dtype=np.float32).reshape(size))
+
+
+def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
+    """Arrays from a HumanMesh, checking that vertices and faces are consistent.
+
+    Raises:
+        ConversionError: vertex or face counts not multiples of 3, a face index out of range,
+            non-finite vertices, or non-positive virtual focal lengths.
+    """
+    vertices = np.frombuffer(msg.vertices, dtype=np.float32) if len(msg.vertices) else np.zeros(0, np.float32)
+    faces = np.frombuffer(msg.faces, dtype=np.uint32) if len(msg.faces) else np.zeros(0, np.uint32)
+    if vertices.size == 0 or vertices.size % 3:
+        raise ConversionError(f"HumanMesh has {vertices.size} vertex floats (need a non-zero multiple of 3)")
+    if faces.size == 0 or faces.size % 3:
+        raise ConversionError(f"HumanMesh has {faces.size} face indices (need a non-zero multiple of 3)")
+    vertices = vertices.reshape(-1, 3)
+    faces = faces.reshape(-1, 3)
+    if int(faces.max()) >= vertices.shape[0]:
+        raise ConversionError(
+            f"HumanMesh face index {int(faces.max())} out of range for {vertices.shape[0]} vertices"
+        )
+    if not np.all(np.isfinite(vertices)):
+        raise ConversionError("HumanMesh vertices contain NaN or inf")
+    if not (msg.fx > 0 and msg.fy > 0):
+        raise ConversionError(f"HumanMesh virtual focal lengths must be positive, got {msg.fx}, {msg.fy}")
+    if not np.all(np.isfinite([msg.cx, msg.cy])):
+        raise ConversionError(f"HumanMesh virtual principal point is not finite: {msg.cx}, {msg.cy}")
+    if msg.image_width <= 0 or msg.image_height <= 0:
+        raise ConversionError(f"HumanMesh image size {msg.image_width}x{msg.image_height} is empty")
+    params = _read_float32_fields(msg, _MESH_PARAM_SIZES)
+    check_finite_fields("HumanMesh", params)
+    if not np.all(np.isfinite(detection_to_box(msg.detection))):
+        raise ConversionError("HumanMesh detection box is not finite")
+    return HumanMeshArrays(
+        vertices=vertices,
+        faces=faces,
+        virtual_intrinsics=(float(msg.fx), float(msg.fy), float(msg.cx), float(msg.cy)),
+        image_size=(int(msg.image_width), int(msg.image_height)),
+        detection=detection_to_box(msg.detection),
+        model_id=msg.model_id,
+        **params,
+    )
+
+
+def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
+                         compute_time_ms: float = 0.0, inputs: Sequence[Tuple[Any, ...]] = ()) -> HumanMesh:
+    """A HumanMesh message from arrays (the inverse of human_mesh_to_arrays); ``inputs``: see input_stamp_msgs."""
+    msg = HumanMesh(inputs=input_stamp_msgs(inputs))
+    if header is not None:
+        msg.header = header
+    msg.detection = box_to_detection(mesh.detection)
+    msg.vertices = float32_sequence(mesh.vertices)
+    msg.faces = uint32_sequence(mesh.faces)
+    msg.fx, msg.fy, msg.cx, msg.cy = (float(v) for v in mesh.virtual_intrinsics)
+    msg.image_width, msg.image_height = (int(v) for v in mesh.image_size)
+    _write_float32_fields(msg, mesh, _MESH_PARAM_SIZES)
+    msg.model_id = mesh.model_id
+    msg.compute_time_ms = float(compute_time_ms)
+    return msg
+
+
+# --------------------------------------------------------------------------- SceneGroundTruth
+
+
+# The float fields of SceneGroundTruth: the body parameters and the translation in the camera frame.
+_GROUND_TRUTH_PARAM_SIZES = {**_BODY_PARAM_SIZES, "translation": 3}
+
+
+@dataclass
+class SceneGroundTruthArrays:
+    """The simulator's truth for one frame: the visible person's box (x0, y0, x1, y1, score; all zero
+    when no person is visible), the body parameters in the camera frame, and the occlusion share
+    (float32 arrays when read from a message; any float array when written)."""
+
+    person_box: npt.NDArray[Any]
+    root_pose: npt.NDArray[Any]
+    body_pose: npt.NDArray[Any]
+    left_hand_pose: npt.NDArray[Any]
+    right_hand_pose: npt.NDArray[Any]
+    jaw_pose: npt.NDArray[Any]
+    betas: npt.NDArray[Any]
+    expression: npt.NDArray[Any]
+    translation: npt.NDArray[Any]
+    occlusion_share: float
+    body_model_id: str
+
+
+def scene_ground_truth_to_arrays(msg: SceneGroundTruth) -> SceneGroundTruthArrays:
+    """SceneGroundTruthArrays from a SceneGroundTruth message, checked.
+
+    Raises:
+        ConversionError: a value is not finite, the occlusion share is outside [0, 1], or the person box
+            is inverted (x_max < x_min or y_max < y_min; an empty box means nobody is visible) or its
+            score is outside [0, 1].
+    """
+    params = _read_float32_fields(msg, _GROUND_TRUTH_PARAM_SIZES)
+    truth = SceneGroundTruthArrays(person_box=detection_to_box(msg.person_box),
+                                   occlusion_share=float(msg.occlusion_share), body_model_id=str(msg.body_model_id),
+                                   **params)
+    check_finite_fields("SceneGroundTruth", {"person_box": truth.person_box,
+                                              "occlusion_share": truth.occlusion_share, **params})
+    if not 0.0 <= truth.occlusion_share <= 1.0:
+        raise ConversionError(f"SceneGroundTruth occlusion_share {truth.occlusion_share} is outside [0, 1]")
+    x0, y0, x1, y1, score = (float(v) for v in truth.person_box)
+    if x1 < x0 or y1 < y0 or not 0.0 <= score <= 1.0:
+        raise ConversionError(f"SceneGroundTruth person_box [{x0}, {y0}, {x1}, {y1}] with score {score} is inverted "
+                              "or its score is outside [0, 1] (an empty box means nobody is visible)")
+    return truth
+
+
+def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional[Header] = None) -> SceneGroundTruth:
+    """A SceneGroundTruth message (the inverse of scene_ground_truth_to_arrays)."""
+    msg = SceneGroundTruth(person_box=box_to_detection(truth.person_box), body_model_id=str(truth.body_model_id),
+                           occlusion_share=float(truth.occlusion_share))
+    if header is not None:
+        msg.header = header
+    _write_float32_fields(msg, truth, _GROUND_TRUTH_PARAM_SIZES)
+    return msg
