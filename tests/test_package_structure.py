@@ -1,9 +1,10 @@
-"""The packages import one way, and each package.xml declares what its package imports.
+"""The packages import one way, each package.xml declares what its package imports, cores stay ROS-free.
 
 Every module under src/<package>/<package>/ is parsed (imports inside functions included); a
 module may import its own package and packages of a lower layer only. docs/ARCHITECTURE.md
-explains the layers. Tests (src/*/test, tests/) are not checked: they may use anything below or
-beside what they test.
+explains the layers. A core module (any module outside a ``nodes/`` folder and outside the ROS
+glue listed in ``ROS_GLUE``) imports neither rclpy nor a message package. Tests (src/*/test, tests/) are not checked: they may use anything
+below or beside what they test.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import ast
 import sys
 import xml.etree.ElementTree as ElementTree
 from pathlib import Path
-from typing import Dict, Iterator, Set, Tuple
+from typing import Dict, Iterator, List, Set, Tuple
 
 import pytest
 
@@ -119,3 +120,90 @@ def test_the_checker_sees_function_level_imports(tmp_path: Path) -> None:
     module = tmp_path / "m.py"
     module.write_text("def f():\n    from leapnbv_evaluation import report\n")
     assert list(module_imports(module)) == [("leapnbv_evaluation", 2)]
+
+
+# Modules outside nodes/ that are ROS glue by design (dotted names; a name covers its submodules).
+# Everything else under src/<package>/<package>/ is a core: plain Python and numpy.
+ROS_GLUE: Dict[str, str] = {
+    "leapnbv_common.conversions": "the one place where messages become arrays and back",
+    "leapnbv_common.qos": "the QoS profiles (rclpy.qos) every node and tool subscribes with",
+    "leapnbv_common.node_params": "declares a node's parameters and spins it (rclpy)",
+    "leapnbv_common.diagnostics": "builds the /diagnostics messages of every node",
+    "leapnbv_common.pulled_input": "subscriptions a node reads on demand (rclpy callback groups)",
+    "leapnbv_common.camera_pose": "the camera-pose sources: pose and TF messages in, poses out",
+    "leapnbv_common.managed_node": "the lifecycle (managed) node every stage node is",
+    "leapnbv_common.stage_inputs": "the stage helper's per-input converters: messages in, arrays out",
+    "leapnbv_perception.backends.ground_truth": "reads the simulator's ground-truth messages in place of engines",
+    "leapnbv_sim.frame_messages": "the messages a camera driver publishes for a rendered frame (node and bags)",
+    "leapnbv_bringup": "starts, supervises and replays the graph: all of it talks to ROS",
+    "leapnbv_evaluation.harness": "the evaluation's ROS session: drives the graph episode by episode",
+    "leapnbv_evaluation.demo": "runs the graph on a bag and reads its messages back for the report",
+}
+# Top-level modules that are ROS itself; besides these, any *_msgs, *_srvs or *_interfaces package.
+ROS_MODULES = {"rclpy", "rosidl_runtime_py", "launch", "launch_ros", "tf2_ros", "message_filters", "rosbag2_py"}
+
+
+def is_ros_module(top_level: str) -> bool:
+    """Whether a top-level module is rclpy, another ROS client module or a message package."""
+    return top_level in ROS_MODULES or top_level.endswith(("_msgs", "_srvs", "_interfaces"))
+
+
+def module_name(path: Path) -> str:
+    """Dotted name of a file under src/<package>/: its module name, or <package>.launch.<file> and the like."""
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    if parts[1] == parts[0]:  # the package's code folder: its modules' own names
+        parts = parts[1:]
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def glue_entry(name: str) -> str:
+    """The ROS_GLUE entry that covers a dotted module name, or ''."""
+    for entry in ROS_GLUE:
+        if name == entry or name.startswith(entry + "."):
+            return entry
+    return ""
+
+
+def is_core(path: Path) -> bool:
+    return "nodes" not in path.relative_to(SRC).parts and not glue_entry(module_name(path))
+
+
+def all_python_files() -> List[Path]:
+    return [path for package_dir in package_dirs() for path in python_files(package_dir)]
+
+
+def test_no_core_module_imports_ros() -> None:
+    wrong = []
+    for path in all_python_files():
+        if not is_core(path):
+            continue
+        for module, line in module_imports(path):
+            if is_ros_module(module):
+                wrong.append(f"{path.relative_to(SRC)}:{line} imports {module}")
+    assert not wrong, (
+        "core modules (outside nodes/ and ROS_GLUE) import ROS; move that code into a node or the glue:\n"
+        + "\n".join(wrong)
+    )
+
+
+def test_every_ros_glue_entry_is_glue() -> None:
+    # An entry whose modules no longer import ROS is a core again and leaves the list.
+    names = {module_name(path): path for path in all_python_files()}
+    for entry, why in ROS_GLUE.items():
+        covered = [path for name, path in names.items() if glue_entry(name) == entry]
+        assert covered, f"ROS_GLUE names {entry} ({why}), which is no module under src/"
+        assert any(is_ros_module(module) for path in covered for module, _ in module_imports(path)), (
+            f"ROS_GLUE names {entry}, but none of its modules imports ROS: it is a core"
+        )
+
+
+def test_the_ros_checks_see_what_they_should(tmp_path: Path) -> None:
+    assert is_ros_module("rclpy") and is_ros_module("sensor_msgs") and is_ros_module("leapnbv_msgs")
+    assert is_ros_module("builtin_interfaces") and not is_ros_module("numpy")
+    assert not is_core(SRC / "leapnbv_bringup" / "launch" / "leapnbv.launch.py")
+    assert not is_core(SRC / "leapnbv_common" / "leapnbv_common" / "conversions" / "images.py")
+    assert not is_core(SRC / "leapnbv_sim" / "leapnbv_sim" / "nodes" / "simulator_node.py")
+    assert is_core(SRC / "leapnbv_sim" / "leapnbv_sim" / "sample_bags.py")
+    assert is_core(SRC / "leapnbv_evaluation" / "leapnbv_evaluation" / "episode.py")

@@ -1,17 +1,21 @@
 """The messages a RealSense driver (plus the simulator's ground truth) publishes for one rendered frame.
 
-The simulator node publishes them and the sample bags record them: both build them here.
+The simulator node publishes them and the sample bags record them: both build them here. This
+module is the simulator's ROS glue (messages and their serialization); the rest of leapnbv_sim
+stays ROS-free.
 """
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Iterable, Iterator, Tuple
 
 import numpy as np
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 
 from leapnbv_common.conversions import (
     SceneGroundTruthArrays,
     arrays_to_scene_ground_truth,
+    header_with_stamp,
     make_camera_info,
     numpy_to_image,
 )
@@ -62,3 +66,24 @@ def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: s
         COLOR_IMAGE_TOPIC: numpy_to_image(np.ascontiguousarray(frame.rgb), "rgb8", header),
         DEPTH_IMAGE_TOPIC: numpy_to_image(np.ascontiguousarray(frame.depth_mm), "16UC1", header),
     }
+
+
+def serialized_camera_frames(
+    frames: Iterable[Tuple[int, RenderedFrame]], frame_id: str, body_model_id: str, topics: Iterable[str]
+) -> Iterator[Tuple[str, int, bytes]]:
+    """(topic, stamp, CDR bytes) of each frame's messages, as a bag records them.
+
+    Args:
+        frames: (stamp in nanoseconds, rendered frame) pairs; the stamp goes into every header.
+        frame_id: Optical frame of the colour camera.
+        body_model_id: Stored in each SceneGroundTruth.
+        topics: Which of :func:`camera_frame_messages`' topics to serialize, in this order.
+
+    Yields:
+        The serialized messages, frame by frame, ``topics`` in order within a frame.
+    """
+    order = list(topics)
+    for stamp, frame in frames:
+        messages = camera_frame_messages(frame, header_with_stamp(stamp, frame_id), body_model_id)
+        for topic in order:
+            yield topic, stamp, serialize_message(messages[topic])

@@ -14,13 +14,10 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
-from rclpy.serialization import serialize_message
-from std_msgs.msg import Header
 
 from leapnbv_bags.bag_io import RELIABLE_QOS, SENSOR_DATA_QOS, BagWriter, make_typestore
 from leapnbv_common.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPIC
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_sim.frame_messages import camera_frame_messages
 from leapnbv_sim.generation import SceneConfig, generate_scene
 from leapnbv_sim.poses import CameraPose
 from leapnbv_sim.render import RenderedFrame
@@ -67,7 +64,10 @@ def write_scene_bag(
 
     Each frame i gets stamp ``start_stamp_ns + i * period_ns`` on all five topics (header stamp
     and bag log time alike); the messages are the simulator node's own
-    (:func:`leapnbv_sim.frame_messages.camera_frame_messages`), serialized by rclpy.
+    (:func:`leapnbv_sim.frame_messages.camera_frame_messages`, the ROS glue that this ROS-free
+    module imports only when it writes). rclpy's CDR leaves alignment padding uninitialised, so
+    each message is read back into the bag's typestore and written by rosbags, which zeroes it:
+    the same frames give a byte-identical bag on every run.
 
     Args:
         path: Bag directory to create.
@@ -84,21 +84,18 @@ def write_scene_bag(
     Raises:
         BagError: ``path`` exists (without overwrite) or writing fails.
     """
-    image_types = {"image": "sensor_msgs/msg/Image", "camera_info": "sensor_msgs/msg/CameraInfo",
-                   "depth": "sensor_msgs/msg/Image", "depth/camera_info": "sensor_msgs/msg/CameraInfo"}
+    from leapnbv_sim.frame_messages import serialized_camera_frames  # the ROS glue: rclpy and messages
+
+    msgtypes = {CAMERA_TOPICS["image"]: "sensor_msgs/msg/Image", CAMERA_TOPICS["camera_info"]: "sensor_msgs/msg/CameraInfo",
+                CAMERA_TOPICS["depth"]: "sensor_msgs/msg/Image",
+                CAMERA_TOPICS["depth/camera_info"]: "sensor_msgs/msg/CameraInfo",
+                GROUND_TRUTH_TOPIC: "leapnbv_msgs/msg/SceneGroundTruth"}
     with BagWriter(path, overwrite=overwrite, typestore=make_typestore()) as bag:
-        for key in ("image", "camera_info", "depth", "depth/camera_info"):
-            bag.add_topic(CAMERA_TOPICS[key], image_types[key], qos=SENSOR_DATA_QOS)
-        bag.add_topic(GROUND_TRUTH_TOPIC, "leapnbv_msgs/msg/SceneGroundTruth", qos=RELIABLE_QOS)
-        order = [CAMERA_TOPICS[key] for key in ("image", "camera_info", "depth", "depth/camera_info")]
-        order.append(GROUND_TRUTH_TOPIC)
-        for index, frame in enumerate(frames):
-            stamp = int(start_stamp_ns) + index * int(period_ns)
-            header = Header(frame_id=frame_id)
-            header.stamp.sec, header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-            messages = camera_frame_messages(frame, header, body_model_id)
-            for topic in order:
-                bag.write(topic, stamp, serialize_message(messages[topic]))
+        for topic, msgtype in msgtypes.items():
+            bag.add_topic(topic, msgtype, qos=RELIABLE_QOS if topic == GROUND_TRUTH_TOPIC else SENSOR_DATA_QOS)
+        stamped = ((int(start_stamp_ns) + index * int(period_ns), frame) for index, frame in enumerate(frames))
+        for topic, stamp, cdr in serialized_camera_frames(stamped, frame_id, body_model_id, list(msgtypes)):
+            bag.write(topic, stamp, bag.typestore.deserialize_cdr(cdr, msgtypes[topic]))
         counts = dict(bag.message_counts)
     return counts
 
