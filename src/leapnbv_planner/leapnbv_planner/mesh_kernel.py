@@ -1,4 +1,5 @@
-"""Compiled sums of a triangle mesh's face normals per vertex (what plan.mesh_vertex_normals normalizes)."""
+"""A triangle mesh's outward vertex normals: compiled sums of the face normals per vertex, and their
+normalization (mesh_vertex_normals)."""
 
 from __future__ import annotations
 
@@ -66,3 +67,31 @@ def unit_normals(sums: np.ndarray, vertices: np.ndarray, centre: np.ndarray):
             total += term
             magnitude += abs(term)
     return normals, total, magnitude
+
+
+def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit outward vertex normals of a triangle mesh (area-weighted face normals summed per vertex).
+
+    The faces' winding decides the sign; a closed body's normals are turned outward when they point, on
+    the whole, toward its centre. A vertex in no face gets a zero normal (it never faces a camera).
+
+    Raises:
+        ValueError: vertices not (V, 3) or faces not (F, 3) indices into them.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
+    vertices = np.ascontiguousarray(vertices)
+    centre = vertices.mean(axis=0)
+    normals, total, magnitude = unit_normals(face_normal_sums(vertices, np.ascontiguousarray(faces)), vertices,
+                                             centre)
+    # The sign of the sum decides; when it is too near 0 for the summation order not to matter (never for a body),
+    # it is taken as numpy sums it.
+    if abs(total) <= 1e-9 * magnitude:
+        total = float(np.sum(normals * (vertices - centre)))
+    if total < 0.0:
+        normals = -normals
+    return normals

@@ -20,7 +20,7 @@ Space outside the map's voxels counts as free (unknown space is not an obstacle 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Tuple
+from typing import Optional, Protocol, Tuple
 
 import numpy as np
 
@@ -32,6 +32,29 @@ MAX_GRID_CELLS = 64_000_000
 
 class ObstacleMapError(ValueError):
     """The obstacle map or the camera pose cannot be used; the text says which value is at fault."""
+
+
+class ObstacleMap(Protocol):
+    """What the planner reads of an obstacle map (:class:`VoxelObstacleMap` is one): see there for each."""
+
+    @property
+    def occupied(self) -> np.ndarray:
+        """(X, Y, Z) bool occupancy of the map's box of cells."""
+
+    @property
+    def lower_index(self) -> np.ndarray:
+        """(3,) int64 voxel index of cell (0, 0, 0)."""
+
+    @property
+    def resolution(self) -> float:
+        """Voxel edge (m)."""
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(N, 3) centres of the occupied voxels, map frame."""
+
+    def occupied_prefix_sums(self) -> np.ndarray:
+        """(X + 1, Y + 1, Z + 1) counts of occupied cells below each corner."""
 
 
 @dataclass
@@ -117,7 +140,7 @@ def _check_pose(rotation: np.ndarray, position: np.ndarray) -> Tuple[np.ndarray,
     return rotation, position
 
 
-def centres_in_observation(obstacle_map: VoxelObstacleMap, rotation: np.ndarray,
+def centres_in_observation(obstacle_map: ObstacleMap, rotation: np.ndarray,
                            position: np.ndarray) -> np.ndarray:
     """The occupied voxel centres in the observation's camera frame.
 
@@ -134,7 +157,7 @@ def centres_in_observation(obstacle_map: VoxelObstacleMap, rotation: np.ndarray,
 
 
 def line_of_sight_clear_fraction(
-    obstacle_map: VoxelObstacleMap,
+    obstacle_map: ObstacleMap,
     rotation: np.ndarray,
     position: np.ndarray,
     camera_positions: np.ndarray,
@@ -177,75 +200,6 @@ def line_of_sight_clear_fraction(
         obstacle_map.resolution, np.ascontiguousarray(cameras_map), np.ascontiguousarray(targets_map),
         float(target_margin))
     return clear.mean(axis=1)
-
-
-@njit(cache=True)
-def segments_clear(
-    occupied: np.ndarray,
-    lower_index: np.ndarray,
-    resolution: float,
-    origins: np.ndarray,
-    targets: np.ndarray,
-    target_margin: float,
-) -> np.ndarray:
-    """(C, M) bool: segment origins[c] -> targets[m] (shortened by target_margin) is free.
-
-    Amanatides-Woo traversal in grid coordinates g = x / r - lower_index: the walk starts in
-    the cell holding the origin and steps, one cell at a time, across whichever cell
-    boundary the segment meets first, until it passes the shortened end. Cells outside the
-    grid are free.
-    """
-    num_origins = origins.shape[0]
-    num_targets = targets.shape[0]
-    size_x, size_y, size_z = occupied.shape[0], occupied.shape[1], occupied.shape[2]
-    clear = np.ones((num_origins, num_targets), dtype=np.bool_)
-    start = np.empty(3)
-    delta = np.empty(3)
-    cell = np.empty(3, dtype=np.int64)
-    step = np.empty(3, dtype=np.int64)
-    t_max = np.empty(3)
-    t_delta = np.empty(3)
-    for c in range(num_origins):
-        for m in range(num_targets):
-            length = 0.0
-            for a in range(3):
-                delta[a] = targets[m, a] - origins[c, a]
-                length += delta[a] * delta[a]
-            length = np.sqrt(length)
-            if length <= target_margin:
-                continue  # nothing left to check
-            t_end = 1.0 - target_margin / length
-            for a in range(3):
-                start[a] = origins[c, a] / resolution - lower_index[a]
-                delta[a] = delta[a] / resolution
-                cell[a] = np.int64(np.floor(start[a]))
-                if delta[a] > 0.0:
-                    step[a] = 1
-                    t_delta[a] = 1.0 / delta[a]
-                    t_max[a] = (cell[a] + 1.0 - start[a]) / delta[a]
-                elif delta[a] < 0.0:
-                    step[a] = -1
-                    t_delta[a] = -1.0 / delta[a]
-                    t_max[a] = (start[a] - cell[a]) / -delta[a]
-                else:
-                    step[a] = 0
-                    t_delta[a] = np.inf
-                    t_max[a] = np.inf
-            t = 0.0
-            while t <= t_end:
-                if (0 <= cell[0] < size_x and 0 <= cell[1] < size_y and 0 <= cell[2] < size_z
-                        and occupied[cell[0], cell[1], cell[2]]):
-                    clear[c, m] = False
-                    break
-                axis = 0
-                if t_max[1] < t_max[axis]:
-                    axis = 1
-                if t_max[2] < t_max[axis]:
-                    axis = 2
-                t = t_max[axis]
-                cell[axis] += step[axis]
-                t_max[axis] += t_delta[axis]
-    return clear
 
 
 #: A segment's checked part is halved this many times at most for the empty-box test of
@@ -308,7 +262,8 @@ def segments_clear_skipping_empty(
     targets: np.ndarray,
     target_margin: float,
 ) -> np.ndarray:
-    """segments_clear, with the walk left out where its answer is sure without it.
+    """segments_clear (the plain cell-by-cell walk, the reference kernel in the planner's tests:
+    test/reference_planner_kernels.py), with the walk left out where its answer is sure without it.
 
     First, per origin, runs of _FAN_RUN consecutive targets are tested together: the fan of their segments is
     tested as a whole, then by halves, quarters, ... (at most _MAX_HALVINGS times, only the pieces whose box is

@@ -1,24 +1,28 @@
 """One next-best-view plan from one frame, without ROS: the nbv node's whole computation.
 
-:func:`plan_views` takes the frame's target geometry and ground plane (the conversion dataclasses
-``TargetGeometryArrays`` / ``GroundPlaneArrays`` of :mod:`leapnbv_common.conversions`, or any
-objects with the same attributes), the node's parameters, and optionally the robot's obstacle map
-with the frame's camera pose in it. It builds the candidate ring, joins the map's obstacles to the
-frame's background for the footprint test and multiplies S_o by each candidate's line-of-sight
-clear share through the map, checks feasibility, scores the candidates with the configured terms,
-chooses the best feasible one and computes the base goal. The result, :class:`Plan`, holds
-everything the node publishes (candidates, goal, base goal, markers).
+:func:`plan_views` takes one :class:`leapnbv_planner.inputs.PlanInputs`: the frame's target
+geometry and ground plane (any objects with the attributes of the Protocols ``TargetArrays`` /
+``FloorPlane``: the node's conversion dataclasses, or ``PlanTarget`` / ``PlanFloor``), the node's
+parameters, and optionally the robot's obstacle map with the frame's camera pose in it and the
+person's body mesh. It builds the candidate ring, joins the map's obstacles to the frame's
+background for the footprint test, checks feasibility (and the free paths), scores the candidates
+with the configured terms, chooses the best feasible one and computes the base goal. The scoring
+gets the PlanInputs unchanged: each term reads what it declared (:mod:`leapnbv_planner.requirements`:
+the map's lines of sight, the body mesh, the paths), computed once and only for a term that reads
+it; no step here knows a term by name. The result, :class:`Plan`, holds everything the node
+publishes (candidates, goal, base goal, markers).
 
 Everything is in the frame's camera optical frame; the current camera is the origin.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union, cast, overload
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.candidates import (
     CandidateSet,
     FeasibilityReason,
@@ -32,19 +36,22 @@ from leapnbv_planner.candidates import (
     ring_radii,
 )
 from leapnbv_planner.footprint_kernel import elevated_plane_points, footprints_blocked_in_plane
-from leapnbv_planner.mesh_kernel import face_normal_sums, unit_normals
-from leapnbv_planner.obstacle_map import VoxelObstacleMap, centres_in_observation, line_of_sight_clear_fraction
+from leapnbv_planner.inputs import BodyMesh, CameraInMap, CameraPose, FloorPlane, PlanInputs, TargetArrays
+from leapnbv_planner.mesh_kernel import mesh_vertex_normals
+from leapnbv_planner.obstacle_map import ObstacleMap, centres_in_observation
 from leapnbv_planner.params import PlannerParams, default_nbv_params
 from leapnbv_planner.reachability import Reachability, build_occupancy_grid, reachability
-from leapnbv_planner.scoring import CandidateScores, choose_best, score_candidates
+from leapnbv_planner.requirements import MESH_LINE_OF_SIGHT, TARGET_LINE_OF_SIGHT, PlanFrame
+from leapnbv_planner.score_terms import ScoringContext, declared_requirements, get_term
+from leapnbv_planner.scoring import CandidateScores, choose_best, score_context
 
 if TYPE_CHECKING:  # the core needs no ROS; only the conversion to the message arrays imports it
     from leapnbv_common.conversions import ViewCandidatesArrays
 
-Frame = Tuple[np.ndarray, np.ndarray]  # (3, 3) rotation with axes as columns, (3,) position
-# Terms that never read the target points' line of sight through the map (body_occlusion reads the mesh's when the
-# frame has a mesh); with only these, that walk is skipped.
-_NO_TARGET_LINE_OF_SIGHT = ("visibility", "area", "body_occlusion", "travel")
+__all__ = ["Frame", "Plan", "PlanInputError", "PlanInputs", "base_goal_frame", "level_frames", "mesh_vertex_normals",
+           "plan_views"]
+
+Frame = Tuple[Array, Array]  # (3, 3) rotation with axes as columns, (3,) position
 # fit_to_free_space: the nearest probes of a candidate that are free on the floor grid and get the exact footprint test.
 _EXACT_TESTS_PER_CANDIDATE = 16
 
@@ -68,15 +75,19 @@ class Plan:
         up: (3,) the ground normal n as the plane gives it (pointing up, not necessarily unit length).
         base_goal: (rotation, position) of the robot base at the chosen view, None when none is chosen.
         line_of_sight_clear: (C,) the obstacle map's clear share of the target points per candidate (NaN for a
-            candidate that was not scored), None without the map or when no score term reads it (the body mesh
-            scored in place of the paper's S_o).
+            candidate that was not scored), None without the map, when no score term read it (the body mesh
+            scored in place of the paper's S_o) or when no candidate was scored.
         path_lengths: (C,) metres of the robot's shortest free path to each candidate (0 for the current
             view, inf: none), None when reachability is off.
         base_path: (P, 3) floor points of the path to the chosen candidate (the robot's foot point first,
             the goal's last), None when reachability is off or nothing is chosen.
         reach: the path search (grid, parents), None when reachability is off.
-        mesh_line_of_sight_clear: (C,) the same share of the body mesh's vertices, None without map or mesh.
+        mesh_line_of_sight_clear: (C,) the same share of the body mesh's vertices, None without map or mesh
+            (or when no term read it).
         used_obstacle_map: the map (with the frame's camera pose) took part in the plan.
+        computed: every requirement the scoring computed (:mod:`leapnbv_planner.requirements`), by name: its
+            value for the scored candidates (rows in the order of ``flatnonzero(scored)``), None where the
+            frame lacked it.
     """
 
     candidates: CandidateSet
@@ -85,14 +96,15 @@ class Plan:
     chosen_index: int
     includes_current_view: bool
     ring_radius: float
-    up: np.ndarray
+    up: Array
     base_goal: Optional[Frame]
-    line_of_sight_clear: Optional[np.ndarray] = None
-    path_lengths: Optional[np.ndarray] = None
-    base_path: Optional[np.ndarray] = None
+    line_of_sight_clear: Optional[Array] = None
+    path_lengths: Optional[Array] = None
+    base_path: Optional[Array] = None
     reach: Optional[Reachability] = None
-    mesh_line_of_sight_clear: Optional[np.ndarray] = None
+    mesh_line_of_sight_clear: Optional[Array] = None
     used_obstacle_map: bool = False
+    computed: Dict[str, object] = field(default_factory=dict)
 
     def chosen_pose(self) -> Optional[Frame]:
         """(rotation, position) of the next-best view, None when none is feasible."""
@@ -100,7 +112,7 @@ class Plan:
             return None
         return self.candidates.rotations[self.chosen_index], self.candidates.positions[self.chosen_index]
 
-    def base_path_frames(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    def base_path_frames(self) -> Optional[Tuple[Array, Array]]:
         """((P, 3, 3), (P, 3)) poses along the path to the base goal: level, x along the path (the goal's own
         orientation last); None without a path."""
         if self.base_path is None or self.base_goal is None:
@@ -128,14 +140,14 @@ class Plan:
             ring_radius=float(self.ring_radius))
 
 
-def base_goal_frame(foot_point: np.ndarray, ring_center: np.ndarray, up: np.ndarray) -> Frame:
+def base_goal_frame(foot_point: Array, ring_center: Array, up: Array) -> Frame:
     """The robot base goal: on the ground under the camera, x toward the target, z up (REP 103 base)."""
     foot_point = np.asarray(foot_point, dtype=np.float64)
     return level_frames(foot_point.reshape(1, 3), np.asarray(ring_center, dtype=np.float64).reshape(1, 3), up)[0], \
         foot_point
 
 
-def level_frames(points: np.ndarray, towards: np.ndarray, up: np.ndarray) -> np.ndarray:
+def level_frames(points: Array, towards: Array, up: Array) -> Array:
     """(P, 3, 3) level frames (axes as columns): z along ``up``, x toward ``towards`` seen from ``points`` in the
     plane, y = z x x; where the two are on one vertical, any level x."""
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
@@ -152,70 +164,60 @@ def level_frames(points: np.ndarray, towards: np.ndarray, up: np.ndarray) -> np.
     return np.stack([x_axis, cross(up_rows, x_axis), up_rows], axis=2)
 
 
-def _pose_arrays(camera_pose: Any) -> Frame:
-    """(rotation, position) of a StampedCameraPose-like object or a (rotation, position) pair."""
-    if hasattr(camera_pose, "rotation") and hasattr(camera_pose, "position"):
-        return np.asarray(camera_pose.rotation, dtype=np.float64), np.asarray(camera_pose.position, dtype=np.float64)
-    rotation, position = camera_pose
-    return np.asarray(rotation, dtype=np.float64), np.asarray(position, dtype=np.float64)
+@overload
+def plan_views(inputs: PlanInputs) -> Plan:
+    ...
 
 
-def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit outward vertex normals of a triangle mesh (area-weighted face normals summed per vertex).
-
-    The faces' winding decides the sign; a closed body's normals are turned outward when they point, on
-    the whole, toward its centre. A vertex in no face gets a zero normal (it never faces a camera).
-
-    Raises:
-        ValueError: vertices not (V, 3) or faces not (F, 3) indices into them.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"mesh: vertices must be (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise ValueError(f"mesh: face indices must lie in [0, {len(vertices)})")
-    vertices = np.ascontiguousarray(vertices)
-    centre = vertices.mean(axis=0)
-    normals, total, magnitude = unit_normals(face_normal_sums(vertices, np.ascontiguousarray(faces)), vertices,
-                                             centre)
-    # The sign of the sum decides; when it is too near 0 for the summation order not to matter (never for a body),
-    # it is taken as numpy sums it.
-    if abs(total) <= 1e-9 * magnitude:
-        total = float(np.sum(normals * (vertices - centre)))
-    if total < 0.0:
-        normals = -normals
-    return normals
+@overload
+def plan_views(inputs: TargetArrays, ground: FloorPlane, params: Optional[PlannerParams] = None,
+               obstacle_map: Optional[ObstacleMap] = None, camera_pose: Union[CameraPose, Frame, None] = None,
+               body_mesh: Optional[BodyMesh] = None) -> Plan:
+    ...
 
 
-def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
-               obstacle_map: Optional[VoxelObstacleMap] = None, camera_pose: Any = None,
-               body_mesh: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Plan:
+def plan_views(inputs: Union[PlanInputs, TargetArrays], ground: Optional[FloorPlane] = None,
+               params: Optional[PlannerParams] = None, obstacle_map: Optional[ObstacleMap] = None,
+               camera_pose: Union[CameraPose, Frame, None] = None, body_mesh: Optional[BodyMesh] = None) -> Plan:
     """Plan the next-best view of one frame.
 
+    Called as ``plan_views(PlanInputs(target, floor, params, obstacle_map, camera_pose, body_mesh))``. The
+    older form ``plan_views(target, ground, params=None, obstacle_map=None, camera_pose=None, body_mesh=None)``
+    makes that PlanInputs (its camera_pose may also be a (rotation, position) pair) and is the same plan.
+
     Args:
-        target: TargetGeometryArrays (target_points, background_points, centroid, k, width, height,
-            valid) of the frame.
-        ground: GroundPlaneArrays (normal pointing up, offset, valid) of the frame.
-        params: an instance of :func:`leapnbv_planner.params.nbv_params_class` (ring, terms and
-            their weights, delta_px, map_max_target_points, map_target_margin); the robot's
-            defaults when None.
-        obstacle_map: the robot's obstacle map, used only together with camera_pose.
-        camera_pose: the frame's camera in the map's frame: a StampedCameraPose (rotation,
-            position attributes) or a (rotation, position) pair; the caller checks that its frame
-            is the map's.
-        body_mesh: optional (vertices (V, 3), faces (F, 3)) of the person's metric body mesh in the
-            frame's optical frame (the raster node's human_mesh_metric): the body_occlusion term scores it.
+        inputs: the frame's inputs (see :class:`leapnbv_planner.inputs.PlanInputs`).
 
     Returns:
         The Plan.
 
     Raises:
         PlanInputError: the target or the ground plane is marked invalid.
+        TypeError: a PlanInputs together with the older form's arguments, or the older form without ground.
         ValueError: (CandidateGenerationError, ScoringInputError, ObstacleMapError) an input of
             the wrong shape or value.
     """
-    params = default_nbv_params() if params is None else params
+    if isinstance(inputs, PlanInputs):
+        if any(value is not None for value in (ground, params, obstacle_map, camera_pose, body_mesh)):
+            raise TypeError("plan_views(PlanInputs) takes no further arguments: they are fields of PlanInputs")
+        return _plan(inputs)
+    if ground is None:
+        raise TypeError("plan_views(target, ground, ...) needs the ground plane")
+    return _plan(PlanInputs(target=inputs, floor=ground, params=default_nbv_params() if params is None else params,
+                            obstacle_map=obstacle_map, camera_pose=_camera_pose(camera_pose), body_mesh=body_mesh))
+
+
+def _camera_pose(camera_pose: Union[CameraPose, Frame, None]) -> Optional[CameraPose]:
+    """A CameraPose of the older call form's camera_pose: an object with rotation and position, or a pair."""
+    if camera_pose is None or (hasattr(camera_pose, "rotation") and hasattr(camera_pose, "position")):
+        return cast(Optional[CameraPose], camera_pose)
+    rotation, position = cast(Frame, camera_pose)
+    return CameraInMap(np.asarray(rotation, dtype=np.float64), np.asarray(position, dtype=np.float64))
+
+
+def _plan(inputs: PlanInputs) -> Plan:
+    """plan_views of one PlanInputs."""
+    target, ground, params = inputs.target, inputs.floor, inputs.params
     if not target.valid:
         raise PlanInputError("the target geometry is not valid (no person points)")
     if not ground.valid:
@@ -227,50 +229,32 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
     target_points = np.ascontiguousarray(target.target_points, dtype=np.float64)
     background = np.ascontiguousarray(target.background_points, dtype=np.float64)
     candidates = generate_candidates(centroid, normal, offset, params)
-    obstacles, line_of_sight_clear, mesh_clear = background, None, None
-    mesh_vertices = mesh_normals = None
-    if body_mesh is not None and "body_occlusion" in params.score_terms:
-        mesh_vertices = np.asarray(body_mesh[0], dtype=np.float64)
-        mesh_normals = mesh_vertex_normals(mesh_vertices, body_mesh[1])
-    with_map = obstacle_map is not None and camera_pose is not None
-    if with_map:
-        rotation, position = _pose_arrays(camera_pose)
-        obstacles = np.concatenate([background, centres_in_observation(obstacle_map, rotation, position)])
+    obstacles = background
+    if inputs.obstacle_map is not None and inputs.camera_pose is not None:
+        obstacles = np.concatenate([background, centres_in_observation(
+            inputs.obstacle_map, np.asarray(inputs.camera_pose.rotation, dtype=np.float64),
+            np.asarray(inputs.camera_pose.position, dtype=np.float64))])
     # The obstacles above the floor clearance in plane coordinates, once for the footprint tests and the grid.
     unit_normal, unit_offset = normalize_plane(normal, offset)
     obstacles_in_plane = elevated_plane_points(obstacles, unit_normal, unit_offset, float(params.floor_clearance),
                                                *plane_basis(unit_normal))
     feasibility = check_feasibility(candidates, obstacles, normal, offset, params, obstacles_in_plane)
     reach, path_lengths = None, None
-    if getattr(params, "reachability", False):
+    if params.reachability:
         feasibility, reach = _check_paths(candidates, feasibility, obstacles_in_plane, target, target_points, normal,
                                           offset, params)
-        if getattr(params, "fit_to_free_space", False):
+        if params.fit_to_free_space:
             candidates, feasibility = _fit_to_free_space(candidates, feasibility, reach, obstacles_in_plane,
                                                          centroid, normal, offset, params)
         path_lengths = np.where(candidates.is_current, 0.0, reach.path_lengths)
     # Only the candidates the robot can take are scored (the scoring kernels are most of a plan's time); the
     # others keep score 0 unless score_infeasible asks for every candidate's terms (to look at them).
-    scored = np.ones(len(candidates), dtype=bool) if getattr(params, "score_infeasible", True) \
+    scored = np.ones(len(candidates), dtype=bool) if params.score_infeasible \
         else np.asarray(feasibility.feasible, dtype=bool)
     picked = np.flatnonzero(scored)
-    # The target points' line of sight serves the paper's S_o (and body_occlusion without a mesh); with the
-    # mesh scored in its place only the mesh vertices' is needed.
-    target_clear_used = mesh_vertices is None or any(name not in _NO_TARGET_LINE_OF_SIGHT
-                                                     for name in params.score_terms)
-
-    def clear_share(points: np.ndarray) -> np.ndarray:
-        """The map's clear line-of-sight share of ``points`` from each scored candidate (NaN for the others)."""
-        return _on_scored(line_of_sight_clear_fraction(
-            obstacle_map, rotation, position, candidates.positions[picked], points, params.map_max_target_points,
-            params.map_target_margin), picked, len(candidates), np.nan)
-
-    if with_map and target_clear_used:
-        line_of_sight_clear = clear_share(target_points)
-    if with_map and mesh_vertices is not None:
-        mesh_clear = clear_share(mesh_vertices)
-    scores = _score_picked(candidates, picked, target, target_points, background, params, line_of_sight_clear,
-                           path_lengths, mesh_vertices, mesh_normals, mesh_clear)
+    frame = PlanFrame(inputs=inputs, candidates=candidates, picked=picked, target_points=target_points,
+                      path_lengths=path_lengths)
+    scores, computed = _score_picked(frame, background)
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
     base_goal, base_path = None, None
     if chosen >= 0:
@@ -279,49 +263,53 @@ def plan_views(target: Any, ground: Any, params: Optional[PlannerParams] = None,
             base_path = reach.path_to(candidates.foot_points[chosen])
     return Plan(candidates=candidates, feasibility=feasibility, scores=scores, chosen_index=int(chosen),
                 includes_current_view=bool(params.include_current), ring_radius=float(params.radius),
-                up=normal, base_goal=base_goal, line_of_sight_clear=line_of_sight_clear,
-                path_lengths=path_lengths, base_path=base_path, reach=reach, mesh_line_of_sight_clear=mesh_clear,
-                used_obstacle_map=with_map)
+                up=normal, base_goal=base_goal,
+                line_of_sight_clear=_on_scored_or_none(computed.get(TARGET_LINE_OF_SIGHT.name), picked,
+                                                       len(candidates)),
+                path_lengths=path_lengths, base_path=base_path, reach=reach,
+                mesh_line_of_sight_clear=_on_scored_or_none(computed.get(MESH_LINE_OF_SIGHT.name), picked,
+                                                            len(candidates)),
+                used_obstacle_map=inputs.uses_obstacle_map, computed=computed)
 
 
-def _on_scored(values: np.ndarray, picked: np.ndarray, count: int, fill: float) -> np.ndarray:
+def _on_scored(values: Array, picked: Array, count: int, fill: float) -> Array:
     """(count,) array with ``values`` at the picked candidates and ``fill`` elsewhere."""
     full = np.full(count, fill, dtype=np.float64)
     full[picked] = values
     return full
 
 
-def _score_picked(candidates: CandidateSet, picked: np.ndarray, target: Any, target_points: np.ndarray,
-                  background: np.ndarray, params: PlannerParams, line_of_sight_clear: Optional[np.ndarray],
-                  path_lengths: Optional[np.ndarray], mesh_vertices: Optional[np.ndarray],
-                  mesh_normals: Optional[np.ndarray], mesh_clear: Optional[np.ndarray]) -> CandidateScores:
-    """The scores of the picked candidates; every other candidate's terms and score are 0."""
+def _on_scored_or_none(values: object, picked: Array, count: int) -> Optional[Array]:
+    """_on_scored with NaN for the candidates not scored; None for a requirement not computed or absent."""
+    return None if values is None else _on_scored(np.asarray(values, dtype=np.float64), picked, count, np.nan)
+
+
+def _score_picked(frame: PlanFrame, background: Array) -> Tuple[CandidateScores, Dict[str, object]]:
+    """The scores of the picked candidates (every other candidate's terms and score are 0), and the requirements
+    the terms read."""
+    params, target, candidates, picked = frame.inputs.params, frame.inputs.target, frame.candidates, frame.picked
     terms = params.term_weights()
     count = len(candidates)
     if len(picked) == 0:
         return CandidateScores(term_names=[name for name, _ in terms],
                                term_weights=np.array([weight for _, weight in terms], dtype=np.float64),
-                               term_scores=np.zeros((count, len(terms))), score=np.zeros(count))
-
-    def on_picked(values: Optional[np.ndarray]) -> Optional[np.ndarray]:
-        return None if values is None else values[picked]
-
-    scores = score_candidates(target_points, background, candidates.rotations[picked], candidates.positions[picked],
-                              target.k, target.width, target.height, terms, delta_px=params.delta_px,
-                              line_of_sight_clear=on_picked(line_of_sight_clear), path_lengths=on_picked(path_lengths),
-                              travel_scale=float(getattr(params, "max_path_length", 6.0)),
-                              mesh_vertices=mesh_vertices, mesh_normals=mesh_normals,
-                              mesh_line_of_sight_clear=on_picked(mesh_clear))
+                               term_scores=np.zeros((count, len(terms))), score=np.zeros(count)), {}
+    context = ScoringContext(frame.target_points, background, candidates.rotations[picked],
+                             candidates.positions[picked], target.k, target.width, target.height,
+                             delta_px=params.delta_px, params=params, frame=frame,
+                             declared=declared_requirements([get_term(name) for name, _ in terms]))
+    scores = score_context(context, terms)
+    computed = context.computed()
     if len(picked) == count:
-        return scores
+        return scores, computed
     term_scores = np.zeros((count, len(terms)))
     term_scores[picked] = scores.term_scores
     return CandidateScores(term_names=scores.term_names, term_weights=scores.term_weights, term_scores=term_scores,
-                           score=_on_scored(scores.score, picked, count, 0.0))
+                           score=_on_scored(scores.score, picked, count, 0.0)), computed
 
 
 def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult, reach: Reachability,
-                       obstacles_in_plane: np.ndarray, centroid: np.ndarray, normal: np.ndarray, offset: float,
+                       obstacles_in_plane: Array, centroid: Array, normal: Array, offset: float,
                        params: PlannerParams) -> Tuple[CandidateSet, FeasibilityResult]:
     """Ring candidates that stand in an obstacle or have no path move to the nearest foot point (to where they
     stood) that is free and reachable within their own patch of the rings: radius in their ring's band (down to,
@@ -405,8 +393,8 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
     return fitted, FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons)
 
 
-def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles_in_plane: np.ndarray,
-                 target: Any, target_points: np.ndarray, normal: np.ndarray, offset: float,
+def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles_in_plane: Array,
+                 target: TargetArrays, target_points: Array, normal: Array, offset: float,
                  params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
     """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
     unit_normal, unit_offset = normalize_plane(normal, offset)

@@ -3,18 +3,25 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from leapnbv_planner.params import nbv_params_class
-from leapnbv_planner.score_terms import ScoringContext, ScoringInputError, get_term, registered_terms
+from leapnbv_planner.arrays import Array
+from leapnbv_planner.params import PlannerParams, nbv_params_class
+from leapnbv_planner.score_terms import (
+    ScoringContext,
+    ScoringInputError,
+    declared_requirements,
+    get_term,
+    registered_terms,
+)
 
 # Two scores within this of each other are a tie (broken by distance to the current pose).
 SCORE_TIE_TOLERANCE = 1e-9
 
 __all__ = ["SCORE_TIE_TOLERANCE", "CandidateScores", "ScoringInputError", "choose_best", "score_candidates",
-           "warm_up_scoring"]
+           "score_context", "warm_up_scoring"]
 
 
 @dataclass
@@ -29,11 +36,11 @@ class CandidateScores:
     """
 
     term_names: List[str]
-    term_weights: np.ndarray
-    term_scores: np.ndarray
-    score: np.ndarray
+    term_weights: Array
+    term_scores: Array
+    score: Array
 
-    def term(self, name: str) -> np.ndarray:
+    def term(self, name: str) -> Array:
         """(C,) values of one term.
 
         Raises:
@@ -50,21 +57,17 @@ def default_terms() -> List[Tuple[str, float]]:
 
 
 def score_candidates(
-    target_points: np.ndarray,
-    background_points: np.ndarray,
-    rotations: np.ndarray,
-    positions: np.ndarray,
-    K: np.ndarray,
+    target_points: Array,
+    background_points: Array,
+    rotations: Array,
+    positions: Array,
+    K: Array,
     width: int,
     height: int,
     terms: Optional[Sequence[Tuple[str, float]]] = None,
     delta_px: float = 4.0,
-    line_of_sight_clear: Optional[np.ndarray] = None,
-    path_lengths: Optional[np.ndarray] = None,
-    travel_scale: float = 6.0,
-    mesh_vertices: Optional[np.ndarray] = None,
-    mesh_normals: Optional[np.ndarray] = None,
-    mesh_line_of_sight_clear: Optional[np.ndarray] = None,
+    given: Optional[Mapping[str, object]] = None,
+    params: Optional[PlannerParams] = None,
 ) -> CandidateScores:
     """Score C candidate views of the target.
 
@@ -73,6 +76,8 @@ def score_candidates(
     :mod:`leapnbv_planner.score_terms` (S_v visibility, S_a area, S_o occlusion, see each module
     for its definition); they share one :class:`ScoringContext`, so the occlusion kernel runs at
     most once whatever the terms. The first call compiles the kernels (see warm_up_scoring).
+    :func:`leapnbv_planner.plan.plan_views` scores through :func:`score_context` with the
+    requirements computed from its inputs; here the caller gives them.
 
     Args:
         target_points: (N, 3) target (person) points, observation frame.
@@ -83,28 +88,35 @@ def score_candidates(
         width, height: image size in pixels.
         terms: (name, weight) pairs in summation order; the deployed terms and weights when None.
         delta_px: occlusion neighbourhood half-width in pixels (floored to an integer).
-        line_of_sight_clear: optional (C,) factors in [0, 1] applied to S_o (the obstacle map's
-            line-of-sight share, see :mod:`leapnbv_planner.obstacle_map`).
-        path_lengths: optional (C,) metres of the robot's path to each candidate (the travel term).
-        travel_scale: metres of travel that cost the whole travel term.
-        mesh_vertices, mesh_normals: optional (V, 3) body mesh vertices and outward normals (body_occlusion).
-        mesh_line_of_sight_clear: optional (C,) obstacle-map clear share of the mesh vertices.
+        given: requirement values by name (:mod:`leapnbv_planner.requirements`), e.g.
+            ``{"target_line_of_sight": (C,) shares, "path_lengths": (C,) metres, "body_mesh":
+            SurfacePoints(vertices, normals)}``; a requirement not given is absent (None) for the terms.
+        params: what the terms read of the planner's parameters (the travel term's max_path_length);
+            the robot's defaults when None.
 
     Returns:
         CandidateScores with (C,) score and (C, T) term values.
 
     Raises:
-        ScoringInputError: a shape, intrinsic, image size, delta_px or line_of_sight_clear is invalid.
+        ScoringInputError: a shape, intrinsic, image size, delta_px or given value is invalid.
         KeyError: an unknown term name.
+        ValueError: a given value or a term's requirement names no registered requirement.
     """
     terms = default_terms() if terms is None else list(terms)
+    declared = declared_requirements([get_term(name) for name, _ in terms]) | frozenset(given or {})
     context = ScoringContext(target_points, background_points, rotations, positions, K, width, height,
-                             delta_px=delta_px, line_of_sight_clear=line_of_sight_clear,
-                             path_lengths=path_lengths, travel_scale=travel_scale, mesh_vertices=mesh_vertices,
-                             mesh_normals=mesh_normals, mesh_line_of_sight_clear=mesh_line_of_sight_clear)
+                             delta_px=delta_px, params=params, given=given, declared=declared)
+    return score_context(context, terms)
+
+
+def score_context(context: ScoringContext, terms: Sequence[Tuple[str, float]]) -> CandidateScores:
+    """The weighted sum of the terms, in their order, over one context's candidates.
+
+    Raises:
+        KeyError: an unknown term name.
+        ScoringInputError: a term gave values of the wrong shape, or read a requirement it did not declare.
+    """
     computes = [get_term(name).compute for name, _ in terms]
-    if any(name == "occlusion" for name, _ in terms):
-        context.visible_counts()  # S_o's kernel call gives S_v's counts too: one call, whatever the term order
     columns = []
     score = np.zeros(context.num_candidates)
     for index, ((_, weight), compute) in enumerate(zip(terms, computes)):
@@ -124,10 +136,10 @@ def score_candidates(
 
 
 def choose_best(
-    scores: np.ndarray,
-    feasible: np.ndarray,
-    positions: np.ndarray,
-    current_position: np.ndarray,
+    scores: Array,
+    feasible: Array,
+    positions: Array,
+    current_position: Array,
 ) -> int:
     """Index of the best feasible candidate, or -1 when none is feasible.
 

@@ -6,6 +6,7 @@ import pytest
 
 from leapnbv_planner.candidates import camera_look_at
 from leapnbv_planner.plan import mesh_vertex_normals
+from leapnbv_planner.requirements import SurfacePoints
 from leapnbv_planner.scoring import score_candidates
 
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
@@ -58,7 +59,7 @@ def test_the_whole_body_score_prefers_the_view_that_reveals_the_hidden_half():
     positions = np.stack([np.zeros(3), side_position])
     terms = [("occlusion", 1.0), ("body_occlusion", 1.0)]
     scores = score_candidates(observed, screen, rotations, positions, K, 640, 480, terms,
-                              mesh_vertices=vertices, mesh_normals=normals)
+                              given={"body_mesh": SurfacePoints(vertices, normals)})
     paper, body = scores.term("occlusion"), scores.term("body_occlusion")
     assert paper[0] > 0.95  # the paper's S_o: what is observed is unhidden, staying looks perfect
     assert body[0] < 0.75  # the lower part of the near side is behind the screen

@@ -1,20 +1,20 @@
 """The planner's fast kernels give what their straightforward references give, bit for bit, on random scenes.
 
-The references are the per-point occlusion kernel (``count_visible_targets``, itself checked against the
-definition in test_planner_scoring), numpy's cross products and bincount sums for the mesh normals, and a
-point-by-point footprint test.
+The references are the per-point occlusion kernel (``count_visible_targets`` of reference_planner_kernels, itself
+checked against the definition in test_planner_scoring), the plain line-of-sight walk (``segments_clear``, there
+too), numpy's cross products and bincount sums for the mesh normals, and a point-by-point footprint test.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference_planner_kernels import count_visible_targets, segments_clear
 
 from leapnbv_planner.candidates import camera_look_at
 from leapnbv_planner.mesh_kernel import face_normal_sums
 from leapnbv_planner.occlusion_kernel import (
     bucket_points,
-    count_visible_targets,
     count_visible_targets_bucketed,
     run_facing_bounds,
 )
@@ -181,7 +181,7 @@ def test_the_floor_grid_from_plane_points_equals_the_one_from_the_cloud():
 
 @pytest.mark.parametrize("density", [0.002, 0.02, 0.2])
 def test_segment_walk_with_empty_box_skipping_equals_the_plain_walk(density):
-    from leapnbv_planner.obstacle_map import segments_clear, segments_clear_skipping_empty, voxel_map_from_centres
+    from leapnbv_planner.obstacle_map import segments_clear_skipping_empty, voxel_map_from_centres
 
     rng = np.random.default_rng(int(density * 1000))
     resolution = 0.1

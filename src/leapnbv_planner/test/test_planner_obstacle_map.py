@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference_planner_kernels import segments_clear
 
 from leapnbv_planner.obstacle_map import (
     ObstacleMapError,
     centres_in_observation,
     line_of_sight_clear_fraction,
-    segments_clear,
     voxel_map_from_centres,
 )
 from leapnbv_planner.scoring import score_candidates as _score_candidates
@@ -119,9 +119,10 @@ def test_clear_fraction_scales_s_o_only():
     poses = (np.stack([np.eye(3)] * 2), np.zeros((2, 3)))
     k = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
     plain = score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240)
-    scaled = score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240, line_of_sight_clear=[0.25, 1.0])
+    scaled = score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240,
+                              given={"target_line_of_sight": [0.25, 1.0]})
     np.testing.assert_allclose(scaled.term("occlusion"), plain.term("occlusion") * [0.25, 1.0])
     np.testing.assert_allclose(scaled.term("area"), plain.term("area"))
     np.testing.assert_allclose(plain.score - scaled.score, 0.83 * 0.75 * plain.term("occlusion") * [1.0, 0.0])
-    with pytest.raises(ValueError, match="line_of_sight_clear"):
-        score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240, line_of_sight_clear=[1.5, 1.0])
+    with pytest.raises(ValueError, match="target_line_of_sight"):
+        score_candidates(target, np.zeros((0, 3)), *poses, k, 320, 240, given={"target_line_of_sight": [1.5, 1.0]})

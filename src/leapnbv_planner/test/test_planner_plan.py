@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from leapnbv_planner.candidates import check_feasibility, generate_candidates
+from leapnbv_planner.inputs import CameraInMap, PlanFloor, PlanInputs, PlanTarget
 from leapnbv_planner.obstacle_map import centres_in_observation, line_of_sight_clear_fraction, voxel_map_from_centres
 from leapnbv_planner.params import nbv_params_class
 from leapnbv_planner.plan import PlanInputError, base_goal_frame, plan_views
@@ -29,11 +29,11 @@ def frame(seed=7):
     floor = np.column_stack([rng.uniform(-3, 3, 400), np.full(400, CAMERA_HEIGHT), rng.uniform(0.5, 6, 400)])
     box = np.column_stack([rng.uniform(-0.4, 0.4, 300), rng.uniform(0.2, CAMERA_HEIGHT, 300), np.full(300, 2.0)])
     wall = np.column_stack([rng.uniform(-3, 3, 400), rng.uniform(-1.0, CAMERA_HEIGHT, 400), np.full(400, 6.0)])
-    target = SimpleNamespace(valid=True, target_points=person.astype(np.float32),
-                             background_points=np.concatenate([floor, box, wall]).astype(np.float32),
-                             centroid=np.median(person.astype(np.float32), axis=0).astype(np.float64),
-                             k=K, width=640, height=480)
-    return target, SimpleNamespace(valid=True, normal=UP, offset=CAMERA_HEIGHT)
+    target = PlanTarget(target_points=person.astype(np.float32),
+                        background_points=np.concatenate([floor, box, wall]).astype(np.float32),
+                        centroid=np.median(person.astype(np.float32), axis=0).astype(np.float64),
+                        k=K, width=640, height=480)
+    return target, PlanFloor(normal=UP, offset=CAMERA_HEIGHT)
 
 
 def obstacle_map():
@@ -62,7 +62,7 @@ def test_plan_views_is_the_step_by_step_pipeline(with_map, radius):
                                              1500, 0.1)
     feasibility = check_feasibility(candidates, obstacles, UP, CAMERA_HEIGHT, params)
     scores = score_candidates(target.target_points, target.background_points, candidates.rotations,
-                              candidates.positions, K, 640, 480, line_of_sight_clear=clear)
+                              candidates.positions, K, 640, 480, given={"target_line_of_sight": clear})
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
 
     np.testing.assert_array_equal(plan.candidates.rotations, candidates.rotations)
@@ -106,7 +106,7 @@ def test_only_feasible_candidates_are_scored_by_default(with_map):
 def test_camera_pose_as_an_object_or_a_pair_and_map_only_with_a_pose():
     target, ground = frame()
     grid = obstacle_map()
-    pose = SimpleNamespace(stamp_ns=0, frame_id="map", rotation=CAMERA_IN_MAP[0], position=CAMERA_IN_MAP[1])
+    pose = CameraInMap(rotation=CAMERA_IN_MAP[0], position=CAMERA_IN_MAP[1])
     by_object = plan_views(target, ground, None, grid, pose)
     by_pair = plan_views(target, ground, None, grid, CAMERA_IN_MAP)
     np.testing.assert_array_equal(by_object.scores.score, by_pair.scores.score)
@@ -118,9 +118,9 @@ def test_camera_pose_as_an_object_or_a_pair_and_map_only_with_a_pose():
 def test_invalid_target_or_ground_is_refused():
     target, ground = frame()
     with pytest.raises(PlanInputError, match="target"):
-        plan_views(SimpleNamespace(**{**vars(target), "valid": False}), ground)
+        plan_views(dataclasses.replace(target, valid=False), ground)
     with pytest.raises(PlanInputError, match="ground"):
-        plan_views(target, SimpleNamespace(normal=UP, offset=CAMERA_HEIGHT, valid=False))
+        plan_views(PlanInputs(target, PlanFloor(normal=UP, offset=CAMERA_HEIGHT, valid=False)))
 
 
 def test_nothing_feasible_gives_no_goal():

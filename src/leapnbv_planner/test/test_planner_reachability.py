@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from leapnbv_planner.candidates import FeasibilityReason
+from leapnbv_planner.inputs import PlanFloor, PlanTarget
 from leapnbv_planner.params import default_nbv_params
 from leapnbv_planner.path_kernel import grid_distances
 from leapnbv_planner.plan import plan_views
@@ -83,9 +83,9 @@ def test_plan_views_marks_candidates_behind_a_wall_unreachable_and_returns_the_p
     side = [np.column_stack([np.full(3000, x), rng.uniform(-0.5, 1.1, 3000), rng.uniform(-4.0, 9.0, 3000)])
             for x in (-1.2, 1.2)]
     background = np.vstack(side).astype(np.float32)
-    target = SimpleNamespace(valid=True, centroid=np.array([0.0, 0.3, 3.0]), target_points=person.astype(np.float32),
-                             background_points=background, k=K, width=640, height=480)
-    ground = SimpleNamespace(valid=True, normal=UP, offset=HEIGHT)
+    target = PlanTarget(centroid=np.array([0.0, 0.3, 3.0]), target_points=person.astype(np.float32),
+                        background_points=background, k=K, width=640, height=480)
+    ground = PlanFloor(normal=UP, offset=HEIGHT)
     params = default_nbv_params()
     params.reachability = True
     params.num_rings, params.min_radius, params.radius = 3, 1.0, 2.5
@@ -168,9 +168,9 @@ def test_candidates_in_the_walls_move_to_free_reachable_floor_within_their_patch
     person = np.column_stack([rng.uniform(-0.2, 0.2, 800), rng.uniform(-0.5, 1.1, 800), rng.uniform(2.9, 3.1, 800)])
     side = [np.column_stack([np.full(3000, x), rng.uniform(-0.5, 1.1, 3000), rng.uniform(-4.0, 9.0, 3000)])
             for x in (-1.2, 1.2)]
-    target = SimpleNamespace(valid=True, centroid=np.array([0.0, 0.3, 3.0]), target_points=person.astype(np.float32),
-                             background_points=np.vstack(side).astype(np.float32), k=K, width=640, height=480)
-    ground = SimpleNamespace(valid=True, normal=UP, offset=HEIGHT)
+    target = PlanTarget(centroid=np.array([0.0, 0.3, 3.0]), target_points=person.astype(np.float32),
+                        background_points=np.vstack(side).astype(np.float32), k=K, width=640, height=480)
+    ground = PlanFloor(normal=UP, offset=HEIGHT)
     params = dataclasses.replace(default_nbv_params(), num_rings=3, min_radius=1.5, radius=2.5)
     fixed = plan_views(target, ground, dataclasses.replace(params, fit_to_free_space=False))
     fitted = plan_views(target, ground, params)

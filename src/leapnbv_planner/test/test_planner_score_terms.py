@@ -4,12 +4,12 @@ and a new term added from this file alone (module + weight + test: nothing else 
 from __future__ import annotations
 
 import pkgutil
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 import leapnbv_planner.score_terms as score_terms_package
+from leapnbv_planner.inputs import PlanFloor, PlanTarget
 from leapnbv_planner.params import DEFAULT_SCORE_TERMS, nbv_params_class
 from leapnbv_planner.plan import plan_views
 from leapnbv_planner.score_terms import (
@@ -36,12 +36,11 @@ def person_and_clutter(seed=0):
 
 
 def frame(seed=0):
-    """A TargetGeometryArrays / GroundPlaneArrays lookalike (plan_views needs only the attributes)."""
+    """The planner's message-free target and floor (what TargetGeometryArrays / GroundPlaneArrays carry)."""
     person, clutter = person_and_clutter(seed)
-    target = SimpleNamespace(valid=True, target_points=person.astype(np.float32),
-                             background_points=clutter.astype(np.float32), centroid=np.median(person, axis=0),
-                             k=K, width=WIDTH, height=HEIGHT)
-    ground = SimpleNamespace(valid=True, normal=UP, offset=CAMERA_HEIGHT)
+    target = PlanTarget(target_points=person.astype(np.float32), background_points=clutter.astype(np.float32),
+                        centroid=np.median(person, axis=0), k=K, width=WIDTH, height=HEIGHT)
+    ground = PlanFloor(normal=UP, offset=CAMERA_HEIGHT)
     return target, ground
 
 
@@ -145,8 +144,8 @@ def test_a_term_registered_from_a_test_file_gets_its_weight_parameter_and_is_pla
     plan = plan_views(target, ground, params)
     assert plan.scores.term_names == ["visibility", "area", "occlusion", "closeness"]
     np.testing.assert_array_equal(plan.scores.term_weights, [0.03, 0.14, 0.83, 0.5])
-    values = closeness(SimpleNamespace(targets=target.target_points.astype(np.float64),
-                                       positions=plan.candidates.positions))
+    values = closeness(ScoringContext(target.target_points, np.zeros((0, 3)), plan.candidates.rotations,
+                                      plan.candidates.positions, K, WIDTH, HEIGHT))
     np.testing.assert_allclose(plan.scores.term("closeness"), values, rtol=1e-12)
     np.testing.assert_array_equal(plan.scores.score, base.scores.score + 0.5 * values)
     assert plan.chosen_index >= 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.occlusion_kernel import axis_aligned_bounds
 from leapnbv_planner.score_terms.base import (
     Camera,
@@ -28,12 +29,12 @@ _BOX_EDGES = np.array(
 
 
 @score_term("area", 0.14, "S_a, projected target box area over the image area")
-def area(context: ScoringContext) -> np.ndarray:
+def area(context: ScoringContext) -> Array:
     """S_a of every candidate: see bounding_box_area_fraction."""
     return box_area_fraction(context.targets, context.rotations, context.positions, context.camera)
 
 
-def to_camera_frame(points: np.ndarray, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
+def to_camera_frame(points: Array, rotations: Array, positions: Array) -> Array:
     """Express observation-frame points in each candidate camera's frame.
 
     Args:
@@ -50,13 +51,13 @@ def to_camera_frame(points: np.ndarray, rotations: np.ndarray, positions: np.nda
 
 
 def bounding_box_area_fraction(
-    target_points: np.ndarray,
-    rotations: np.ndarray,
-    positions: np.ndarray,
-    K: np.ndarray,
+    target_points: Array,
+    rotations: Array,
+    positions: Array,
+    K: Array,
     width: int,
     height: int,
-) -> np.ndarray:
+) -> Array:
     """S_a: image area covered by the projected 3D bounding box of the target, over W*H.
 
     The box is the target's axis-aligned bounding box in the observation frame (8 corners).
@@ -86,11 +87,11 @@ def bounding_box_area_fraction(
 
 
 def box_area_fraction(
-    points: np.ndarray,
-    rotation_array: np.ndarray,
-    position_array: np.ndarray,
+    points: Array,
+    rotation_array: Array,
+    position_array: Array,
     camera: Camera,
-) -> np.ndarray:
+) -> Array:
     """bounding_box_area_fraction on validated inputs (see there)."""
     fx, skew, cx, fy, cy, width, height = camera
     num_candidates = rotation_array.shape[0]

@@ -3,15 +3,15 @@
 
 from __future__ import annotations
 
-import numpy as np
-
+from leapnbv_planner.arrays import Array
+from leapnbv_planner.requirements import BODY_MESH, MESH_LINE_OF_SIGHT, TARGET_LINE_OF_SIGHT
 from leapnbv_planner.score_terms.base import ScoringContext, score_term
-from leapnbv_planner.score_terms.occlusion import occlusion
+from leapnbv_planner.score_terms.occlusion import not_hidden_share
 
 
 @score_term("body_occlusion", 0.83, "S_o over the metric body mesh: share of the body's near side in view and "
-            "not hidden")
-def body_occlusion(context: ScoringContext) -> np.ndarray:
+            "not hidden", requires=(BODY_MESH, MESH_LINE_OF_SIGHT, TARGET_LINE_OF_SIGHT))
+def body_occlusion(context: ScoringContext) -> Array:
     """(# facing mesh vertices in view and not hidden) / (# facing mesh vertices), 0 when none faces.
 
     The mesh is the person's metric HMR mesh: the whole body, the parts hidden now included, so a view
@@ -19,12 +19,12 @@ def body_occlusion(context: ScoringContext) -> np.ndarray:
     shows). A vertex faces a candidate when its outward normal points toward the camera (the far side
     of the body is never counted); hidden is the same square-window test against the background
     points as S_o's. With the obstacle map the value is multiplied by the mesh vertices' clear line-of-
-    sight share. Without a mesh in the context it is the paper's S_o (``occlusion``).
+    sight share. Without a mesh in the frame it is the paper's S_o (``occlusion``): only then is the
+    target points' line of sight walked.
     """
-    if context.mesh_vertices is None or len(context.mesh_vertices) == 0:
-        return occlusion(context)
+    mesh = context.need(BODY_MESH)
+    if mesh is None or len(mesh.points) == 0:
+        in_view, not_hidden = context.visible_counts()
+        return not_hidden_share(in_view, not_hidden, context.need(TARGET_LINE_OF_SIGHT))
     facing, not_hidden = context.mesh_counts()
-    values = np.where(facing > 0, not_hidden / np.maximum(facing, 1), 0.0)
-    if context.mesh_line_of_sight_clear is not None:
-        values = values * context.mesh_line_of_sight_clear
-    return np.asarray(values, dtype=np.float64)
+    return not_hidden_share(facing, not_hidden, context.need(MESH_LINE_OF_SIGHT))
