@@ -68,7 +68,7 @@ def image_python_files() -> List[Path]:
         files += sorted((base / package).rglob("*.py")) if (base / package).is_dir() else []
         files += sorted((base / "launch").glob("*.py")) + sorted((base / "scripts").glob("*.py"))
         files += [base / "setup.py"] if (base / "setup.py").exists() else []
-    files.append(ROOT / "scripts" / "device_check.py")
+    files.append(ROOT / "scripts" / "device" / "device_check.py")
     return files
 
 
@@ -192,7 +192,7 @@ def test_python38_check_covers_every_file_the_image_runs() -> None:
     assert "src/leapnbv_bringup/launch/leapnbv.launch.py" in names
     assert "src/leapnbv_bringup/leapnbv_bringup/nodes/power_node.py" in names
     assert "src/leapnbv_perception/leapnbv_perception/backends/tensorrt_backend.py" in names
-    assert "scripts/device_check.py" in names
+    assert "scripts/device/device_check.py" in names
     vermin = [str(VENV_BIN / "vermin"), "-q", "-t=3.8-", "--no-tips", "--violations", "--eval-annotations",
               "--backport", "dataclasses"]
     result = subprocess.run(vermin + [str(p) for p in files], capture_output=True, text=True)
@@ -219,7 +219,7 @@ def test_device_check_says_what_it_would_run_without_a_gpu(tmp_path: Path) -> No
     s32 = tmp_path / "s32.onnx"
     s32.write_bytes(b"onnx")
     env = dict(os.environ, LEAPNBV_YOLO_ONNX=str(tmp_path / "missing_yolov8s.onnx"))
-    result = subprocess.run(["bash", str(ROOT / "scripts" / "device_check.sh"), "--no-gpu", "--s32", str(s32)],
+    result = subprocess.run(["bash", str(ROOT / "scripts/device/device_check.sh"), "--no-gpu", "--s32", str(s32)],
                             capture_output=True, text=True, env=env, timeout=60)
     assert result.returncode == 0, result.stderr
     out = result.stdout
@@ -227,7 +227,8 @@ def test_device_check_says_what_it_would_run_without_a_gpu(tmp_path: Path) -> No
     assert f"s32: {s32}" in out and "relative L2 error <= 1e-3" in out and "relative L2 error <= 2e-2" in out
     assert "note: yolov8s ONNX not found: " + str(tmp_path / "missing_yolov8s.onnx") in out
     assert "the graph step would be skipped" in out or "the graph step would run" in out
-    bad = subprocess.run(["bash", str(ROOT / "scripts" / "device_check.sh"), "--bogus"], capture_output=True, text=True)
+    bad = subprocess.run(["bash", str(ROOT / "scripts/device/device_check.sh"), "--bogus"], capture_output=True,
+                         text=True)
     assert bad.returncode == 2 and "unknown argument: --bogus" in bad.stderr
 
 
@@ -236,7 +237,7 @@ def test_device_check_tolerances() -> None:
 
     import numpy as np
 
-    spec = importlib.util.spec_from_file_location("device_check", ROOT / "scripts" / "device_check.py")
+    spec = importlib.util.spec_from_file_location("device_check", ROOT / "scripts" / "device" / "device_check.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     reference = {"pose": np.linspace(-1.0, 1.0, 100), "cam": np.array([0.1, -0.2, 5.0])}

@@ -3,7 +3,7 @@
 # compared with onnxruntime FP32, with per-engine latency; on a Jetson (power rails present), the
 # whole graph's joules per frame on a sample bag. Minutes, and nothing but the repository and the models.
 #
-#   scripts/device_check.sh --s32 models/smplerx_student.onnx --yolo models/yolov8s.onnx \
+#   scripts/device/device_check.sh --s32 models/smplerx_student.onnx --yolo models/yolov8s.onnx \
 #       [--plan models/smplerx_student.precision_plan.json] [--cache DIR] [--runs 50] \
 #       [--body-model models/SMPLX_NEUTRAL.npz] [--bag bags/sample_a] [--seconds 30] [--json out.json] [--no-gpu]
 #
@@ -16,7 +16,7 @@
 # Exit status otherwise: 0 when every engine is within tolerance and the graph step (when it ran)
 # produced frames; 1 when a check failed; 2 for a usage error or a missing model.
 set -euo pipefail
-ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 log() { printf '[device-check] %s\n' "$*"; }
 
 S32=${LEAPNBV_S32_ONNX:-}
@@ -119,7 +119,7 @@ args=(--s32 "$S32" --yolo "$YOLO" --runs "$RUNS")
 [ -n "$PLAN" ] && args+=(--plan "$PLAN")
 [ -n "$CACHE" ] && args+=(--cache "$CACHE")
 status=0
-"$PYTHON" "$ROOT/scripts/device_check.py" engines "${args[@]}" ${JSON:+--json "${JSON%.json}.engines.json"} || status=1
+"$PYTHON" "$ROOT/scripts/device/device_check.py" engines "${args[@]}" ${JSON:+--json "${JSON%.json}.engines.json"} || status=1
 if [ -z "$rails" ]; then
   log "graph: skipped (no power rails: not a Jetson, or /sys not visible in this container)"
 elif [ -z "$ros2_cli" ]; then
@@ -127,7 +127,7 @@ elif [ -z "$ros2_cli" ]; then
 elif [ -z "$BODY" ] || [ ! -f "$BODY" ]; then
   log "graph: skipped (the hmr node needs the SMPL-X body model: --body-model or LEAPNBV_BODY_MODEL)"
 else
-  "$PYTHON" "$ROOT/scripts/device_check.py" graph "${args[@]}" --bag "$BAG" --body-model "$BODY" \
+  "$PYTHON" "$ROOT/scripts/device/device_check.py" graph "${args[@]}" --bag "$BAG" --body-model "$BODY" \
     --seconds "$SECONDS_MEASURED" ${JSON:+--json "${JSON%.json}.graph.json"} || status=1
 fi
 log "done: $( [ $status = 0 ] && echo 'all checks passed' || echo 'a check FAILED' )"

@@ -6,7 +6,7 @@ straightforward reference (joint regression from vertices, float64, per-joint sk
 timed in the same process. Uses the full-size STAND-IN body model (10,475 vertices, the
 real SMPL-X size; not SMPL-X) built in memory.
 
-Usage: scripts/bench_perception.py [--runs N]
+Usage: scripts/bench/bench_perception.py [--runs N]
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from typing import Callable, List, Tuple  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-_PERCEPTION = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src", "leapnbv_perception")
+_PERCEPTION = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "src", "leapnbv_perception")
 sys.path.insert(0, _PERCEPTION)
 sys.path.insert(0, os.path.join(_PERCEPTION, "test"))  # reference_smplx: the tests' slow LBS
 

@@ -7,20 +7,20 @@ The networks are the real architectures with random weights, built in the tools 
     tools/run.sh python -m leapnbv_model_tools random-yolov8 --out yolov8s_random.onnx
     tools/run.sh python -m leapnbv_model_tools random-checkpoint --variant s32 --out s32.pth.tar
     tools/run.sh python -m leapnbv_model_tools export-hmr --checkpoint s32.pth.tar --variant s32 --out s32.onnx
-    scripts/env.sh python scripts/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx [--duration 60]
+    scripts/env.sh python scripts/bench/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx [--duration 60]
 
 The body-only configurations (names starting "body-only HMR") run a body-only export of the same
 checkpoint (``export-hmr ... --without-hands --out s32_body_only.onnx``: no hand branch, the hands
 at the SMPL-X hand mean pose), given with ``--hmr-body-only s32_body_only.onnx``; without it they
 are skipped. ``--only NAME ...`` runs some configurations, e.g.
 
-    scripts/env.sh python scripts/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx \
+    scripts/env.sh python scripts/bench/bench_frame.py --detector yolov8s_random.onnx --hmr s32.onnx \
         --hmr-body-only s32_body_only.onnx --only "body-only HMR, 1 thread each"
 
 A random-weight detector finds nobody, so the detector runs as a timing stand-in
 (``detector_node.timing_stand_in``): the network runs on every admitted frame and its boxes are
 discarded; the simulator's boxes go on. The HMR network's (random) mesh goes through the rest of
-the graph. The camera is scripts/bench_load.py's (640x480 RGB-D, moving between viewpoints) at
+the graph. The camera is scripts/bench/bench_load.py's (640x480 RGB-D, moving between viewpoints) at
 --fps; the graph takes the newest frame it can finish. For each configuration: goals per second,
 end-to-end latency (goal received - frame stamp) p50 / p95, each engine's compute p50, the CPU
 time per goal of each node, and the machine's load before and after.

@@ -2,7 +2,7 @@
 """Load benchmark: a 640x480 RGB-D camera at 30 FPS through the ground-truth graph, the camera moving
 between viewpoints (a script, not a test: it runs for minutes).
 
-    scripts/env.sh python scripts/bench_load.py [--duration 300] [--fps 30] [--out out/bench_load]
+    scripts/env.sh python scripts/bench/bench_load.py [--duration 300] [--fps 30] [--out out/bench_load]
                                                [--profile-s 30 --py-spy /path/to/py-spy]
 
 What it does: renders a simulated scene (stand-in body, ground-truth perception) from three
@@ -21,7 +21,8 @@ It prints (and writes to OUT/bench_load.json):
   conversion, and waiting);
 * RSS of each node over time;
 * goals from mixed frames: for each goal, the recorded inputs (InputStamp) of its ViewCandidates,
-  TargetGeometry, HumanMesh and GroundPlane: every SAME_FRAME input must carry the goal's stamp (a
+  TargetGeometry, HumanMesh and GroundPlane (leapnbv_bringup.frame_chains.check_goal_chain, which the
+  frame-timing tests use too): every SAME_FRAME input must carry the goal's stamp (a
   CARRIED ground plane must be younger than ground_max_age_s); and, independently, the base goal
   must lie on the floor of the viewpoint the frame was rendered from (a plane from another
   viewpoint puts it 0.1-0.5 m off);
@@ -257,36 +258,6 @@ def percentile(values, q) -> float:
     return float(np.percentile(values, q)) if len(values) else float("nan")
 
 
-def mixed_frame_check(monitor: Monitor, stamp: int, max_carry_ns: int) -> Tuple[bool, bool, str]:
-    """(verifiable, mixed, detail) for the goal of one frame, from the recorded inputs of its chain."""
-    from leapnbv_msgs.msg import InputStamp
-
-    chain = [("view_candidates", stamp)]
-    seen = set()
-    carried = []
-    while chain:
-        name, s = chain.pop()
-        if (name, s) in seen:
-            continue
-        seen.add((name, s))
-        inputs = monitor.inputs.get(name, {}).get(s)
-        if inputs is None:
-            if name in ("view_candidates", "target_geometry", "ground_plane", "human_mesh"):
-                return False, False, f"{name} of stamp {s} not received"
-            continue
-        for input_name, input_stamp, relation in inputs:
-            if relation == InputStamp.SAME_FRAME and input_stamp != stamp:
-                return True, True, f"{name} used {input_name} of stamp {input_stamp} (frame {stamp})"
-            if relation == InputStamp.CARRIED:
-                if not 0 < stamp - input_stamp <= max_carry_ns:
-                    return True, True, f"{name} carried {input_name} of stamp {input_stamp} (frame {stamp})"
-                carried.append(input_name)
-                continue
-            if relation == InputStamp.SAME_FRAME and input_name in ("target_geometry", "ground_plane", "human_mesh"):
-                chain.append((input_name, input_stamp))
-    return True, False, "carried " + ",".join(carried) if carried else ""
-
-
 def floor_error(monitor: Monitor, publisher: CameraPublisher, frames, stamp: int) -> Optional[float]:
     """|n.x + d| of the base goal of a frame on the true floor of that frame's viewpoint (metres)."""
     position = monitor.base_goals.get(stamp)
@@ -432,6 +403,7 @@ def measure(args) -> int:
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Header
 
+    from leapnbv_bringup.frame_chains import check_goal_chain
     from leapnbv_bringup.graph_runner import GraphRunner, merge_overrides, parse_set_arguments, perception_overrides
     from leapnbv_common.conversions import xyz_to_pointcloud2
     from leapnbv_common.qos import latched_map_qos
@@ -522,12 +494,12 @@ def measure(args) -> int:
     mixed_details, carried = [], 0
     off_floor, floor_errors = [], []
     for stamp, _ in goals:
-        ok, is_mixed, detail = mixed_frame_check(monitor, stamp, max_carry_ns)
-        verifiable += ok
-        mixed += is_mixed
-        carried += detail.startswith("carried")
-        if is_mixed and len(mixed_details) < 10:
-            mixed_details.append(detail)
+        verdict = check_goal_chain(monitor.inputs, stamp, max_carry_ns)
+        verifiable += verdict.verifiable
+        mixed += verdict.mixed
+        carried += verdict.detail.startswith("carried")
+        if verdict.mixed and len(mixed_details) < 10:
+            mixed_details.append(verdict.detail)
         error = floor_error(monitor, publisher, frames, stamp)
         if error is not None:
             floor_errors.append(error)

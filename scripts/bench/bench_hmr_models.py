@@ -11,13 +11,13 @@ average is printed with the figures. The paper's deployed figure is printed besi
 
     tools/run.sh python -m leapnbv_model_tools export-hmr --checkpoint smpler_x_s32.pth.tar \\
         --variant s32 --out s32.onnx                     # (tools environment)
-    scripts/env.sh python scripts/bench_hmr_models.py s32.onnx b32.onnx [--threads 1 2] [--runs 10]
+    scripts/env.sh python scripts/bench/bench_hmr_models.py s32.onnx b32.onnx [--threads 1 2] [--runs 10]
         [--body-model models/stand_in/stand_in_smplx_dense.npz]
 
 The cost of a body-only engine (``export-hmr ... --without-hands``): give a full export and the
 body-only export of the same checkpoint with ``--hand-cost``,
 
-    scripts/env.sh python scripts/bench_hmr_models.py s32.onnx s32_body_only.onnx --hand-cost
+    scripts/env.sh python scripts/bench/bench_hmr_models.py s32.onnx s32_body_only.onnx --hand-cost
 
 and after the timings it prints (i) the largest difference of the body and face parameters between
 the two engines' whole estimates on --crops crops (they should be equal), (ii) the mesh difference

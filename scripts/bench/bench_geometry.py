@@ -4,7 +4,7 @@
 Prints median and p95 over many frames, and the ratio to straightforward references run in
 the same process (trimesh ray casting for the render, a per-iteration numpy loop for RANSAC).
 
-Usage: .venv/bin/python scripts/bench_geometry.py [--frames 200] [--cold-jit]
+Usage: .venv/bin/python scripts/bench/bench_geometry.py [--frames 200] [--cold-jit]
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-_REPO = Path(__file__).resolve().parents[1]
+_REPO = Path(__file__).resolve().parents[2]
 for _pkg in ("leapnbv_geometry", "leapnbv_perception"):
     sys.path.insert(0, str(_REPO / "src" / _pkg))
 

@@ -2,7 +2,7 @@
 
 For each family of FAMILY_CHANGES: the first ``--count`` seeds from 0 whose scene generates and shows
 the person (``select_benchmark_seeds`` under the family's config, small stand-in body).
-Usage: scripts/env.sh python scripts/family_seeds.py [--count 40] [--families corner,corridor]
+Usage: scripts/env.sh python scripts/experiments/family_seeds.py [--count 40] [--families corner,corridor]
 Prints a Python dict literal. Exit 0; 2 on an unknown family.
 """
 from __future__ import annotations

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The device check's work (scripts/device_check.sh runs it; Python 3.8: it runs inside the Jetson image).
+"""The device check's work (scripts/device/device_check.sh runs it; Python 3.8: it runs inside the Jetson image).
 
     device_check.py engines --s32 S32.onnx --yolo YOLOV8S.onnx [--plan PLAN.json] [--cache DIR] [--runs N]
     device_check.py graph --bag DIR --s32 ... --yolo ... --body-model SMPLX_NEUTRAL.npz [--seconds S]
@@ -30,7 +30,7 @@ import tempfile
 import time
 from typing import Dict, List, Optional, Tuple
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # Relative L2 error of each output against onnxruntime FP32, per engine precision. FP32 engines
 # differ only by kernel choice and summation order; FP16 keeps ~3 significant digits per op, and a

@@ -13,7 +13,7 @@ noise. Three ways of fitting each view:
 * ``fused``: the same, checked against the camera pose's floor (``fuse_floor``): what the node
   publishes now.
 
-Usage: scripts/env.sh python scripts/floor_check.py [--scenes 50] [--families committed,cam06,cam18,noise3]
+Usage: scripts/env.sh python scripts/experiments/floor_check.py [--scenes 50] [--families committed,cam06,cam18,noise3]
 Prints one line per family and way: wrong / invalid counts. Exit 0; 2 on a bad argument.
 """
 from __future__ import annotations

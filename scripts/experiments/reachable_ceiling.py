@@ -8,7 +8,7 @@ stays at the start camera's mounting height and looks at the body's centre (a pa
 the start view's surface coverage, the best reachable view's, the best of all positions (reachable or
 not), and whether success (+10 points or >= 90 %) is possible for the robot.
 
-    scripts/env.sh python scripts/reachable_ceiling.py corridor 3 11 25
+    scripts/env.sh python scripts/experiments/reachable_ceiling.py corridor 3 11 25
 Exit 0; 2 on a bad room.
 """
 

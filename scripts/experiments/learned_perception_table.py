@@ -1,9 +1,9 @@
-"""The closed loop with learned perception beside ground-truth perception (scripts/learned_perception.sh).
+"""The closed loop with learned perception beside ground-truth perception (scripts/experiments/learned_perception.sh).
 
 Reads OUT/learned/run.json and OUT/truth/run.json and prints, for leap_nbv, random and oracle under each
 perception: scenes, success (%), surface coverage before -> after (%), person area before -> after (k px)
 and the graph mesh's PA-MPVPE before -> after (mm; learned perception only: the truth's mesh is exact).
-Usage: scripts/env.sh python scripts/learned_perception_table.py OUT
+Usage: scripts/env.sh python scripts/experiments/learned_perception_table.py OUT
 Exit 0; 2 when a run is missing.
 """
 from __future__ import annotations

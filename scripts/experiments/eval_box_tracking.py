@@ -14,8 +14,8 @@ box of frame t - N kept unchanged, and carried without the camera poses.
 What it does not measure: the person's own motion (the simulated person stands still), and the
 HMR's mesh error (the simulator's mesh is used; the HMR's estimate is what the node carries).
 
-    scripts/env.sh python scripts/eval_box_tracking.py [--scenes 10] [--gaps 1 2 3 5 10]
-    scripts/env.sh python scripts/eval_box_tracking.py --bag bags/sample_a [--gaps 1 2 3]
+    scripts/env.sh python scripts/experiments/eval_box_tracking.py [--scenes 10] [--gaps 1 2 3 5 10]
+    scripts/env.sh python scripts/experiments/eval_box_tracking.py --bag bags/sample_a [--gaps 1 2 3]
 
 ``--bag``: the same on a recorded bag's frames, in order: each frame's box and mesh from its ground
 truth (the body parameters and translation in the camera frame, through the body model the bag

@@ -1,4 +1,4 @@
-"""The table per benchmark family, from the runs scripts/family_benchmark.sh wrote.
+"""The table per benchmark family, from the runs scripts/experiments/family_benchmark.sh wrote.
 
 Reads OUT/<family>/paper/run.json and OUT/<family>/mesh/run.json and prints, per family: leap_nbv
 with the paper's S_o, leap_nbv with the mesh S_o, random and oracle (both from the paper run: the
@@ -7,7 +7,7 @@ the robot drives to its pick (m: the shortest free path on the scene's true floo
 voxels and the person grown by the robot's 0.3 m radius, 0.1 m cells; the planner's own map is what
 the robot knew) beside the straight distance, the picks with no such path, and the start views whose
 published floor was wrong (> 2 deg or > 5 cm from the truth). Then the same over all families.
-Usage: scripts/env.sh python scripts/family_table.py OUT
+Usage: scripts/env.sh python scripts/experiments/family_table.py OUT
 Exit 0; 2 when OUT holds no run.
 """
 from __future__ import annotations
@@ -67,7 +67,7 @@ def stats(run: EvaluationRun, method: str) -> Dict[str, float]:
 
 def main(argv: List[str]) -> int:
     if len(argv) != 1 or not os.path.isdir(argv[0]):
-        print("usage: family_table.py OUT (the folder scripts/family_benchmark.sh wrote)", file=sys.stderr)
+        print("usage: family_table.py OUT (the folder scripts/experiments/family_benchmark.sh wrote)", file=sys.stderr)
         return 2
     out = argv[0]
     lines = ["| family | method | scenes | success (%) | coverage before -> after (%) | path (m) | straight (m) "

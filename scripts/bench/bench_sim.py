@@ -5,7 +5,7 @@ Prints median and p95 over many runs, and the ratio of a full ``Scene.render`` (
 depth, object ids, ground truth with visibility) to the bare rasterization of the same mesh
 (the reference: what any renderer must pay), plus the benchmark set's starting occlusion.
 
-Usage: .venv/bin/python scripts/bench_sim.py [--scenes 20] [--renders 50] [--resolution small]
+Usage: .venv/bin/python scripts/bench/bench_sim.py [--scenes 20] [--renders 50] [--resolution small]
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-_ROOT = Path(__file__).resolve().parents[1]
+_ROOT = Path(__file__).resolve().parents[2]
 for _package in ("leapnbv_common", "leapnbv_perception", "leapnbv_geometry", "leapnbv_sim"):
     sys.path.insert(0, str(_ROOT / "src" / _package))
 

@@ -14,7 +14,7 @@ obvious way. Its S_o must equal the fast one exactly.
 
 The ring and every other parameter are the nbv node's defaults (the robot's values, radius 2.5 m).
 
-Usage: .venv/bin/python scripts/bench_planner.py [--repeats 200] [--reference-repeats 3] [--robot-only]
+Usage: .venv/bin/python scripts/bench/bench_planner.py [--repeats 200] [--reference-repeats 3] [--robot-only]
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from typing import Callable, List, Tuple  # noqa: E402
 import numpy as np  # noqa: E402
 
 for _package in ("leapnbv_planner", "leapnbv_common"):  # the ROS-free cores, straight from the source tree
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / _package))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src" / _package))
 
 from types import SimpleNamespace  # noqa: E402
 
