@@ -1,5 +1,9 @@
 """python -m leapnbv_model_tools {export-hmr, random-checkpoint, random-yolov8, manifests, fp16-check,
-overflow-table, distill, ladder} ..."""
+overflow-table, distill, ladder, quantize-int8} ...
+
+Every command runs in the tools environment (tools/run.sh) except quantize-int8, which renders its
+calibration frames with the simulator and so runs with the robot's environment:
+PYTHONPATH=tools scripts/env.sh python -m leapnbv_model_tools quantize-int8 ..."""
 
 from __future__ import annotations
 
@@ -11,7 +15,7 @@ from typing import Optional, Sequence
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     commands = ("export-hmr", "random-checkpoint", "random-yolov8", "manifests", "fp16-check", "overflow-table",
-                "distill", "ladder")
+                "distill", "ladder", "quantize-int8")
     if not argv or argv[0] not in commands:
         print(f"usage: python -m leapnbv_model_tools {{{','.join(commands)}}} ...", file=sys.stderr)
         return 2
@@ -52,6 +56,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from leapnbv_model_tools.ladder import main as ladder_main
 
         return ladder_main(rest)
+    if command == "quantize-int8":
+        from leapnbv_model_tools.quantize_int8 import main as quantize_main
+
+        return quantize_main(rest)
     if command == "manifests":
         from leapnbv_model_tools.checkpoint import write_manifests
 

@@ -1,9 +1,13 @@
-#!/usr/bin/env python3
-"""Static INT8 quantization (QDQ) of the CPU engines, calibrated on frames the simulator renders, with
-its accuracy and speed cost against FP32 measured on other frames (a script, not a test).
+"""quantize-int8: static INT8 quantization (QDQ) of the CPU engines, calibrated on frames the simulator
+renders, with its accuracy and speed cost against FP32 measured on other frames.
 
-    scripts/env.sh python scripts/quantize_int8.py hmr s32.onnx --out s32.int8.onnx [--calib 32] [--eval 16]
-    scripts/env.sh python scripts/quantize_int8.py detector yolov8s.onnx --out yolov8s.int8.onnx
+Runs with the robot's environment (the simulator renders the frames with numba; onnxruntime's
+quantizer is in its lock), the tools folder on the path:
+
+    PYTHONPATH=tools scripts/env.sh python -m leapnbv_model_tools quantize-int8 hmr s32.onnx \
+        --out s32.int8.onnx [--calib 32] [--eval 16]
+    PYTHONPATH=tools scripts/env.sh python -m leapnbv_model_tools quantize-int8 detector yolov8s.onnx \
+        --out yolov8s.int8.onnx
 
 Calibration inputs are what the node would feed the engine: for ``hmr`` the SMPLer-X crop of the
 person box of benchmark scenes (leapnbv_perception.hmr_crop), for ``detector`` the letterboxed frame
@@ -31,7 +35,7 @@ import os
 import sys
 import tempfile
 import time
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -87,8 +91,9 @@ def anchor_box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 1.0)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools quantize-int8", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("kind", choices=["hmr", "detector"])
     parser.add_argument("model")
     parser.add_argument("--out", required=True)
@@ -104,7 +109,7 @@ def main(argv=None) -> int:
     try:
         fp32 = OnnxRuntimeBackend(args.model, intra_op_threads=1)
     except (ModelFileNotFoundError, BackendError) as error:
-        print(f"quantize_int8: {error}", file=sys.stderr)
+        print(f"quantize-int8: {error}", file=sys.stderr)
         return 2
     specs = dict(fp32.input_specs)
     name = next(iter(specs))
