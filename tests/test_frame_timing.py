@@ -302,7 +302,7 @@ def test_a_burst_of_targets_is_served_newest_first_and_every_skipped_one_is_coun
 
 
 def test_admission_holds_frames_while_one_is_in_flight_and_not_for_long_after_a_refusal():
-    from leapnbv_perception.nodes.detector_node import MIN_IN_FLIGHT_TIMEOUT_S, FramesInFlight
+    from leapnbv_perception.admission import MIN_IN_FLIGHT_TIMEOUT_S, FramesInFlight
 
     frames = FramesInFlight()
     assert not frames.full(1, now_s=0.0, timeout_s=0.5)  # the planner never answered: no limit yet

@@ -148,6 +148,8 @@ class Companion:
             source, the previous frame's mask); the cache is not used.
         expect: frame -> None, called once when a frame starts waiting for it (a camera-pose source that
             must be told which stamp is wanted).
+        on_missing: frame -> None, called when the wait for it ran out (e.g. stop waiting for a stream
+            that stopped).
         bad_reason: What a message that does not convert is counted as (default ``bad_<name>``).
         static_relation: The relation recorded for a SAME_OR_LATEST fallback (STATIC).
     """
@@ -173,6 +175,7 @@ class Companion:
     validate: Optional[Callable[[Received], None]] = None
     lookup: Optional[Callable[[Frame], Optional[Received]]] = None
     expect: Optional[Callable[[Frame], None]] = None
+    on_missing: Optional[Callable[[Frame], None]] = None
     bad_reason: str = ""
     static_relation: int = STATIC_RELATION
 
@@ -231,15 +234,20 @@ class Stage:
         capacity: Frames waiting at once (the oldest falls out: ``<key>_evicted``).
         stamp_guard: The node's DuplicateStampGuard (one content per stamp and input), if it has other
             inputs that share it.
+        frame_error_reason: What a ValueError raised by ``on_frame`` is counted as.
+        on_restart: Called when the stamps started over (the node forgets what it keeps by stamp itself).
     """
 
     def __init__(self, node: Any, key: KeyInput, companions: Sequence[Companion], on_frame: Callable[[Frame], None],
-                 capacity: int = 10, stamp_guard: Optional[DuplicateStampGuard] = None) -> None:
+                 capacity: int = 10, stamp_guard: Optional[DuplicateStampGuard] = None,
+                 frame_error_reason: str = "bad_frame", on_restart: Optional[Callable[[], None]] = None) -> None:
         self.node = node
         self.diagnostics = node.diagnostics
         self.key = key
         self.companions = list(companions)
         self.on_frame = on_frame
+        self.frame_error_reason = frame_error_reason
+        self.on_restart = on_restart
         self.capacity = max(1, int(capacity))
         self.stamps = stamp_guard or DuplicateStampGuard()
         drop = self.diagnostics.drop_callback()
@@ -260,7 +268,9 @@ class Stage:
     def start(self) -> None:
         """Create the subscriptions and timers (a lifecycle node's activate)."""
         node = self.node
-        for companion in self.companions:
+        # Calibration (SAME_OR_LATEST) is pulled before the frames: a frame taken in the same pull is checked
+        # against its own camera_info.
+        for companion in sorted(self.companions, key=lambda c: c.match != SAME_OR_LATEST):
             if companion.topic is None:
                 continue
             callback = self._companion_callback(companion)
@@ -370,6 +380,8 @@ class Stage:
         self.waiting = []
         self.served_stamp = None
         self.restarts += 1
+        if self.on_restart is not None:
+            self.on_restart()
 
     def _companion_callback(self, companion: Companion) -> Callable[..., None]:
         def on_message(msg: Any, info: Any) -> None:
@@ -462,6 +474,8 @@ class Stage:
 
     def _missing(self, companion: Companion, frame: Frame) -> bool:
         """The wait for ``companion`` ran out: whether the frame goes on without it (counted as it says)."""
+        if companion.on_missing is not None:
+            companion.on_missing(frame)
         if companion.match == SAME_OR_LATEST and companion.lookup is None and companion.name in self.latest:
             frame.take(companion.name, self.latest[companion.name], companion.static_relation)
             return True
@@ -497,7 +511,7 @@ class Stage:
             used = frame.received(companion.name)
             if companion.skip_older and used is not None and companion.name in self.caches:
                 self.caches[companion.name].drop_older_than(used.stamp_ns, companion.name + "_skipped")
-        self._guarded("bad_frame", lambda: self.on_frame(frame))
+        self._guarded(self.frame_error_reason, lambda: self.on_frame(frame))
 
     def _start_wait_timer(self) -> None:
         if self._wait_timer is not None and self._wait_timer.is_canceled():
