@@ -27,8 +27,10 @@ NS = "/leapnbv"
 
 def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
                remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
-    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides)."""
-    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace}",
+    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides); ``module``
+    is a module name, or the path of a script (a test's own node)."""
+    program = [module] if module.endswith(".py") else ["-m", module]
+    cmd = [sys.executable, *program, "--ros-args", "-r", f"__ns:={namespace}",
            "--params-file", default_params_file()]
     for name, value in (params or {}).items():
         cmd += ["-p", f"{name}:={value}"]
@@ -208,3 +210,42 @@ def stop_with_signal(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout_s
             proc.wait(timeout=5)
             return None
     return proc.returncode
+
+
+# ----------------------------------------------------------------------------- lifecycle (ros2 lifecycle get/set)
+
+
+def lifecycle_get(probe: Probe, node: str, timeout_s: float = 10.0) -> str:
+    """``ros2 lifecycle get <node>`` over DDS: the label of its state (e.g. "unconfigured")."""
+    from lifecycle_msgs.srv import GetState
+
+    return _lifecycle_call(probe, GetState, f"{node}/get_state", GetState.Request(), timeout_s).current_state.label
+
+
+def lifecycle_transitions(probe: Probe, node: str, timeout_s: float = 10.0) -> List[str]:
+    """``ros2 lifecycle list <node>``: the labels of the transitions available in its state."""
+    from lifecycle_msgs.srv import GetAvailableTransitions
+
+    response = _lifecycle_call(probe, GetAvailableTransitions, f"{node}/get_available_transitions",
+                               GetAvailableTransitions.Request(), timeout_s)
+    return [t.transition.label for t in response.available_transitions]
+
+
+def lifecycle_set(probe: Probe, node: str, transition: str, timeout_s: float = 60.0) -> bool:
+    """``ros2 lifecycle set <node> <transition>`` (by label: configure, activate, ...): whether it succeeded."""
+    from lifecycle_msgs.srv import ChangeState
+
+    request = ChangeState.Request()
+    request.transition.label = transition
+    return bool(_lifecycle_call(probe, ChangeState, f"{node}/change_state", request, timeout_s).success)
+
+
+def _lifecycle_call(probe: Probe, srv_type, service: str, request, timeout_s: float):
+    client = probe.node.create_client(srv_type, service)
+    try:
+        assert probe.spin_until(client.service_is_ready, 10.0), f"no {service} service"
+        future = client.call_async(request)
+        assert probe.spin_until(future.done, timeout_s), f"{service}: no answer within {timeout_s} s"
+        return future.result()
+    finally:
+        probe.node.destroy_client(client)

@@ -1,5 +1,5 @@
-"""Per-node health on /diagnostics: rate, latency, engine state, why inputs were rejected, and why
-frames were dropped."""
+"""Per-node health on /diagnostics: rate, latency, engine state, lifecycle state, why inputs were
+rejected, and why frames were dropped."""
 from __future__ import annotations
 
 import collections
@@ -30,6 +30,12 @@ class StageDiagnostics:
     them in the subscription's queue while the node was busy, or best-effort transport lost them)
     as ``dropped.<name>_not_taken``, from the publisher's sequence numbers, and keeps the input's
     last transport time (publish to receive) as ``transport_ms.<name>``.
+
+    A managed node (:class:`leapnbv_common.managed_node.ManagedNode`) also reports its lifecycle
+    state (``lifecycle_state``: unconfigured, inactive, active, ...), why its last transition failed
+    (``lifecycle_reason``, empty once one succeeds) and its process (``process``: host:pid, so that a
+    lifecycle manager sees a restarted node), in every state. ``awaiting_publishers`` lists the inputs
+    named by `await_publishers` that have no publisher yet (empty when connected).
     """
 
     def __init__(self, node, hardware_id: str = "", period_s: float = 1.0) -> None:
@@ -53,6 +59,9 @@ class StageDiagnostics:
         self._out_times: Deque[float] = collections.deque(maxlen=50)
         self._awaited_publishers: Dict[str, str] = {}  # input name -> resolved topic, until one is discovered
         self.info: Dict[str, str] = {}  # what the node is configured as (``info.<key>``), e.g. the engine's kind
+        self.lifecycle_state: Optional[str] = None  # None: not a managed node (no lifecycle keys)
+        self.lifecycle_reason = ""
+        self.process = ""
         self._timer = node.create_timer(period_s, self.publish)
 
     def frame_in(self) -> None:
@@ -132,6 +141,13 @@ class StageDiagnostics:
         self.engine_state = state
         self._engine_ok = ok
 
+    def set_lifecycle_state(self, state: str, reason: str = "", process: str = "") -> None:
+        """Report a managed node's lifecycle state, and why its last transition failed ("" if it did not)."""
+        self.lifecycle_state = state
+        self.lifecycle_reason = reason
+        if process:
+            self.process = process
+
     def rate_hz(self) -> float:
         if len(self._out_times) < 2:
             return 0.0
@@ -140,11 +156,12 @@ class StageDiagnostics:
 
     def status(self) -> DiagnosticStatus:
         engine_state = self.engine_state
-        if self._engine_ok and engine_state == "ready" and self._awaited_publishers:
-            awaited = self._still_awaited()
-            if awaited:
-                engine_state = "waiting for a publisher of " + ", ".join(awaited)
-        if not self._engine_ok:
+        awaited = self._still_awaited() if self._awaited_publishers else []
+        if self._engine_ok and engine_state == "ready" and awaited:
+            engine_state = "waiting for a publisher of " + ", ".join(awaited)
+        if self.lifecycle_reason:  # a managed node's transition failed: it says why
+            level, message = DiagnosticStatus.ERROR, self.lifecycle_reason
+        elif not self._engine_ok:
             level, message = DiagnosticStatus.ERROR, self.engine_state
         elif time.monotonic() - self._last_reject_time < WARN_WINDOW_S:
             level, message = DiagnosticStatus.WARN, self.last_reject_detail
@@ -161,6 +178,9 @@ class StageDiagnostics:
             "last_rejection": self.last_reject_detail,
             "dropped_total": sum(self.dropped.values()),
         }
+        if self.lifecycle_state is not None:
+            values.update({"lifecycle_state": self.lifecycle_state, "lifecycle_reason": self.lifecycle_reason,
+                           "process": self.process, "awaiting_publishers": ", ".join(awaited)})
         values.update({f"rejected.{k}": v for k, v in sorted(self.rejected.items())})
         values.update({f"dropped.{k}": v for k, v in sorted(self.dropped.items())})
         values.update({f"counted.{k}": v for k, v in sorted(self.counted.items())})

@@ -109,6 +109,13 @@ def run_node(make_node, args=None) -> None:
     A parameter value the node refuses (:class:`ParamsError`, rclpy's range or type check of a
     declared parameter, or another ValueError raised while it is built) ends the process with one
     line on stderr naming it and exit code EXIT_BAD_PARAMETERS (2), not a traceback.
+
+    A managed node (:class:`leapnbv_common.managed_node.ManagedNode`) with ``autostart`` configures and
+    activates itself here, before the spin (a signal during its engine load ends the start at once; a
+    configure that fails on its parameters exits 2); one whose configure fails otherwise spins
+    unconfigured and retries. The spin ends when the node is shut down (the lifecycle's shutdown
+    transition, exit 0); on a signal a managed node goes through shutdown before it is destroyed, so
+    its hooks release what it holds whatever its state.
     """
     import faulthandler
     import signal
@@ -137,18 +144,23 @@ def run_node(make_node, args=None) -> None:
     node = None
     executor = None
     exit_code = 0
+    starting = True
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         node = make_node()
+        start_up = getattr(node, "start_up", None) if getattr(node, "autostart", False) else None
+        if start_up is not None:
+            start_up()  # a managed node started alone: configure + activate (ParamsError: exit 2)
+        starting = False
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         state["spinning"] = True
-        while not state["signals"] and rclpy.ok():
+        while not state["signals"] and rclpy.ok() and not getattr(node, "finalized", False):
             executor.spin_once(timeout_sec=0.1)  # wakes at least every 0.1 s to see a signal
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException) as error:  # ParamsError, rclpy's range and type checks
-        if node is not None:
+        if not starting:
             raise
         print(f"[{_node_name(args, make_node)}] cannot start: {error}", file=sys.stderr, flush=True)
         exit_code = EXIT_BAD_PARAMETERS
@@ -158,6 +170,9 @@ def run_node(make_node, args=None) -> None:
             if executor is not None:
                 executor.shutdown(timeout_sec=1.0)
             if node is not None:
+                shut_down = getattr(node, "shut_down", None)
+                if shut_down is not None and not starting:
+                    shut_down()  # a managed node releases its engines and subscriptions in order
                 node.destroy_node()
             rclpy.try_shutdown()
         except KeyboardInterrupt:  # a second signal during the clean-up: it is done enough
