@@ -40,6 +40,24 @@ class RetryingLoader:
         if self.try_load() and self._timer is not None:
             self._timer.cancel()
 
+    @staticmethod
+    def load_in_configure(node, what: str, load: Callable[[], Any]) -> Any:
+        """Load in a managed node's ``configure_stage``: the value, or the failure with the same text as above.
+
+        The lifecycle retries the whole configure (leapnbv_common.managed_node), so nothing is retried here.
+
+        Raises:
+            StageNotReady: "<what> not loaded: <error type>: <error>" (the node stays unconfigured with it).
+        """
+        from leapnbv_common.managed_node import StageNotReady
+
+        try:
+            value = load()
+        except Exception as exc:  # noqa: BLE001 - any load failure is the configure's reason
+            raise StageNotReady(f"{what} not loaded: {type(exc).__name__}: {exc}") from exc
+        node.get_logger().info(f"{what} loaded")
+        return value
+
 
 def create_engine_backend(params: EngineParams):
     """The engine backend an EngineParams instance names (onnxruntime or tensorrt) for its model file."""
