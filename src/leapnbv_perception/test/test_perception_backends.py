@@ -115,10 +115,27 @@ def test_missing_model_file_names_path(tmp_path: Path) -> None:
 
 
 def test_unknown_backend_and_precision(models: Dict[str, str]) -> None:
-    with pytest.raises(ValueError, match="openvino"):
+    with pytest.raises(ValueError, match="unknown engine backend 'openvino'; known: onnxruntime, tensorrt"):
         create_backend("openvino", models["detector"])
     with pytest.raises(ValueError, match="int8"):
         create_backend("onnxruntime", models["detector"], precision="int8")
+
+
+def test_a_backend_registered_from_outside_is_created_by_name(tmp_path: Path) -> None:
+    from leapnbv_perception.backends import ENGINE_BACKENDS, BackendSettings, register_backend
+
+    model = tmp_path / "m.onnx"
+    model.write_bytes(b"not read by this backend")
+    made = []
+    register_backend("Recorded", lambda path, precision, settings: made.append((path, precision, settings)) or made)
+    try:
+        assert "recorded" in ENGINE_BACKENDS.names()
+        assert create_backend(" RECORDED ", str(model), precision="FP16", intra_op_threads=3, providers=["A"]) is made
+        assert made == [(str(model), "fp16", BackendSettings(providers=("A",), intra_op_threads=3))]
+        with pytest.raises(ModelFileNotFoundError):
+            create_backend("recorded", str(tmp_path / "missing.onnx"))
+    finally:
+        ENGINE_BACKENDS.unregister("recorded")
 
 
 def test_run_rejects_wrong_input(models: Dict[str, str]) -> None:

@@ -150,7 +150,7 @@ def test_decode_empty() -> None:
 @pytest.fixture
 def registry(monkeypatch):
     """The family registry, emptied of runtime registrations for one test."""
-    monkeypatch.setattr(detector_families, "_registered", {})
+    monkeypatch.setattr(detector_families, "DETECTOR_FAMILIES", detector_families.family_registry())
     return detector_families
 
 
