@@ -39,10 +39,11 @@ import numpy as np  # noqa: E402
 
 for _package in ("leapnbv_planner", "leapnbv_common"):  # the ROS-free cores, straight from the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src" / _package))
-
-from types import SimpleNamespace  # noqa: E402
+# reference_planner_kernels: the tests' per-point occlusion kernel and plain line-of-sight walk.
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src" / "leapnbv_planner" / "test"))
 
 from leapnbv_planner.candidates import check_feasibility, generate_candidates  # noqa: E402
+from leapnbv_planner.inputs import CameraInMap, PlanFloor, PlanInputs, PlanTarget  # noqa: E402
 from leapnbv_planner.obstacle_map import (  # noqa: E402
     line_of_sight_clear_fraction,
     voxel_map_from_centres,
@@ -319,13 +320,13 @@ def main() -> None:
 
     print("\nplan_views (ring, feasibility, scoring, choice, base goal), 20k/100k, C = 17:")
     target, background = scene_with_counts(20000, 100000)
-    frame = SimpleNamespace(valid=True, target_points=target.astype(np.float32),
-                            background_points=background.astype(np.float32), centroid=centroid,
-                            k=INTRINSICS, width=WIDTH, height=HEIGHT)
-    ground = SimpleNamespace(valid=True, normal=PLANE_NORMAL, offset=PLANE_OFFSET)
+    frame = PlanTarget(target_points=target.astype(np.float32), background_points=background.astype(np.float32),
+                       centroid=centroid, k=INTRINSICS, width=WIDTH, height=HEIGHT)
+    ground = PlanFloor(normal=PLANE_NORMAL, offset=PLANE_OFFSET)
     for label, obstacle_map, camera_pose in (("frame only", None, None),
-                                             ("with the obstacle map", grid, (np.eye(3), np.zeros(3)))):
-        median, p95 = time_call(partial(plan_views, frame, ground, params, obstacle_map, camera_pose), args.repeats)
+                                             ("with the obstacle map", grid, CameraInMap(np.eye(3), np.zeros(3)))):
+        median, p95 = time_call(partial(plan_views, PlanInputs(frame, ground, params, obstacle_map, camera_pose)),
+                                args.repeats)
         print(f"  {label:22s}: {median:7.2f} / {p95:7.2f}")
 
     bench_robot_plan(params, centroid, grid, args.repeats)
@@ -335,18 +336,18 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
     """The robot's plan: 3 rings x 16 candidates (1.5-2.5 m), reachability on the floor grid, the mesh S_o over a
     10k-vertex body mesh, 100k background points (20k target points for S_v)."""
     target, background = scene_with_counts(20000, 100000)
-    ground = SimpleNamespace(valid=True, normal=PLANE_NORMAL, offset=PLANE_OFFSET)
+    ground = PlanFloor(normal=PLANE_NORMAL, offset=PLANE_OFFSET)
     mesh_vertices, mesh_faces = cylinder_mesh(10000)
     robot = dataclasses.replace(params, num_rings=3, min_radius=1.5, reachability=True,
                                 score_terms=["visibility", "area", "body_occlusion", "travel"])
-    frame = SimpleNamespace(valid=True, target_points=target.astype(np.float32),
-                            background_points=background.astype(np.float32), centroid=centroid,
-                            k=INTRINSICS, width=WIDTH, height=HEIGHT)
+    frame = PlanTarget(target_points=target.astype(np.float32), background_points=background.astype(np.float32),
+                       centroid=centroid, k=INTRINSICS, width=WIDTH, height=HEIGHT)
     print(f"\nplan_views, 3 rings x 16 + current, reachability, mesh S_o ({len(mesh_vertices)} vertices), 100k "
           "background:")
     for label, obstacle_map, camera_pose in (("frame only", None, None),
-                                             ("with the obstacle map", grid, (np.eye(3), np.zeros(3)))):
-        call = partial(plan_views, frame, ground, robot, obstacle_map, camera_pose, (mesh_vertices, mesh_faces))
+                                             ("with the obstacle map", grid, CameraInMap(np.eye(3), np.zeros(3)))):
+        call = partial(plan_views, PlanInputs(frame, ground, robot, obstacle_map, camera_pose,
+                                              (mesh_vertices, mesh_faces)))
         median, p95 = time_call(call, repeats)
         # The process's CPU time too: on a shared machine the wall time also holds what others took from the core.
         cpu = []
@@ -355,7 +356,8 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
             call()
             cpu.append((time.process_time() - start) * 1e3)
         print(f"  {label:22s}: {median:7.2f} / {p95:7.2f}   (CPU time p50 {np.median(cpu):.2f})")
-    plan = plan_views(frame, ground, robot, grid, (np.eye(3), np.zeros(3)), (mesh_vertices, mesh_faces))
+    plan = plan_views(PlanInputs(frame, ground, robot, grid, CameraInMap(np.eye(3), np.zeros(3)),
+                                 (mesh_vertices, mesh_faces)))
     print(f"  feasible {int(plan.feasibility.feasible.sum())} of {len(plan.candidates)}, unreachable "
           f"{int((plan.feasibility.reasons == 3).sum())}, chosen {plan.chosen_index}, path "
           f"{0 if plan.base_path is None else len(plan.base_path)} cells")
@@ -366,8 +368,8 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
         print(f"  {name}: max |plan - per-point reference| over the {int(scored.sum())} scored candidates "
               f"{difference:.1e}")
     every = dataclasses.replace(robot, score_infeasible=True)
-    median, p95 = time_call(partial(plan_views, frame, ground, every, None, None, (mesh_vertices, mesh_faces)),
-                            repeats)
+    frame_only = PlanInputs(frame, ground, every, body_mesh=(mesh_vertices, mesh_faces))
+    median, p95 = time_call(partial(plan_views, frame_only), repeats)
     print(f"  every candidate scored (score_infeasible), frame only: {median:7.2f} / {p95:7.2f}")
 
 
@@ -375,8 +377,8 @@ def reference_robot_terms(plan, target: np.ndarray, background: np.ndarray, mesh
                           mesh_faces: np.ndarray, grid, robot) -> dict:
     """S_v and the mesh S_o of the plan's candidates from the per-point kernel (count_visible_targets: every point
     projected, every background point tested) and the plain line-of-sight walk (segments_clear)."""
-    from leapnbv_planner.obstacle_map import segments_clear
-    from leapnbv_planner.occlusion_kernel import count_visible_targets
+    from reference_planner_kernels import count_visible_targets, segments_clear
+
     from leapnbv_planner.plan import mesh_vertex_normals
 
     rotations, positions = plan.candidates.rotations, plan.candidates.positions
