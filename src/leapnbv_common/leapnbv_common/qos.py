@@ -40,3 +40,14 @@ def latched_map_qos() -> QoSProfile:
     """Maps (e.g. the obstacle map): reliable and transient-local with depth 1, so a node that
     starts late still gets the current map, and only the latest map is kept."""
     return _keep_last(1, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def tf_qos(depth: int = 100) -> QoSProfile:
+    """/tf as tf2_ros publishes and reads it: reliable, volatile, a deep history (many links at a high rate)."""
+    return _keep_last(depth, ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE)
+
+
+def tf_static_qos(depth: int = 100) -> QoSProfile:
+    """/tf_static as tf2_ros reads it: reliable, transient-local (each broadcaster keeps its one latest
+    message, depth 1, for subscribers that come later; a listener keeps up to ``depth`` broadcasters')."""
+    return _keep_last(depth, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)

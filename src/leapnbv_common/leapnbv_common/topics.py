@@ -36,6 +36,11 @@ ROBOT_TOPICS: Dict[str, str] = {
 CAMERA_POSE_TOPIC = ROBOT_TOPICS["camera_pose"]
 OBSTACLE_MAP_TOPIC = ROBOT_TOPICS["obstacle_map"]
 
+# The robot's TF tree (tf2_msgs/TFMessage; absolute names, as tf2_ros uses them): dynamic links on
+# TF_TOPIC, static ones (transient-local) on TF_STATIC_TOPIC. The TF camera-pose source reads both.
+TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
+
 # Every remappable input of the graph.
 INPUT_TOPICS: Dict[str, str] = {**CAMERA_TOPICS, **ROBOT_TOPICS}
 

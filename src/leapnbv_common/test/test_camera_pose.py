@@ -53,9 +53,9 @@ def test_topic_source_remembers_by_stamp_and_counts_bad_poses():
         assert source.pose_at(3).stamp_ns == 3 and source.pose_at(4) is None
         assert [p.stamp_ns for p in arrived] == [1, 2, 3]
         assert node.diagnostics.rejected["bad_camera_pose"] == 1
-        with pytest.raises(ValueError, match="unknown camera pose source 'tf'; known: \\['topic'\\]"):
-            create_camera_pose_source("tf", node, capacity=2)
-        assert set(CAMERA_POSE_SOURCES) == {"topic"}
+        with pytest.raises(ValueError, match="unknown camera pose source 'gps'; known: tf, topic"):
+            create_camera_pose_source("gps", node, capacity=2)
+        assert CAMERA_POSE_SOURCES.names() == ["tf", "topic"]
         node.destroy_node()
     finally:
         rclpy.shutdown()
