@@ -298,7 +298,7 @@ def test_invalid_ground_plane_gives_no_goal(graph, planned):
 
 def test_published_plan_is_plan_views_on_the_same_inputs(graph, planned):
     """The node adds nothing to plan_views: every field of its outputs comes from the core call."""
-    from leapnbv_planner.nodes.nbv_node import candidate_markers
+    from leapnbv_planner.nodes.markers import candidate_markers
     from leapnbv_planner.plan import plan_views
 
     key = planned["key"]

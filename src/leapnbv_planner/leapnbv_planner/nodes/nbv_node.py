@@ -44,7 +44,7 @@ from nav_msgs.msg import Path
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
 from leapnbv_common import topics
 from leapnbv_common.camera_pose import StampedCameraPose, create_camera_pose_source
@@ -56,7 +56,6 @@ from leapnbv_common.conversions import (
     human_mesh_to_arrays,
     obstacle_map_to_points,
     path_msg,
-    point_msg,
     pose_msg,
     stamp_to_ns,
     target_geometry_to_arrays,
@@ -68,9 +67,13 @@ from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import latched_goal_qos, latched_map_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
 from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, InputStamp, TargetGeometry, ViewCandidates
+from leapnbv_planner.inputs import PlanInputs
+from leapnbv_planner.nodes.markers import candidate_markers
 from leapnbv_planner.obstacle_map import voxel_map_from_centres, warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
-from leapnbv_planner.plan import Plan, base_goal_frame, plan_views
+from leapnbv_planner.plan import plan_views
+from leapnbv_planner.requirements import BODY_MESH, Requirement
+from leapnbv_planner.score_terms.base import declared_requirements, get_term
 from leapnbv_planner.scoring import warm_up_scoring
 
 GOAL_AGE_CHECK_PERIOD_S = 0.1  # how often the latched goal's age is checked (only while a goal is current)
@@ -79,7 +82,7 @@ BODY_MESH_CACHE = 30  # body meshes (and frames waiting for theirs) remembered b
 
 
 def body_mesh_arrays(msg: HumanMesh) -> Tuple[np.ndarray, np.ndarray]:
-    """(vertices (V, 3) float64, faces (F, 3)) of a metric body mesh, checked (the body_occlusion term's input)."""
+    """(vertices (V, 3) float64, faces (F, 3)) of a metric body mesh, checked (what BODY_MESH terms read)."""
     mesh = human_mesh_to_arrays(msg)
     return mesh.vertices.astype(np.float64), mesh.faces.reshape(-1, 3)
 
@@ -128,7 +131,7 @@ class NbvNode(Node):
         self.obstacle_map_stamp = 0
         # The target starts the work (the newest only); it takes the plane of its own frame (waited for),
         # its camera pose while a map is in use (DDS does not order topics: waited for briefly) and its
-        # metric body mesh while body_occlusion is scored and some node publishes them.
+        # metric body mesh while a chosen term reads it (BODY_MESH) and some node publishes them.
         self.stage = Stage(self, KeyInput("target_geometry", TargetGeometry, topics.TARGET_GEOMETRY,
                                           target_geometry_to_arrays, stage_input_qos(1), bad_reason="bad_target",
                                           frame_name="target", accept=self.accept_target), [
@@ -139,7 +142,7 @@ class NbvNode(Node):
                       wait_s=lambda f: self.params.value.camera_pose_wait_s,
                       expect=lambda f: self.camera_poses.expect(f.stamp_ns, f.header.frame_id)),
             Companion(topics.HUMAN_MESH_METRIC, HumanMesh, topics.HUMAN_MESH_METRIC, body_mesh_arrays,
-                      stage_input_qos(5), needed=lambda f: "body_occlusion" in self.params.value.score_terms,
+                      stage_input_qos(5), needed=lambda f: self.terms_need(BODY_MESH),
                       wait_s=self.body_mesh_wait_s, missing_reason="no_body_mesh",
                       missing_detail=lambda f: "no metric body mesh of this frame: body_occlusion scored the observed"
                       " points", capacity=BODY_MESH_CACHE, bad_reason="bad_body_mesh"),
@@ -183,6 +186,11 @@ class NbvNode(Node):
 
     def map_in_use(self) -> bool:
         return self.obstacle_map is not None and self.params.value.use_obstacle_map
+
+    def terms_need(self, requirement: Requirement) -> bool:
+        """Whether a chosen score term declares this requirement (the node waits only for inputs a term reads)."""
+        terms = [get_term(name) for name in self.params.value.score_terms]
+        return requirement.name in declared_requirements(terms)
 
     def body_mesh_wait_s(self, frame: Frame) -> float:
         """Wait for a body mesh only while some node publishes them (the graph's raster_node): else none comes."""
@@ -282,8 +290,8 @@ class NbvNode(Node):
             if ("camera_pose", stamp, InputStamp.SAME_FRAME) not in inputs:
                 inputs.append(("camera_pose", stamp))
             inputs.append(("obstacle_map", self.obstacle_map_stamp, InputStamp.STATIC))
-        plan = plan_views(frame["target_geometry"], floor[0], self.params.value,
-                          self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh)
+        plan = plan_views(PlanInputs(frame["target_geometry"], floor[0], self.params.value,
+                                     self.obstacle_map if camera_pose is not None else None, camera_pose, body_mesh))
         compute_time_ms = (time.perf_counter() - started) * 1e3
         # The goal first (what the motion stack waits for), then the candidates, the path and the markers.
         goal_published = False
@@ -338,51 +346,6 @@ class NbvNode(Node):
             msg.goal_age_s = float((now - self.goal_stamp) * 1e-9)
         self.goal_state = state
         self.status_pub.publish(msg)
-
-
-def _score_colour(value: float, lo: float, hi: float):
-    t = 0.0 if hi <= lo else (value - lo) / (hi - lo)
-    return float(1.0 - t), float(t), 0.2  # red (low) -> green (high)
-
-
-def candidate_markers(header, out: ViewCandidates, plan: Plan) -> MarkerArray:
-    """Ring coloured by score, infeasible candidates as grey cubes, the chosen view as an arrow."""
-    markers = MarkerArray()
-    clear = Marker(header=header, ns="leapnbv_candidates", action=Marker.DELETEALL)
-    markers.markers.append(clear)
-    scores = np.asarray(out.score, dtype=np.float64)
-    shown = scores[np.asarray(out.feasible, dtype=bool)]  # the colour scale of the candidates that were scored
-    lo, hi = (float(shown.min()), float(shown.max())) if shown.size else (0.0, 1.0)
-    for i, pose in enumerate(out.poses):
-        m = Marker(header=header, ns="leapnbv_candidates", id=i, pose=pose)
-        m.frame_locked = False
-        if out.feasible[i]:
-            m.type = Marker.SPHERE
-            m.scale.x = m.scale.y = m.scale.z = 0.12
-            m.color.r, m.color.g, m.color.b = _score_colour(float(scores[i]), lo, hi)
-        else:
-            m.type = Marker.CUBE
-            m.scale.x = m.scale.y = m.scale.z = 0.1
-            m.color.r = m.color.g = m.color.b = 0.5
-        m.color.a = 1.0
-        markers.markers.append(m)
-    if out.chosen_index >= 0:
-        # Arrow markers point along their x axis; the camera looks along its z axis.
-        arrow = Marker(header=header, ns="leapnbv_chosen", id=0, type=Marker.ARROW)
-        start = plan.candidates.positions[out.chosen_index]
-        end = start + 0.5 * plan.candidates.rotations[out.chosen_index][:, 2]
-        arrow.points = [point_msg(start), point_msg(end)]
-        arrow.scale.x, arrow.scale.y, arrow.scale.z = 0.04, 0.08, 0.1
-        arrow.color.g, arrow.color.b, arrow.color.a = 0.8, 1.0, 1.0
-        markers.markers.append(arrow)
-    centre = Marker(header=header, ns="leapnbv_ring_center", id=0, type=Marker.CYLINDER)
-    # A flat disc on the ground: the cylinder's axis (its z) along the plane normal.
-    centre.pose = pose_msg(*base_goal_frame(plan.candidates.ring_center, plan.candidates.positions[-1], plan.up))
-    centre.scale.x = centre.scale.y = 2 * out.ring_radius
-    centre.scale.z = 0.005
-    centre.color.b, centre.color.a = 1.0, 0.15
-    markers.markers.append(centre)
-    return markers
 
 
 def main(args=None) -> None:
