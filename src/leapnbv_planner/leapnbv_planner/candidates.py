@@ -13,6 +13,7 @@ from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.footprint_kernel import elevated_plane_points, footprints_blocked_in_plane
 from leapnbv_planner.params import CandidateRingParams
 
@@ -56,12 +57,12 @@ class CandidateSet:
         is_current: (C,) bool, True for the current view.
     """
 
-    rotations: np.ndarray
-    positions: np.ndarray
-    foot_points: np.ndarray
-    ring_center: np.ndarray
+    rotations: Array
+    positions: Array
+    foot_points: Array
+    ring_center: Array
     camera_height: float
-    is_current: np.ndarray
+    is_current: Array
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])
@@ -75,11 +76,11 @@ class FeasibilityResult(NamedTuple):
         reasons: (C,) int8 FeasibilityReason codes (0 = OK).
     """
 
-    feasible: np.ndarray
-    reasons: np.ndarray
+    feasible: Array
+    reasons: Array
 
 
-def _as_vector3(value: object, name: str) -> np.ndarray:
+def _as_vector3(value: object, name: str) -> Array:
     """Return value as a finite float64 (3,) array or raise CandidateGenerationError."""
     vector = np.asarray(value, dtype=np.float64)
     if vector.shape != (3,):
@@ -89,7 +90,7 @@ def _as_vector3(value: object, name: str) -> np.ndarray:
     return vector
 
 
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: Array, b: Array) -> Array:
     """np.cross over the last axis (3-vectors, or rows of them, broadcast), the same arithmetic (each component
     a_i b_j - a_j b_i, the products rounded first) without np.cross's per-call overhead (~0.1 ms)."""
     a = np.asarray(a, dtype=np.float64)
@@ -101,15 +102,16 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def norm3(v: np.ndarray) -> np.ndarray:
+def norm3(v: Array) -> Array:
     """Euclidean length of 3-vectors over the last axis, as elementwise arithmetic: the same bits for one vector
     and for rows of them on every CPU (np.linalg.norm of one vector goes through BLAS, whose summation order
     depends on the CPU's vector width)."""
     v = np.asarray(v, dtype=np.float64)
-    return np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+    norms: Array = np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+    return norms
 
 
-def normalize_plane(plane_normal: np.ndarray, plane_offset: float) -> Tuple[np.ndarray, float]:
+def normalize_plane(plane_normal: Array, plane_offset: float) -> Tuple[Array, float]:
     """Scale the plane n.x + d = 0 so that |n| = 1.
 
     Args:
@@ -132,7 +134,7 @@ def normalize_plane(plane_normal: np.ndarray, plane_offset: float) -> Tuple[np.n
     return normal / length, offset / length
 
 
-def plane_basis(unit_normal: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def plane_basis(unit_normal: Array) -> Tuple[Array, Array]:
     """Two unit vectors spanning the plane orthogonal to unit_normal.
 
     Args:
@@ -149,7 +151,7 @@ def plane_basis(unit_normal: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return e1, e2
 
 
-def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarray) -> np.ndarray:
+def camera_look_at(position: Array, target: Array, up_normal: Array) -> Array:
     """Rotation of a camera at `position` whose optical axis points at `target`.
 
     z = normalize(target - position) (optical axis), x = normalize(z x up) (parallel to the
@@ -195,7 +197,7 @@ def camera_look_at(position: np.ndarray, target: np.ndarray, up_normal: np.ndarr
     return np.stack([x_axis, y_axis, z_axis], axis=1)
 
 
-def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray) -> np.ndarray:
+def _look_at_many(positions: Array, target: Array, unit_up: Array) -> Array:
     """camera_look_at for (C, 3) positions at once (the same arithmetic row by row); degenerate rows
     (looking along up, or at the target itself) go through camera_look_at."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -208,15 +210,15 @@ def _look_at_many(positions: np.ndarray, target: np.ndarray, unit_up: np.ndarray
     x_length = norm3(x_axis)
     x_axis = x_axis / np.where(x_length > 0, x_length, 1.0)[:, None]
     y_axis = cross(z_axis, x_axis)
-    rotations = np.stack([x_axis, y_axis, z_axis], axis=2)
+    rotations: Array = np.stack([x_axis, y_axis, z_axis], axis=2)
     for index in np.flatnonzero((distance < _DEGENERATE_NORM) | (x_length < _DEGENERATE_NORM)):
         rotations[index] = camera_look_at(positions[index], targets[index], unit_up)
     return rotations
 
 
 def _ring_start_direction(
-    ring_center: np.ndarray, current_foot: np.ndarray, unit_normal: np.ndarray
-) -> np.ndarray:
+    ring_center: Array, current_foot: Array, unit_normal: Array
+) -> Array:
     """Unit in-plane direction from the ring centre toward the current camera's foot point.
 
     Falls back to the current camera's backward axis (-z) projected on the plane when the
@@ -230,11 +232,12 @@ def _ring_start_direction(
         in_plane = direction - float(direction @ unit_normal) * unit_normal
         length = float(np.linalg.norm(in_plane))
         if length > 1e-6:
-            return in_plane / length
+            level: Array = in_plane / length
+            return level
     raise CandidateGenerationError("cannot find an in-plane start direction for the ring")
 
 
-def ring_radii(params: CandidateRingParams) -> np.ndarray:
+def ring_radii(params: CandidateRingParams) -> Array:
     """The ring radii, innermost first: ``radius`` alone, or num_rings radii evenly from min_radius to radius."""
     rings = int(getattr(params, "num_rings", 1))
     if rings <= 1:
@@ -242,8 +245,8 @@ def ring_radii(params: CandidateRingParams) -> np.ndarray:
     return np.linspace(float(params.min_radius), float(params.radius), rings)
 
 
-def cameras_at_feet(feet: np.ndarray, centroid: np.ndarray, unit_normal: np.ndarray, camera_height: float,
-                    params: CandidateRingParams) -> Tuple[np.ndarray, np.ndarray]:
+def cameras_at_feet(feet: Array, centroid: Array, unit_normal: Array, camera_height: float,
+                    params: CandidateRingParams) -> Tuple[Array, Array]:
     """(rotations (N, 3, 3), positions (N, 3)) of the robot's camera standing at (N, 3) foot points.
 
     The camera sits at the mounting height (``params.camera_height``, or ``camera_height``, the current
@@ -265,8 +268,8 @@ def cameras_at_feet(feet: np.ndarray, centroid: np.ndarray, unit_normal: np.ndar
 
 
 def generate_candidates(
-    centroid: np.ndarray,
-    plane_normal: np.ndarray,
+    centroid: Array,
+    plane_normal: Array,
     plane_offset: float,
     params: CandidateRingParams,
 ) -> CandidateSet:
@@ -347,11 +350,11 @@ def generate_candidates(
 
 def check_feasibility(
     candidates: CandidateSet,
-    background_points: np.ndarray,
-    plane_normal: np.ndarray,
+    background_points: Array,
+    plane_normal: Array,
     plane_offset: float,
     params: CandidateRingParams,
-    obstacle_plane_points: Optional[np.ndarray] = None,
+    obstacle_plane_points: Optional[Array] = None,
 ) -> FeasibilityResult:
     """Which candidates the robot can stand at.
 

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+from typing import Tuple
+
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.jit import njit
 
 
 @njit(cache=True)
 def _cells_near(foot_u: float, foot_v: float, u_lo: float, v_lo: float, size: float, reach: float, cols: int,
-                rows: int):
+                rows: int) -> Tuple[int, int, int, int]:
     """(first col, last col, first row, last row) of the grid cells that come within reach of the foot."""
     col_a = max(0, int(np.floor((foot_u - reach - u_lo) / size)) - 1)
     col_b = min(cols - 1, int(np.floor((foot_u + reach - u_lo) / size)) + 1)
@@ -19,8 +22,8 @@ def _cells_near(foot_u: float, foot_v: float, u_lo: float, v_lo: float, size: fl
 
 
 @njit(cache=True)
-def elevated_plane_points(points: np.ndarray, unit_normal: np.ndarray, plane_offset: float, min_height: float,
-                          plane_axis_u: np.ndarray, plane_axis_v: np.ndarray) -> np.ndarray:
+def elevated_plane_points(points: Array, unit_normal: Array, plane_offset: float, min_height: float,
+                          plane_axis_u: Array, plane_axis_v: Array) -> Array:
     """(M, 2) plane coordinates (p.a_u, p.a_v) of the finite points higher than min_height above the plane
     (n.p + d > min_height), in input order: what the footprint test and the floor grid read of an obstacle cloud,
     made once for both.
@@ -46,16 +49,16 @@ def elevated_plane_points(points: np.ndarray, unit_normal: np.ndarray, plane_off
 
 
 def footprints_blocked(
-    points: np.ndarray,
-    unit_normal: np.ndarray,
+    points: Array,
+    unit_normal: Array,
     plane_offset: float,
     floor_clearance: float,
-    plane_axis_u: np.ndarray,
-    plane_axis_v: np.ndarray,
-    feet_u: np.ndarray,
-    feet_v: np.ndarray,
+    plane_axis_u: Array,
+    plane_axis_v: Array,
+    feet_u: Array,
+    feet_v: Array,
     robot_radius: float,
-) -> np.ndarray:
+) -> Array:
     """For each foot point, whether an obstacle point lies within robot_radius of it.
 
     An obstacle point is a finite point p with height n.p + d > floor_clearance. Distances
@@ -80,8 +83,8 @@ def footprints_blocked(
 
 
 @njit(cache=True)
-def footprints_blocked_in_plane(plane_points: np.ndarray, feet_u: np.ndarray, feet_v: np.ndarray,
-                                robot_radius: float) -> np.ndarray:
+def footprints_blocked_in_plane(plane_points: Array, feet_u: Array, feet_v: Array,
+                                robot_radius: float) -> Array:
     """footprints_blocked over the obstacle points' plane coordinates (from :func:`elevated_plane_points`).
 
     Returns:

@@ -3,13 +3,16 @@ normalization (mesh_vertex_normals)."""
 
 from __future__ import annotations
 
+from typing import Tuple
+
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.jit import njit
 
 
 @njit(cache=True)
-def face_normal_sums(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def face_normal_sums(vertices: Array, faces: Array) -> Array:
     """(V, 3) sum over the faces of each vertex of (b - a) x (c - a), the face's area-weighted normal.
 
     The arithmetic is numpy's: the cross product as np.cross computes it (each product rounded, then
@@ -41,7 +44,7 @@ def face_normal_sums(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def unit_normals(sums: np.ndarray, vertices: np.ndarray, centre: np.ndarray):
+def unit_normals(sums: Array, vertices: Array, centre: Array) -> Tuple[Array, float, float]:
     """(V, 3) sums / |sums| per row (0 for a zero row), with numpy's arithmetic for np.linalg.norm(axis=1) and
     ``np.where(length > 0, sums / np.maximum(length, 1e-300), 0)``; and the sum over the vertices of
     n . (v - centre) and of its terms' magnitudes (what decides, and bounds the rounding of, the outward sign).
@@ -69,7 +72,7 @@ def unit_normals(sums: np.ndarray, vertices: np.ndarray, centre: np.ndarray):
     return normals, total, magnitude
 
 
-def mesh_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def mesh_vertex_normals(vertices: Array, faces: Array) -> Array:
     """(V, 3) unit outward vertex normals of a triangle mesh (area-weighted face normals summed per vertex).
 
     The faces' winding decides the sign; a closed body's normals are turned outward when they point, on

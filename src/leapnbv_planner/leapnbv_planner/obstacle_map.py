@@ -24,6 +24,7 @@ from typing import Optional, Protocol, Tuple
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.jit import njit
 
 #: Largest dense grid built from a map (cells); 20 m x 20 m x 3 m at 5 cm is 9.6 M.
@@ -38,11 +39,11 @@ class ObstacleMap(Protocol):
     """What the planner reads of an obstacle map (:class:`VoxelObstacleMap` is one): see there for each."""
 
     @property
-    def occupied(self) -> np.ndarray:
+    def occupied(self) -> Array:
         """(X, Y, Z) bool occupancy of the map's box of cells."""
 
     @property
-    def lower_index(self) -> np.ndarray:
+    def lower_index(self) -> Array:
         """(3,) int64 voxel index of cell (0, 0, 0)."""
 
     @property
@@ -50,10 +51,10 @@ class ObstacleMap(Protocol):
         """Voxel edge (m)."""
 
     @property
-    def centres(self) -> np.ndarray:
+    def centres(self) -> Array:
         """(N, 3) centres of the occupied voxels, map frame."""
 
-    def occupied_prefix_sums(self) -> np.ndarray:
+    def occupied_prefix_sums(self) -> Array:
         """(X + 1, Y + 1, Z + 1) counts of occupied cells below each corner."""
 
 
@@ -68,17 +69,17 @@ class VoxelObstacleMap:
         centres: (N, 3) float64 centres of the occupied voxels, map frame.
     """
 
-    occupied: np.ndarray
-    lower_index: np.ndarray
+    occupied: Array
+    lower_index: Array
     resolution: float
-    centres: np.ndarray
-    _prefix: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
+    centres: Array
+    _prefix: Optional[Array] = field(default=None, repr=False, compare=False)
 
     @property
     def voxel_count(self) -> int:
         return int(self.centres.shape[0])
 
-    def occupied_prefix_sums(self) -> np.ndarray:
+    def occupied_prefix_sums(self) -> Array:
         """(X + 1, Y + 1, Z + 1) int32 counts of occupied cells in [0, a) x [0, b) x [0, c), computed once per map
         (a box of cells is counted with eight look-ups)."""
         if self._prefix is None or self._prefix.shape != tuple(s + 1 for s in self.occupied.shape):
@@ -88,7 +89,7 @@ class VoxelObstacleMap:
         return self._prefix
 
 
-def voxel_map_from_centres(centres: np.ndarray, resolution: float) -> VoxelObstacleMap:
+def voxel_map_from_centres(centres: Array, resolution: float) -> VoxelObstacleMap:
     """Build the dense grid from occupied voxel centres.
 
     Args:
@@ -127,7 +128,7 @@ def voxel_map_from_centres(centres: np.ndarray, resolution: float) -> VoxelObsta
     return VoxelObstacleMap(occupied, lower, float(resolution), (unique_index + 0.5) * resolution)
 
 
-def _check_pose(rotation: np.ndarray, position: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _check_pose(rotation: Array, position: Array) -> Tuple[Array, Array]:
     rotation = np.asarray(rotation, dtype=np.float64)
     position = np.asarray(position, dtype=np.float64).reshape(-1)
     if rotation.shape != (3, 3) or position.shape != (3,):
@@ -140,8 +141,8 @@ def _check_pose(rotation: np.ndarray, position: np.ndarray) -> Tuple[np.ndarray,
     return rotation, position
 
 
-def centres_in_observation(obstacle_map: ObstacleMap, rotation: np.ndarray,
-                           position: np.ndarray) -> np.ndarray:
+def centres_in_observation(obstacle_map: ObstacleMap, rotation: Array,
+                           position: Array) -> Array:
     """The occupied voxel centres in the observation's camera frame.
 
     Args:
@@ -153,18 +154,19 @@ def centres_in_observation(obstacle_map: ObstacleMap, rotation: np.ndarray,
         (N, 3) R^T (c - t) for every centre c.
     """
     rotation, position = _check_pose(rotation, position)
-    return (obstacle_map.centres - position[None, :]) @ rotation
+    centres: Array = (obstacle_map.centres - position[None, :]) @ rotation
+    return centres
 
 
 def line_of_sight_clear_fraction(
     obstacle_map: ObstacleMap,
-    rotation: np.ndarray,
-    position: np.ndarray,
-    camera_positions: np.ndarray,
-    target_points: np.ndarray,
+    rotation: Array,
+    position: Array,
+    camera_positions: Array,
+    target_points: Array,
     max_targets: int = 1500,
     target_margin: float = 0.1,
-) -> np.ndarray:
+) -> Array:
     """Per candidate camera, the share of target points whose line of sight crosses no occupied voxel.
 
     The segment from a camera centre o to a target point q is walked voxel by voxel up to
@@ -199,7 +201,8 @@ def line_of_sight_clear_fraction(
         obstacle_map.occupied, obstacle_map.occupied_prefix_sums(), obstacle_map.lower_index.astype(np.float64),
         obstacle_map.resolution, np.ascontiguousarray(cameras_map), np.ascontiguousarray(targets_map),
         float(target_margin))
-    return clear.mean(axis=1)
+    shares: Array = clear.mean(axis=1)
+    return shares
 
 
 #: A segment's checked part is halved this many times at most for the empty-box test of
@@ -213,7 +216,7 @@ _BOX_GROWTH = 1e-6
 
 
 @njit(cache=True)
-def _box_count(prefix: np.ndarray, lo0: int, hi0: int, lo1: int, hi1: int, lo2: int, hi2: int) -> int:
+def _box_count(prefix: Array, lo0: int, hi0: int, lo1: int, hi1: int, lo2: int, hi2: int) -> int:
     """Occupied voxels in the index box [lo, hi] per axis, from the inclusive 3-D prefix sums."""
     return (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
             - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
@@ -221,7 +224,7 @@ def _box_count(prefix: np.ndarray, lo0: int, hi0: int, lo1: int, hi1: int, lo2: 
 
 
 @njit(cache=True)
-def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, delta: np.ndarray, t_a: float,
+def _piece_may_be_blocked(prefix: Array, sizes: Array, start: Array, delta: Array, t_a: float,
                           t_b: float) -> bool:
     """Whether the cells of the bounding box of g([t_a, t_b]) (g(t) = start + t delta, grid coordinates), grown
     by _BOX_GROWTH, hold an occupied cell (prefix sums: eight look-ups)."""
@@ -243,7 +246,7 @@ def _piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarr
 
 
 @njit(cache=True)
-def _walk_axis(start: float, delta: float, cell: int):
+def _walk_axis(start: float, delta: float, cell: int) -> Tuple[int, float, float]:
     """(step, t_delta, first t_max) of one axis of the walk, with segments_clear's arithmetic."""
     if delta > 0.0:
         return 1, 1.0 / delta, (cell + 1.0 - start) / delta
@@ -254,14 +257,14 @@ def _walk_axis(start: float, delta: float, cell: int):
 
 @njit(cache=True)
 def segments_clear_skipping_empty(
-    occupied: np.ndarray,
-    prefix: np.ndarray,
-    lower_index: np.ndarray,
+    occupied: Array,
+    prefix: Array,
+    lower_index: Array,
     resolution: float,
-    origins: np.ndarray,
-    targets: np.ndarray,
+    origins: Array,
+    targets: Array,
     target_margin: float,
-) -> np.ndarray:
+) -> Array:
     """segments_clear (the plain cell-by-cell walk, the reference kernel in the planner's tests:
     test/reference_planner_kernels.py), with the walk left out where its answer is sure without it.
 
@@ -314,8 +317,8 @@ def segments_clear_skipping_empty(
 
 
 @njit(cache=True)
-def _fan_clear(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, box: np.ndarray, resolution: float,
-               target_margin: float, stack_a: np.ndarray, stack_b: np.ndarray, stack_level: np.ndarray) -> bool:
+def _fan_clear(prefix: Array, sizes: Array, start: Array, box: Array, resolution: float,
+               target_margin: float, stack_a: Array, stack_b: Array, stack_level: Array) -> bool:
     """Whether every segment from the origin (grid coordinates start) to a point of the box (lower, upper corners in
     grid coordinates), up to where its check ends, surely crosses no occupied cell: the fan's pieces t in [t_a, t_b]
     lie in the bounding box of start + t (q - start) over the piece's ends and the box's corners (the map is
@@ -349,7 +352,7 @@ def _fan_clear(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, box: np
 
 
 @njit(cache=True)
-def _fan_piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.ndarray, box: np.ndarray, t_a: float,
+def _fan_piece_may_be_blocked(prefix: Array, sizes: Array, start: Array, box: Array, t_a: float,
                               t_b: float) -> bool:
     """_piece_may_be_blocked for the points start + t (q - start), t in [t_a, t_b], q in the box."""
     lo0 = lo1 = lo2 = hi0 = hi1 = hi2 = 0
@@ -375,10 +378,10 @@ def _fan_piece_may_be_blocked(prefix: np.ndarray, sizes: np.ndarray, start: np.n
 
 
 @njit(cache=True)
-def _walk_one(occupied: np.ndarray, prefix: np.ndarray, sizes: np.ndarray, lower_index: np.ndarray,
-              resolution: float, origins: np.ndarray, targets: np.ndarray, target_margin: float, c: int, m: int,
-              start: np.ndarray, delta: np.ndarray, stack_a: np.ndarray, stack_b: np.ndarray,
-              stack_level: np.ndarray, clear: np.ndarray) -> None:
+def _walk_one(occupied: Array, prefix: Array, sizes: Array, lower_index: Array,
+              resolution: float, origins: Array, targets: Array, target_margin: float, c: int, m: int,
+              start: Array, delta: Array, stack_a: Array, stack_b: Array,
+              stack_level: Array, clear: Array) -> None:
     """One segment of segments_clear_skipping_empty: its own piece test, then (when needed) the walk."""
     size_x, size_y, size_z = occupied.shape[0], occupied.shape[1], occupied.shape[2]
     length = 0.0

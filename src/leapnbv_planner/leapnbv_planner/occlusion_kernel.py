@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import math
-from typing import Tuple
+from typing import List, Tuple
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.jit import njit
 
 
 @njit(cache=True)
-def _row_window_minima(depth: np.ndarray, region_height: int, region_width: int, window: int, half_window: int,
-                       first_occupied: np.ndarray, last_occupied: np.ndarray, prefix_min: np.ndarray,
-                       suffix_min: np.ndarray, row_min: np.ndarray, valid_lo: np.ndarray,
-                       valid_hi: np.ndarray) -> None:
+def _row_window_minima(depth: Array, region_height: int, region_width: int, window: int, half_window: int,
+                       first_occupied: Array, last_occupied: Array, prefix_min: Array,
+                       suffix_min: Array, row_min: Array, valid_lo: Array,
+                       valid_hi: Array) -> None:
     """Running min along each row over ``window`` columns (van Herk / Gil-Werman):
     row_min[rr, a + half_window] = min(depth[rr, a : a + window]), computed only for the window starts a
     that reach an occupied column (valid_lo..valid_hi per row; outside them the row min is +inf)."""
@@ -42,7 +43,7 @@ def _row_window_minima(depth: np.ndarray, region_height: int, region_width: int,
 
 
 @njit(cache=True)
-def axis_aligned_bounds(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def axis_aligned_bounds(points: Array) -> Tuple[Array, Array]:
     """Per-axis min and max of a non-empty (N, 3) array in one pass.
 
     numpy's min(axis=0) on an (N, 3) array walks it with a stride and costs about 1 ms for
@@ -67,7 +68,7 @@ def axis_aligned_bounds(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def points_in_box(points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+def points_in_box(points: Array, lower: Array, upper: Array) -> Array:
     """The rows of (N, 3) ``points`` inside the closed box [lower, upper], in their order (a copy)."""
     out = np.empty_like(points)
     kept = 0
@@ -80,8 +81,8 @@ def points_in_box(points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> n
     return out[:kept]
 
 
-def possible_occluders(background: np.ndarray, positions: np.ndarray, targets: list, fx: float, skew: float,
-                       fy: float, half_window: int) -> np.ndarray:
+def possible_occluders(background: Array, positions: Array, targets: List[Array], fx: float, skew: float,
+                       fy: float, half_window: int) -> Array:
     """The background points that can hide some target point from some candidate camera; the others are left out
     (in order), so that the counts of count_visible_targets are the same without them.
 
@@ -140,7 +141,7 @@ RUN_LENGTH = 16
 
 
 @njit(cache=True)
-def _box_from_bounds(low: np.ndarray, high: np.ndarray, out: np.ndarray) -> None:
+def _box_from_bounds(low: Array, high: Array, out: Array) -> None:
     """out (6,) = centre and half extents of [low, high], the half extents grown by far more than the rounding of
     the centre, so that the box surely holds everything in [low, high]."""
     for a in range(3):
@@ -150,7 +151,8 @@ def _box_from_bounds(low: np.ndarray, high: np.ndarray, out: np.ndarray) -> None
 
 
 @njit(cache=True)
-def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: int, run_length: int):
+def bucket_points(points: Array, companions: Array, points_per_box: int, run_length: int
+                  ) -> Tuple[Array, Array, Array, Array, Array, Array]:
     """Sort (N, 3) points into the cells of a regular grid over their bounds (a stable counting sort), and each
     cell's points into runs of at most run_length consecutive points (in the input's order within the cell: a depth
     image's raster order keeps a run compact).
@@ -264,7 +266,7 @@ def bucket_points(points: np.ndarray, companions: np.ndarray, points_per_box: in
 
 
 @njit(cache=True)
-def run_facing_bounds(points: np.ndarray, normals: np.ndarray, run_starts: np.ndarray) -> np.ndarray:
+def run_facing_bounds(points: Array, normals: Array, run_starts: Array) -> Array:
     """(S, 7) per run of bucketed points with normals: min of n . p over the run, then the lower and upper
     corners of its normals' bounding box (what tells that a whole run faces away from a camera)."""
     num_runs = run_starts.shape[0] - 1
@@ -285,17 +287,17 @@ def run_facing_bounds(points: np.ndarray, normals: np.ndarray, run_starts: np.nd
 
 
 @njit(cache=True)
-def _run_faces_away(bounds: np.ndarray, run: int, tx: float, ty: float, tz: float) -> bool:
+def _run_faces_away(bounds: Array, run: int, tx: float, ty: float, tz: float) -> bool:
     """Every point of the run surely has n . (p - t) > 0 (the far side from camera centre t): n . p - n . t is at
     least min(n . p) - max over the normals' box of n . t, with a margin far above the rounding of either form."""
     most = (max(bounds[run, 1] * tx, bounds[run, 4] * tx) + max(bounds[run, 2] * ty, bounds[run, 5] * ty)
             + max(bounds[run, 3] * tz, bounds[run, 6] * tz))
     scale = abs(bounds[run, 0]) + abs(most) + 1.0
-    return bounds[run, 0] - most > 1e-9 * scale
+    return bounds[run, 0] - most > 1e-9 * scale  # type: ignore[no-any-return]  # numpy scalar compare
 
 
 @njit(cache=True)
-def _form_range(forms: np.ndarray, k: int, box: np.ndarray):
+def _form_range(forms: Array, k: int, box: Array) -> Tuple[float, float]:
     """(min, max) over a box (centre, half extents) of the linear form forms[k, :3] . p + forms[k, 3]."""
     value = forms[k, 0] * box[0] + forms[k, 1] * box[1] + forms[k, 2] * box[2] + forms[k, 3]
     extent = abs(forms[k, 0]) * box[3] + abs(forms[k, 1]) * box[4] + abs(forms[k, 2]) * box[5]
@@ -303,7 +305,7 @@ def _form_range(forms: np.ndarray, k: int, box: np.ndarray):
 
 
 @njit(cache=True)
-def _frustum_forms(forms: np.ndarray, rotation: np.ndarray, position: np.ndarray, fx: float, skew: float, cx: float,
+def _frustum_forms(forms: Array, rotation: Array, position: Array, fx: float, skew: float, cx: float,
                    fy: float, cy: float, u_lo: float, u_hi: float, v_lo: float, v_hi: float, z_far: float) -> None:
     """Fill forms (6, 4) with observation-frame linear forms f(p) = a . p + b of a candidate camera:
     0: z, 1: z_far - z, 2: fx x + skew y - (u_lo - cx) z (>= 0: u >= u_lo), 3: (u_hi - cx) z - fx x - skew y
@@ -324,7 +326,7 @@ def _frustum_forms(forms: np.ndarray, rotation: np.ndarray, position: np.ndarray
 
 
 @njit(cache=True)
-def _box_outside(forms: np.ndarray, box: np.ndarray, far_test: bool) -> bool:
+def _box_outside(forms: Array, box: Array, far_test: bool) -> bool:
     """The box surely holds no point that the per-point test keeps (behind the camera, beyond z_far, or off the
     pixel rectangle; the forms carry the pixel margin)."""
     z_min, z_max = _form_range(forms, 0, box)
@@ -344,7 +346,7 @@ def _box_outside(forms: np.ndarray, box: np.ndarray, far_test: bool) -> bool:
 
 
 @njit(cache=True)
-def _box_inside(forms: np.ndarray, box: np.ndarray) -> bool:
+def _box_inside(forms: Array, box: Array) -> bool:
     """Every point of the box is surely in view (the forms carry the inner pixel margin)."""
     z_min, _ = _form_range(forms, 0, box)
     if not z_min >= _NEAR_Z:
@@ -357,8 +359,8 @@ def _box_inside(forms: np.ndarray, box: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _live_runs(forms: np.ndarray, cell_runs: np.ndarray, cell_boxes: np.ndarray, run_boxes: np.ndarray,
-               far_test: bool, out: np.ndarray) -> int:
+def _live_runs(forms: Array, cell_runs: Array, cell_boxes: Array, run_boxes: Array,
+               far_test: bool, out: Array) -> int:
     """Write to out the runs that _box_outside cannot rule out (their cell's box first, then their own); return
     how many."""
     count = 0
@@ -374,20 +376,20 @@ def _live_runs(forms: np.ndarray, cell_runs: np.ndarray, cell_boxes: np.ndarray,
 
 @njit(cache=True)
 def count_visible_targets_bucketed(
-    target_points: np.ndarray,
-    target_normals: np.ndarray,
-    target_cell_runs: np.ndarray,
-    target_cell_boxes: np.ndarray,
-    target_run_starts: np.ndarray,
-    target_run_boxes: np.ndarray,
-    target_run_facing: np.ndarray,
-    background_points: np.ndarray,
-    background_cell_runs: np.ndarray,
-    background_cell_boxes: np.ndarray,
-    background_run_starts: np.ndarray,
-    background_run_boxes: np.ndarray,
-    rotations: np.ndarray,
-    positions: np.ndarray,
+    target_points: Array,
+    target_normals: Array,
+    target_cell_runs: Array,
+    target_cell_boxes: Array,
+    target_run_starts: Array,
+    target_run_boxes: Array,
+    target_run_facing: Array,
+    background_points: Array,
+    background_cell_runs: Array,
+    background_cell_boxes: Array,
+    background_run_starts: Array,
+    background_run_boxes: Array,
+    rotations: Array,
+    positions: Array,
     fx: float,
     skew: float,
     cx: float,
@@ -396,7 +398,7 @@ def count_visible_targets_bucketed(
     width: int,
     height: int,
     half_window: int,
-) -> Tuple[np.ndarray, np.ndarray]:
+) -> Tuple[Array, Array]:
     """count_visible_targets (the per-point reference kernel, in the planner's tests:
     test/reference_planner_kernels.py) over bucketed clouds (from :func:`bucket_points`): the same counts, faster.
 

@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import heapq
+from typing import Tuple
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.jit import njit
 
 _SQRT2 = float(np.sqrt(2.0))
 
 
 @njit(cache=True)
-def grid_distances(free: np.ndarray, start_row: int, start_col: int, cell: float):
+def grid_distances(free: Array, start_row: int, start_col: int, cell: float) -> Tuple[Array, Array]:
     """Path length from the start cell to every cell over free cells (8-connected, diagonals sqrt(2) cells).
 
     A diagonal step needs both cells it cuts past to be free too (no corner cutting through an obstacle).
@@ -57,7 +59,7 @@ def grid_distances(free: np.ndarray, start_row: int, start_col: int, cell: float
 
 
 @njit(cache=True)
-def mark_occupied_in_plane(plane_points: np.ndarray, origin: np.ndarray, cell: float, occupied: np.ndarray) -> None:
+def mark_occupied_in_plane(plane_points: Array, origin: Array, cell: float, occupied: Array) -> None:
     """Mark the grid cell of every point (in place), given as plane coordinates (p.e1, p.e2) of the points already
     kept by height (footprint_kernel.elevated_plane_points): cell (floor((v - o_v) / cell), floor((u - o_u) / cell));
     points off the grid are skipped."""

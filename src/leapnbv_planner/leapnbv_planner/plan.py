@@ -211,7 +211,7 @@ def _camera_pose(camera_pose: Union[CameraPose, Frame, None]) -> Optional[Camera
     """A CameraPose of the older call form's camera_pose: an object with rotation and position, or a pair."""
     if camera_pose is None or (hasattr(camera_pose, "rotation") and hasattr(camera_pose, "position")):
         return cast(Optional[CameraPose], camera_pose)
-    rotation, position = cast(Frame, camera_pose)
+    rotation, position = camera_pose
     return CameraInMap(np.asarray(rotation, dtype=np.float64), np.asarray(position, dtype=np.float64))
 
 
@@ -368,7 +368,7 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
     tested = np.concatenate([group[:_EXACT_TESTS_PER_CANDIDATE] for group in
                              np.split(order, np.flatnonzero(np.diff(owners_array[order])) + 1)]) if order.size \
         else order
-    moved = {}
+    moved: Dict[int, int] = {}
     if tested.size:
         e1, e2 = plane_basis(unit_normal)
         blocked = footprints_blocked_in_plane(obstacles_in_plane, np.ascontiguousarray(feet[tested] @ e1),

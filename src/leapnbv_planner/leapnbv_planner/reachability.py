@@ -23,6 +23,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from leapnbv_planner.arrays import Array
 from leapnbv_planner.candidates import plane_basis
 from leapnbv_planner.footprint_kernel import elevated_plane_points
 from leapnbv_planner.path_kernel import grid_distances, mark_occupied_in_plane
@@ -52,31 +53,32 @@ class OccupancyGrid:
             occupied cell; unknown cells by ``unknown_space``).
     """
 
-    unit_normal: np.ndarray
+    unit_normal: Array
     offset: float
-    axes: np.ndarray
-    origin: np.ndarray
+    axes: Array
+    origin: Array
     cell: float
-    occupied: np.ndarray
-    seen: np.ndarray
-    free: np.ndarray
+    occupied: Array
+    seen: Array
+    free: Array
 
-    def plane_coordinates(self, points: np.ndarray) -> np.ndarray:
+    def plane_coordinates(self, points: Array) -> Array:
         """(N, 2) plane coordinates of (N, 3) observation-frame points."""
         return np.asarray(points, dtype=np.float64) @ self.axes.T
 
-    def cells_of(self, points: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def cells_of(self, points: Array) -> Tuple[Array, Array, Array]:
         """(rows, cols, inside) of (N, 3) points (rows/cols clipped; inside False off the grid)."""
         uv = (self.plane_coordinates(points) - self.origin) / self.cell
         cols, rows = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         inside = (rows >= 0) & (rows < self.free.shape[0]) & (cols >= 0) & (cols < self.free.shape[1])
         return np.clip(rows, 0, self.free.shape[0] - 1), np.clip(cols, 0, self.free.shape[1] - 1), inside
 
-    def cell_centres(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    def cell_centres(self, rows: Array, cols: Array) -> Array:
         """(N, 3) observation-frame floor points at the centres of the given cells."""
         u = self.origin[0] + (np.asarray(cols, dtype=np.float64) + 0.5) * self.cell
         v = self.origin[1] + (np.asarray(rows, dtype=np.float64) + 0.5) * self.cell
-        return u[:, None] * self.axes[0] + v[:, None] * self.axes[1] - self.offset * self.unit_normal
+        centres: Array = u[:, None] * self.axes[0] + v[:, None] * self.axes[1] - self.offset * self.unit_normal
+        return centres
 
 
 @dataclass
@@ -92,18 +94,18 @@ class Reachability:
         distances: (R, C) metres of the shortest free path to each cell's centre (inf: none).
     """
 
-    path_lengths: np.ndarray
-    reachable: np.ndarray
+    path_lengths: Array
+    reachable: Array
     grid: OccupancyGrid
-    parents: np.ndarray
+    parents: Array
     start_cell: Tuple[int, int]
-    distances: Optional[np.ndarray] = None
+    distances: Optional[Array] = None
 
-    def path_lengths_at(self, foot_points: np.ndarray) -> np.ndarray:
+    def path_lengths_at(self, foot_points: Array) -> Array:
         """(N,) path lengths to (N, 3) floor points (their cells'; inf off the grid or without a path)."""
         return _lengths_at(self.grid, self.distances, foot_points)
 
-    def path_to(self, foot_point: np.ndarray) -> Optional[np.ndarray]:
+    def path_to(self, foot_point: Array) -> Optional[Array]:
         """(P, 3) floor points (cell centres) from the robot to ``foot_point`` (its exact point last); None
         when unreachable."""
         rows, cols, inside = self.grid.cells_of(np.asarray(foot_point, dtype=np.float64).reshape(1, 3))
@@ -129,7 +131,7 @@ class Reachability:
         return int(self.grid.free.shape[1])
 
 
-def _inflate(occupied: np.ndarray, radius_cells: float) -> np.ndarray:
+def _inflate(occupied: Array, radius_cells: float) -> Array:
     """Occupied cells grown by a disc of ``radius_cells`` (cell centres within the radius)."""
     reach = int(np.floor(radius_cells))
     grown = occupied.copy()
@@ -144,17 +146,17 @@ def _inflate(occupied: np.ndarray, radius_cells: float) -> np.ndarray:
 
 
 def build_occupancy_grid(
-    obstacle_points: np.ndarray,
-    person_points: np.ndarray,
-    unit_normal: np.ndarray,
+    obstacle_points: Array,
+    person_points: Array,
+    unit_normal: Array,
     offset: float,
-    cover_points: np.ndarray,
+    cover_points: Array,
     cell: float,
     robot_radius: float,
     floor_clearance: float,
     unknown_space: str = "free",
-    camera: Optional[Tuple[np.ndarray, int, int]] = None,
-    obstacle_plane_points: Optional[np.ndarray] = None,
+    camera: Optional[Tuple[Array, int, int]] = None,
+    obstacle_plane_points: Optional[Array] = None,
 ) -> OccupancyGrid:
     """The floor grid around ``cover_points`` (the robot's and the candidates' foot points).
 
@@ -199,7 +201,7 @@ def build_occupancy_grid(
                          origin=origin, cell=cell, occupied=np.zeros(shape, dtype=bool),
                          seen=np.ones(shape, dtype=bool), free=np.ones(shape, dtype=bool))
 
-    def in_plane(cloud: np.ndarray, min_height: float) -> np.ndarray:
+    def in_plane(cloud: Array, min_height: float) -> Array:
         return elevated_plane_points(np.ascontiguousarray(np.asarray(cloud, dtype=np.float64).reshape(-1, 3)),
                                      grid.unit_normal, float(offset), min_height, e1, e2)
 
@@ -226,7 +228,7 @@ def build_occupancy_grid(
     return grid
 
 
-def reachability(grid: OccupancyGrid, start_foot: np.ndarray, feet: np.ndarray, max_path_length: float,
+def reachability(grid: OccupancyGrid, start_foot: Array, feet: Array, max_path_length: float,
                  robot_radius: float) -> Reachability:
     """Shortest free paths from the robot's foot point to every candidate's.
 
@@ -256,7 +258,7 @@ def reachability(grid: OccupancyGrid, start_foot: np.ndarray, feet: np.ndarray, 
                         grid=grid, parents=parents, start_cell=start, distances=distances)
 
 
-def _lengths_at(grid: OccupancyGrid, distances: np.ndarray, foot_points: np.ndarray) -> np.ndarray:
+def _lengths_at(grid: OccupancyGrid, distances: Array, foot_points: Array) -> Array:
     """(N,) path lengths to (N, 3) floor points: their cells' distances; inf off the grid or without a path."""
     rows, cols, inside = grid.cells_of(np.asarray(foot_points, dtype=np.float64).reshape(-1, 3))
     return np.where(inside, distances[rows, cols], np.inf)

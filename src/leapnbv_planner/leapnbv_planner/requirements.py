@@ -232,7 +232,6 @@ def _mesh_line_of_sight(context: ScoringContext) -> Optional[Array]:
     return _line_of_sight(context, np.asarray(context.frame.inputs.body_mesh[0], dtype=np.float64))
 
 
-@requirement("target_counts", "(in_view, not_hidden) (C,) int64 counts of the target points (occlusion kernel)")
 def _target_counts(context: ScoringContext) -> Tuple[Array, Array]:
     return context.visible_counts()
 
@@ -241,4 +240,5 @@ BODY_MESH: Requirement[SurfacePoints] = _body_mesh
 PATH_LENGTHS: Requirement[Array] = _path_lengths
 TARGET_LINE_OF_SIGHT: Requirement[Array] = _target_line_of_sight
 MESH_LINE_OF_SIGHT: Requirement[Array] = _mesh_line_of_sight
-TARGET_COUNTS: Requirement[Tuple[Array, Array]] = _target_counts
+TARGET_COUNTS: Requirement[Tuple[Array, Array]] = register_requirement(Requirement(
+    "target_counts", "(in_view, not_hidden) (C,) int64 counts of the target points (occlusion kernel)", _target_counts))

@@ -47,7 +47,8 @@ def to_camera_frame(points: Array, rotations: Array, positions: Array) -> Array:
     """
     offsets = (points[None] if points.ndim == 2 else points) - positions[:, None, :]
     # Row vectors: (p - t)^T R = (R^T (p - t))^T.
-    return np.matmul(offsets, rotations)
+    camera_points: Array = np.matmul(offsets, rotations)
+    return camera_points
 
 
 def bounding_box_area_fraction(

@@ -227,15 +227,17 @@ class ScoringContext:
     def _kernel_counts(self, targets: str, background: str) -> Tuple[Array, Array]:
         """(in_view, not_hidden) of :func:`leapnbv_planner.occlusion_kernel.count_visible_targets_bucketed`."""
         fx, skew, cx, fy, cy, width, height = self.camera
-        target_points, target_normals, *target_boxes = self.buckets(targets)
+        target_points, target_normals, target_cell_runs, target_cell_boxes, target_run_starts, target_run_boxes = \
+            self.buckets(targets)
         background_points, _, *background_boxes = self.buckets(background)
-        facing = (run_facing_bounds(target_points, target_normals, target_boxes[2]) if len(target_normals)
+        facing = (run_facing_bounds(target_points, target_normals, target_run_starts) if len(target_normals)
                   else np.zeros((0, 7)))
         self.kernel_calls += 1
-        counts: Tuple[Array, Array] = count_visible_targets_bucketed(
-            target_points, target_normals, *target_boxes, facing, background_points, *background_boxes,
-            self.rotations, self.positions, fx, skew, cx, fy, cy, width, height, self.half_window)
-        return counts
+        cell_runs, cell_boxes, run_starts, run_boxes = background_boxes
+        return count_visible_targets_bucketed(
+            target_points, target_normals, target_cell_runs, target_cell_boxes, target_run_starts, target_run_boxes,
+            facing, background_points, cell_runs, cell_boxes, run_starts, run_boxes, self.rotations, self.positions,
+            fx, skew, cx, fy, cy, width, height, self.half_window)
 
     def visible_counts(self) -> Tuple[Array, Array]:
         """(in_view (C,) int64, not_hidden (C,) int64), from one occlusion-kernel call per context.
