@@ -18,6 +18,7 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 from node_harness import NS, diag_value, read_log  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
+from leapnbv_bringup.frame_chains import ChainVerdict, check_goal_chain  # noqa: E402
 from leapnbv_common.conversions import (  # noqa: E402
     HumanMeshArrays,
     arrays_to_human_mesh,
@@ -39,6 +40,7 @@ from leapnbv_msgs.msg import (  # noqa: E402
     ViewCandidates,
 )
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
+from leapnbv_planner.params import default_nbv_params  # noqa: E402
 from leapnbv_sim.generation import SceneConfig, generate_scene  # noqa: E402
 from leapnbv_stand_ins.files import ensure_stand_in_body_model  # noqa: E402
 
@@ -46,6 +48,7 @@ pytestmark = [pytest.mark.ros]
 
 FRAME_ID = "camera_color_optical_frame"
 SAME = InputStamp.SAME_FRAME
+MAX_CARRY_NS = int(default_nbv_params().ground_max_age_s * 1e9)
 
 
 @pytest.fixture(scope="module")
@@ -135,6 +138,16 @@ def planned_frame(graph, scene, attempts: int = 3) -> int:
     raise AssertionError("no goal for any frame: " + "\n".join(read_log(p)[-1500:] for p in graph["procs"].values()))
 
 
+def chain_records(graph, mesh_stamps) -> dict:
+    """The recorded inputs of every output received, for the shared mixed-frame check (bench_load.py's); this test
+    plays hmr_node, whose meshes (of `mesh_stamps`) list no inputs."""
+    records = {name: {stamp_to_ns(m.header.stamp): input_stamps(m) for m in graph[key] if m.header.frame_id}
+               for name, key in (("view_candidates", "candidates"), ("target_geometry", "targets"),
+                                 ("ground_plane", "planes"))}
+    records["human_mesh"] = {stamp: [] for stamp in mesh_stamps}
+    return records
+
+
 def counter(graph, node: str, key: str) -> int:
     status = graph["probe"].status_where(f"{NS}/{node}", lambda s: True)
     return int(diag_value(status, key)) if status else 0
@@ -162,6 +175,7 @@ def test_every_output_records_the_stamps_of_its_own_frame(graph, scene):
         (views,) = of_stamp(graph["candidates"], stamp)
         assert input_stamps(views) == [("target_geometry", stamp, SAME), ("ground_plane", stamp, SAME),
                                        ("human_mesh_metric", stamp, SAME)]  # body_occlusion scores the frame's mesh
+        assert check_goal_chain(chain_records(graph, stamps), stamp, MAX_CARRY_NS) == ChainVerdict(True, False, "")
     # The second frame's floor fit left out the first frame's person.
     assert ("person_mask", stamps[0], InputStamp.EXCLUSION_HINT) in input_stamps(of_stamp(graph["planes"],
                                                                                           stamps[1])[0])
@@ -200,6 +214,7 @@ def test_a_stopped_ground_node_drops_frames_and_withdraws_the_goal_never_mixes_p
     (views,) = of_stamp(graph["candidates"], stamp)
     assert input_stamps(views) == [("target_geometry", stamp, SAME), ("ground_plane", stamp, SAME),
                                    ("human_mesh_metric", stamp, SAME)]  # body_occlusion scores the frame's mesh
+    assert check_goal_chain(chain_records(graph, [stamp]), stamp, MAX_CARRY_NS) == ChainVerdict(True, False, "")
     assert probe.spin_until(lambda: any(m.state == GoalStatus.STATE_CURRENT and stamp_to_ns(m.goal_stamp) == stamp
                                         for m in graph["status"]), 5.0)
     for proc in graph["procs"].values():
