@@ -31,6 +31,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.rotations import quaternion_to_rotation, rotations_to_quaternions
+
 __all__ = ["DEFAULT_CACHE_TIME_NS", "TransformError", "MissingTransformError", "ExtrapolationError", "Transform",
            "StampedTransform", "TransformBuffer", "slerp", "interpolate"]
 
@@ -158,14 +160,15 @@ class Transform:
         conjugate = self.rotation * np.array([-1.0, -1.0, -1.0, 1.0])
         return Transform(conjugate, -_rotate(conjugate, self.translation))
 
+    @classmethod
+    def from_matrix(cls, rotation: np.ndarray, translation: Sequence[float]) -> Transform:
+        """The transform of a (3, 3) rotation matrix (columns: the child's axes in the parent) and a translation."""
+        return cls(rotations_to_quaternions(np.asarray(rotation, dtype=np.float64).reshape(1, 3, 3))[0],
+                   np.asarray(translation, dtype=np.float64).reshape(3).copy())
+
     def rotation_matrix(self) -> np.ndarray:
         """(3, 3) R(q): its columns are the child's axes in the parent's frame."""
-        x, y, z, w = self.rotation
-        return np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ])
+        return quaternion_to_rotation(self.rotation)
 
 
 def interpolate(a: Transform, b: Transform, fraction: float) -> Transform:

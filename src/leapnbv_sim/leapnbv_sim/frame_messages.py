@@ -11,7 +11,9 @@ from typing import Dict, Iterable, Iterator, Tuple
 import numpy as np
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
+from leapnbv_common.camera_pose.tf_messages import tf_message
 from leapnbv_common.conversions import (
     SceneGroundTruthArrays,
     arrays_to_scene_ground_truth,
@@ -27,7 +29,9 @@ from leapnbv_common.topics import (
     GROUND_TRUTH_TOPIC,
 )
 from leapnbv_msgs.msg import SceneGroundTruth
+from leapnbv_sim.poses import CameraPose
 from leapnbv_sim.render import RenderedFrame
+from leapnbv_sim.robot_frames import RobotFrameIds, dynamic_links, static_links
 
 
 def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: str) -> SceneGroundTruth:
@@ -49,6 +53,16 @@ def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: 
         left_hand_pose=params.left_hand_pose, right_hand_pose=params.right_hand_pose, jaw_pose=params.jaw_pose,
         betas=params.betas, expression=params.expression, translation=truth.translation_camera,
         occlusion_share=truth.occlusion_share, body_model_id=body_model_id), header)
+
+
+def robot_tf_message(camera: CameraPose, stamp_ns: int, ids: RobotFrameIds) -> TFMessage:
+    """/tf of one frame: the robot's moving links (world -> odom -> base -> camera link) at the frame's stamp."""
+    return tf_message(dynamic_links(camera, stamp_ns, ids))
+
+
+def robot_static_tf_message(ids: RobotFrameIds) -> TFMessage:
+    """/tf_static: the robot's fixed links (camera link -> optical frame), one message for all of them."""
+    return tf_message(static_links(ids))
 
 
 def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: str) -> Dict[str, object]:

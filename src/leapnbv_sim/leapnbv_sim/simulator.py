@@ -16,6 +16,7 @@ from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_an
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
 from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS, CameraPose, RobotModel
+from leapnbv_sim.robot_frames import RobotFrameIds
 from leapnbv_sim.scene import Scene
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
@@ -51,11 +52,23 @@ class SimulatorParams:
                             "mounting pitch (the start camera's)", choices=HEAD_MODES)
     robot_camera_height: float = param(0.0, "metres: the camera's mounting height; 0 = the height of the camera "
                                        "that observed the goal's frame", min=0.0, max=10.0)
+    publish_tf: bool = param(True, "publish the robot's frames as a robot does: world_frame_id -> odom -> base -> "
+                             "camera link on /tf at each frame's stamp, camera link -> frame_id on /tf_static")
+    odom_frame_id: str = param("odom", "the odometry frame of the published TF tree", read_only=True)
+    base_frame_id: str = param("base_link", "the robot's base frame of the published TF tree", read_only=True)
+    camera_link_frame_id: str = param("camera_link", "the camera head's frame of the published TF tree (its "
+                                      "optical frame is frame_id)", read_only=True)
 
 
 def robot_model(params: SimulatorParams) -> RobotModel:
     """The robot the parameters describe (how a goal is reached)."""
     return RobotModel(motion=params.robot_motion, head=params.robot_head, camera_height=params.robot_camera_height)
+
+
+def robot_frame_ids(params: SimulatorParams) -> RobotFrameIds:
+    """The frames of the TF tree the simulator publishes (world_frame_id down to frame_id)."""
+    return RobotFrameIds(world=params.world_frame_id, odom=params.odom_frame_id, base=params.base_frame_id,
+                         head=params.camera_link_frame_id, camera=params.frame_id)
 
 
 def load_scene(params: SimulatorParams) -> Scene:

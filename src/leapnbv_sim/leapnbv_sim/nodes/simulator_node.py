@@ -7,7 +7,11 @@ one header (stamp = the sim time of the frame, frame_id = the camera's optical f
 images it publishes the world pose of the camera it rendered from on ``/leapnbv/camera_pose``
 (geometry_msgs/PoseStamped, T_world_camera_optical, frame ``world_frame_id``, stamp = the frame's
 stamp): what the robot's localization would give the graph, so a node that needs the pose of a
-frame has it when the frame arrives.
+frame has it when the frame arrives. With ``publish_tf`` (the default) it also publishes that pose as
+a robot's TF tree (:mod:`leapnbv_sim.robot_frames`): ``world_frame_id -> odom -> base_link ->
+camera_link`` on ``/tf`` at the frame's stamp, just before the PoseStamped, and ``camera_link ->
+frame_id`` once on ``/tf_static`` (transient-local), so that the graph can take its camera pose from
+TF (``camera_pose_source: tf`` with ``camera_pose_fixed_frame`` = ``world_frame_id``).
 
 Every scene it switches to (:meth:`SimulatorNode.set_scene`, also the first one) it publishes once
 as a map of its static obstacles (occluders, walls, furniture: not the floor, not the person) on
@@ -58,6 +62,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
 from leapnbv_common.conversions import (
     ConversionError,
@@ -68,7 +73,14 @@ from leapnbv_common.conversions import (
 )
 from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
 from leapnbv_common.node_params import NodeParams, run_node
-from leapnbv_common.qos import camera_input_qos, latched_goal_qos, latched_map_qos, stage_output_qos
+from leapnbv_common.qos import (
+    camera_input_qos,
+    latched_goal_qos,
+    latched_map_qos,
+    stage_output_qos,
+    tf_qos,
+    tf_static_qos,
+)
 from leapnbv_common.topics import (
     CAMERA_POSE_TOPIC,
     COLOR_IMAGE_TOPIC,
@@ -78,13 +90,15 @@ from leapnbv_common.topics import (
     GROUND_TRUTH_TOPIC,
     NEXT_BEST_VIEW_TOPIC,
     OBSTACLE_MAP_TOPIC,
+    TF_STATIC_TOPIC,
+    TF_TOPIC,
 )
 from leapnbv_msgs.msg import SceneGroundTruth
-from leapnbv_sim.frame_messages import camera_frame_messages
+from leapnbv_sim.frame_messages import camera_frame_messages, robot_static_tf_message, robot_tf_message
 from leapnbv_sim.poses import CameraPose, pose_in_world
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
-from leapnbv_sim.simulator import CameraMotion, SimulatorParams, load_scene, robot_model
+from leapnbv_sim.simulator import CameraMotion, SimulatorParams, load_scene, robot_frame_ids, robot_model
 
 DEFAULT_GOAL_TOPIC = NEXT_BEST_VIEW_TOPIC
 # Local remap of the relative goal topic applied unless the caller remaps it itself.
@@ -123,6 +137,12 @@ class SimulatorNode(Node):
             GROUND_TRUTH_TOPIC: self.create_publisher(SceneGroundTruth, GROUND_TRUTH_TOPIC, stage_output_qos(10)),
         }
         self.pose_pub = self.create_publisher(PoseStamped, CAMERA_POSE_TOPIC, stage_output_qos(10))
+        self.frame_ids = robot_frame_ids(p)
+        self.tf_pub = self.create_publisher(TFMessage, TF_TOPIC, tf_qos())
+        # A static broadcaster's QoS (depth 1, transient-local): its one message reaches late listeners.
+        self.tf_static_pub = self.create_publisher(TFMessage, TF_STATIC_TOPIC, tf_static_qos(1))
+        if p.publish_tf:
+            self.tf_static_pub.publish(robot_static_tf_message(self.frame_ids))
         # Created before the first set_scene below, which publishes the first scene's map.
         self.map_pub = self.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
         self.create_subscription(PoseStamped, "goal", self.on_goal, latched_goal_qos())
@@ -147,9 +167,12 @@ class SimulatorNode(Node):
         return self.node_params.value
 
     def _on_params_change(self, params: SimulatorParams, changed: Set[str]) -> None:
-        """A runtime change: a new obstacle map resolution or switch publishes the map again."""
+        """A runtime change: a new obstacle map resolution or switch publishes the map again, TF switched on its
+        static links."""
         if changed & {"obstacle_map_resolution", "publish_obstacle_map"} and params.publish_obstacle_map:
             self.publish_obstacle_map(params.obstacle_map_resolution)
+        if "publish_tf" in changed and params.publish_tf:
+            self.tf_static_pub.publish(robot_static_tf_message(self.frame_ids))
 
     # ------------------------------------------------------------------ scene and camera state
 
@@ -254,6 +277,8 @@ class SimulatorNode(Node):
         # or their pose has them on arrival.
         for topic in (COLOR_INFO_TOPIC, DEPTH_INFO_TOPIC):
             self.frame_pubs[topic].publish(messages.pop(topic))
+        if self.params.publish_tf:
+            self.tf_pub.publish(robot_tf_message(camera, stamp_ns, self.frame_ids))
         pose_header = Header(frame_id=self.params.world_frame_id, stamp=header.stamp)
         self.pose_pub.publish(PoseStamped(header=pose_header, pose=pose_msg(camera.rotation, camera.position)))
         for topic, message in messages.items():  # ground truth, colour, depth
