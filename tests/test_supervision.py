@@ -102,13 +102,19 @@ def test_signal_to_runner_ends_every_node_with_exit_0_and_no_traceback(tmp_path,
         assert "Traceback" not in text and "internal_error" not in text, f"{log.name}:\n{text[-3000:]}"
 
 
+# How a node whose model did not load is named: a managed node stays unconfigured with its configure's
+# reason; a node that is not managed yet reports its engine state.
+NOT_LOADED = r"(?:engine not ready|unconfigured: configure failed): "
+
+
 @pytest.mark.slow
 def test_readiness_names_nodes_whose_engine_did_not_load(tmp_path):
-    # onnxruntime with the YAML's model paths (not on this machine): both perception engines are in ERROR.
+    # onnxruntime with model paths that do not exist: both perception nodes fail to load, and with
+    # --require-all the runner exits 1 after its ready timeout.
     missing = tmp_path / "no_such_model.onnx"
     proc = runner_cli(tmp_path, "--perception", "onnxruntime", "--detector-model", str(missing),
                       "--hmr-model", str(missing), "--body-model", ensure_stand_in_body_model("small"),
-                      "--ready-timeout", "20")
+                      "--ready-timeout", "20", "--require-all")
     try:
         out, _ = proc.communicate(timeout=120)
     finally:
@@ -118,10 +124,56 @@ def test_readiness_names_nodes_whose_engine_did_not_load(tmp_path):
     assert proc.returncode == 1, out
     assert "[graph] ready" not in out
     line = next(ln for ln in out.splitlines() if "graph not ready after 20 s" in ln)
-    assert re.search(r"detector_node: engine not ready: detector model .*no_such_model\.onnx.* not loaded", line), line
-    assert re.search(r"hmr_node: engine not ready: .*not loaded", line), line
+    assert re.search(r"detector_node: " + NOT_LOADED + r"detector model .*no_such_model\.onnx.* not loaded", line), line
+    assert re.search(r"hmr_node: " + NOT_LOADED + r".*not loaded", line), line
     for name in ("raster_node", "ground_node", "nbv_node"):
         assert f"{name}:" not in line, line  # they are ready: only the two are named
+    assert ", ".join(f"{n}: exit 0" for n in node_names()) in out
+
+
+@pytest.mark.slow
+def test_graph_runs_without_a_node_whose_model_is_missing_and_takes_it_in_when_the_file_appears(tmp_path):
+    # By default the runner reports the detector (its model missing), runs the rest, retries the
+    # detector, and is ready once the file is there.
+    from leapnbv_stand_ins.files import ensure_contract_models
+
+    detector_model, hmr_model = ensure_contract_models()
+    late = tmp_path / "late_detector.onnx"
+    proc = runner_cli(tmp_path, "--perception", "onnxruntime", "--detector-model", str(late), "--hmr-model",
+                      hmr_model, "--body-model", ensure_stand_in_body_model("small"), "--configure-retry", "1",
+                      "--set", "detector_node.model_retry_period_s=1.0")
+    try:
+        running, out = read_until(proc, r"\[graph\] (running without|ready in)", 120.0)
+        assert running and "[graph] running without detector_node after" in out, out
+        line = next(ln for ln in out.splitlines() if "running without" in ln)
+        assert re.search(r"detector_node: " + NOT_LOADED + r"detector model .*late_detector\.onnx.* not loaded",
+                         line), line
+        for name in ("hmr_node", "raster_node", "ground_node", "nbv_node"):
+            assert f"{name}:" not in line, line
+        assert proc.poll() is None
+        probe = Probe("runner_partial_probe")
+        try:
+            status = probe.status_where  # the runner's status names the node and why, at ERROR
+            assert probe.spin_until(lambda: status(RUNNER_STATUS_NAME, lambda s: "detector_node" in s.message), 15.0)
+            latest = status(RUNNER_STATUS_NAME, lambda s: "detector_node" in s.message)
+            assert latest.level == latest.ERROR and "late_detector.onnx" in diag_value(latest, "detector_node.serving")
+            assert diag_value(latest, "nbv_node.serving") == "yes"
+        finally:
+            probe.close()
+        import shutil
+
+        shutil.copy(detector_model, late)  # the model appears: the next retry loads it
+        ready, more = read_until(proc, r"\[graph\] ready in .* every node serving now", 60.0)
+        out += more
+        assert ready, out
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=40)
+        out += rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, out
     assert ", ".join(f"{n}: exit 0" for n in node_names()) in out
 
 
