@@ -15,6 +15,7 @@ import node_harness as harness  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from node_harness import NS, diag_value, read_log, set_parameters  # noqa: E402
 
+from leapnbv_bringup.frame_chains import ChainVerdict, check_goal_chain  # noqa: E402
 from leapnbv_common.camera_pose import StampedCameraPose  # noqa: E402
 from leapnbv_common.conversions import (  # noqa: E402
     header_with_stamp,
@@ -28,6 +29,7 @@ from leapnbv_common.conversions import (  # noqa: E402
 )
 from leapnbv_common.qos import latched_goal_qos, stage_output_qos  # noqa: E402
 from leapnbv_msgs.msg import GoalStatus, GroundPlane, InputStamp, TargetGeometry, ViewCandidates  # noqa: E402
+from leapnbv_planner.params import default_nbv_params  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
 
@@ -36,6 +38,7 @@ MAP = "map"
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 NODE = f"{NS}/nbv_node"
 MAX_GOAL_AGE_S = 1.0  # the node's default
+MAX_CARRY_NS = int(default_nbv_params().ground_max_age_s * 1e9)  # the node's default, 0.5 s
 
 
 def camera_in_map(height: float, pitch_down_deg: float) -> tuple:
@@ -129,6 +132,14 @@ def of_stamp(messages: list, stamp_ns: int) -> list:
     return [m for m in messages if stamp_to_ns(m.header.stamp) == stamp_ns and m.header.frame_id]
 
 
+def chain_records(views: ViewCandidates, target: TargetGeometry, plane: GroundPlane) -> dict:
+    """The recorded inputs for the shared mixed-frame check (bench_load.py's): nbv_node's candidates and the target
+    and plane this test published (as raster_node and ground_node would, without inputs of their own)."""
+    return {"view_candidates": {stamp_to_ns(views.header.stamp): input_stamps(views)},
+            "target_geometry": {stamp_to_ns(target.header.stamp): input_stamps(target)},
+            "ground_plane": {stamp_to_ns(plane.header.stamp): input_stamps(plane)}}
+
+
 def test_a_frame_older_than_max_goal_age_gives_no_goal(graph):
     """First in the file: no frame was planned yet, so the only thing wrong with this one is its age."""
     probe = graph["probe"]
@@ -159,6 +170,7 @@ def test_a_frame_is_planned_with_its_own_plane_and_records_it(graph):
     (views,) = of_stamp(graph["candidates"], stamp)
     assert input_stamps(views) == [("target_geometry", stamp, InputStamp.SAME_FRAME),
                                    ("ground_plane", stamp, InputStamp.SAME_FRAME)]
+    assert check_goal_chain(chain_records(views, target, plane), stamp, MAX_CARRY_NS) == ChainVerdict(True, False)
     assert probe.spin_until(lambda: status_of(graph, stamp, GoalStatus.STATE_CURRENT), 5.0)
     status = status_of(graph, stamp, GoalStatus.STATE_CURRENT)
     assert 0.0 <= status.goal_age_s < MAX_GOAL_AGE_S and status.max_goal_age_s == pytest.approx(MAX_GOAL_AGE_S)
@@ -214,6 +226,10 @@ def test_an_older_plane_is_carried_by_the_camera_pose_delta_and_recorded_as_carr
                                    ("ground_plane", stamp_a, InputStamp.CARRIED),
                                    ("camera_pose", stamp_a, InputStamp.CARRIED),
                                    ("camera_pose", stamp_b, InputStamp.SAME_FRAME)]
+    records = chain_records(views, target_b, plane_a)
+    assert check_goal_chain(records, stamp_b, MAX_CARRY_NS) == ChainVerdict(True, False,
+                                                                            "carried ground_plane,camera_pose")
+    assert check_goal_chain(records, stamp_b, 50_000_000).mixed  # a 0.1 s carry is too old for a 50 ms limit
     normal_b, offset_b = floor_in_camera(rotation_b, position_b)
     normal_a, offset_a = floor_in_camera(rotation_a, position_a)
     _, goal = pose_to_numpy(of_stamp(graph["base_goals"], stamp_b)[0].pose)
