@@ -1,9 +1,9 @@
 """Rotation representations and the conversions between them, vectorized over leading dimensions.
 
 ROS-free (numpy only). The one place for rotation math: quaternions (x, y, z, w: the order of
-geometry_msgs/Quaternion) for the pose messages, axis-angle for the SMPL-X body parameters, and the
-6D representation the HMR network outputs. Every function takes and returns rotation matrices whose
-columns are the rotated frame's axes.
+geometry_msgs/Quaternion) for the pose messages and the transform tree (products, rotating a vector,
+slerp), axis-angle for the SMPL-X body parameters, and the 6D representation the HMR network
+outputs. A rotation matrix's columns are the rotated frame's axes.
 """
 
 from __future__ import annotations
@@ -19,9 +19,12 @@ __all__ = [
     "axis_angle_to_matrix",
     "matrix_to_axis_angle",
     "matrix_to_rot6d",
+    "quaternion_multiply",
+    "quaternion_rotate",
     "quaternion_to_rotation",
     "rot6d_to_matrix",
     "rotations_to_quaternions",
+    "slerp",
 ]
 
 # Norms below this are treated as zero: the direction they would give is meaningless.
@@ -79,6 +82,70 @@ def quaternion_to_rotation(xyzw: npt.ArrayLike) -> npt.NDArray[np.float64]:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
+
+
+def quaternion_multiply(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Hamilton product a b of (x, y, z, w) quaternions: the rotation b, then a.
+
+    Args:
+        a: (4,) quaternion.
+        b: (4,) quaternion.
+
+    Returns:
+        (4,) float64 quaternion a b (unit when both are).
+    """
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz])
+
+
+def quaternion_rotate(q: npt.NDArray[np.float64], v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """R(q) v for a unit (x, y, z, w) quaternion: v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z).
+
+    Args:
+        q: (4,) unit quaternion.
+        v: (3,) vector.
+
+    Returns:
+        (3,) the rotated vector.
+    """
+    u, w = q[:3], q[3]
+    uv = np.cross(u, v)
+    rotated: npt.NDArray[np.float64] = v + 2.0 * w * uv + 2.0 * np.cross(u, uv)
+    return rotated
+
+
+def slerp(q0: npt.ArrayLike, q1: npt.ArrayLike, fraction: float) -> npt.NDArray[np.float64]:
+    """The rotation ``fraction`` of the way from q0 to q1 on the shorter arc (unit (x, y, z, w) quaternions).
+
+    q(f) = sin((1 - f) theta) / sin(theta) q0 + sin(f theta) / sin(theta) q1, cos(theta) = |q0 . q1|,
+    with q1 negated first when q0 . q1 < 0 (q and -q are the same rotation); a straight line, normalized,
+    when the two are nearly equal (sin(theta) ~ 0).
+
+    Args:
+        q0: (4,) unit quaternion at fraction 0.
+        q1: (4,) unit quaternion at fraction 1.
+        fraction: where between them, usually in [0, 1].
+
+    Returns:
+        (4,) float64 unit quaternion.
+    """
+    q0 = np.asarray(q0, dtype=np.float64)
+    q1 = np.asarray(q1, dtype=np.float64)
+    dot = float(q0 @ q1)
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0 + fraction * (q1 - q0)
+        line: npt.NDArray[np.float64] = q / np.sqrt(q @ q)
+        return line
+    theta = np.arccos(min(1.0, dot))
+    arc: npt.NDArray[np.float64] = (np.sin((1.0 - fraction) * theta) * q0
+                                    + np.sin(fraction * theta) * q1) / np.sin(theta)
+    return arc
 
 
 # --------------------------------------------------------------------------- 6D representation
