@@ -1,6 +1,7 @@
 """A managed stage node for the lifecycle tests: configure loads a model file, activate serves.
 
-Run as a script (``python tests/lifecycle_test_node.py --ros-args ...``). Parameters: model_file_path
+Run as a script (``python tests/lifecycle_test_node.py --ros-args ...``) or as a module with tests/ on the
+path (``main()``: how the graph runner's standby process starts a node). Parameters: model_file_path
 (configure fails while it is missing: FileNotFoundError naming it) and the ManagedNode ones
 (autostart, configure_retry_period_s). While active, every std_msgs/String on ``model_stage_in`` is
 answered on ``model_stage_out`` (a lifecycle publisher made in configure) with "<model text>:<input>".
@@ -50,5 +51,9 @@ class ModelStage(ManagedNode):
         self.model = None
 
 
+def main(args=None) -> None:
+    run_node(ModelStage, args)
+
+
 if __name__ == "__main__":
-    run_node(ModelStage)
+    main()

@@ -249,3 +249,12 @@ def _lifecycle_call(probe: Probe, srv_type, service: str, request, timeout_s: fl
         return future.result()
     finally:
         probe.node.destroy_client(client)
+
+
+def read_log_path(path) -> str:
+    """A log file's text ("" while it does not exist)."""
+    try:
+        with open(path, errors="replace") as handle:
+            return handle.read()
+    except FileNotFoundError:
+        return ""

@@ -301,3 +301,74 @@ def test_a_bad_parameter_value_still_ends_a_managed_node_with_exit_2(tmp_path):
     log = harness.read_log(proc)
     program = Path(STAGE.module).stem if STAGE.module.endswith(".py") else STAGE.module.rsplit(".", 1)[-1]
     assert f"[{program}] cannot start:" in log and "configure_retry_period_s" in log and "Traceback" not in log, log
+
+
+def test_graph_runner_brings_a_managed_node_up_reports_its_failure_and_restarts_it_through_the_lifecycle(
+        probe, tmp_path):
+    """The runner with a managed node in raster_node's place (the test's node, as a module, so that the
+    runner's warm standby can become it): reported and retried while its model is missing, serving once it
+    is there, and after a kill -9 its standby comes up through configure and activate again."""
+    from std_msgs.msg import String
+
+    from leapnbv_bringup.graph import NodeSpec
+    from leapnbv_bringup.graph_runner import GraphError, GraphRunner, RestartPolicy
+
+    model = tmp_path / "model.bin"
+    events: List[str] = []
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(TEST_NODE).parent),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    runner = GraphRunner(None, {"raster_node": {"model_file_path": str(model)}}, log_dir=str(tmp_path / "logs"),
+                         env=env, nodes=["raster_node"], on_event=events.append, configure_retry_s=0.5,
+                         restart=RestartPolicy(max_restarts=3, spare_delay_s=0.5))
+    spec = NodeSpec("raster_node", "tests", "lifecycle_test_node", remaps={"__node": "raster_node"})
+    runner.nodes = [spec]
+    runner._states["raster_node"].spec = spec
+    spin = lambda t: probe.executor.spin_once(timeout_sec=t)  # noqa: E731
+    outputs = probe.collect(String, "/leapnbv/model_stage_out")
+    publisher = probe.node.create_publisher(String, "/leapnbv/model_stage_in", stage_output_qos(10))
+
+    def served() -> bool:
+        before = len(outputs)
+        for i in range(40):
+            publisher.publish(String(data=f"frame {i}"))
+            if probe.spin_until(lambda: len(outputs) > before, 0.5):
+                return True
+        return False
+
+    try:
+        runner.start()
+        runner.wait_ready(probe.node, 60.0, spin=spin, require_all=False)
+        failed = runner.failed_nodes()
+        assert list(failed) == ["raster_node"], (failed, runner.not_ready(0.0), events)
+        assert failed["raster_node"].startswith("unconfigured: configure failed: FileNotFoundError: ")
+        assert str(model) in failed["raster_node"]
+        assert any("raster_node: configure failed" in e and "trying again every 0.5 s" in e for e in events), events
+        with pytest.raises(GraphError, match=r"raster_node: unconfigured: configure failed: .*model\.bin"):
+            runner.wait_ready(probe.node, 2.0, spin=spin)  # require_all: what the regression uses
+        status = runner.diagnostic_status()
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == status.ERROR and "raster_node unconfigured" in status.message
+        assert values["raster_node.lifecycle"] == "unconfigured" and str(model) in values["raster_node.serving"]
+        assert lifecycle_get(probe, "/leapnbv/raster_node") == "unconfigured"
+
+        model.write_text("weights-v2")
+        assert probe.spin_until(lambda: not runner.not_ready(0.0), 30.0), (runner.not_ready(0.0), events)
+        assert lifecycle_get(probe, "/leapnbv/raster_node") == "active"
+        values = {kv.key: kv.value for kv in runner.diagnostic_status().values}
+        assert (values["raster_node.lifecycle"], values["raster_node.serving"]) == ("active", "yes")
+        assert served(), harness.read_log_path(tmp_path / "logs" / "raster_node.log")
+
+        runner.watch_diagnostics(probe.node)
+        assert probe.spin_until(lambda: runner.spares_ready()["raster_node"], 60.0), events
+        old_pid = runner.processes["raster_node"].pid
+        os.kill(old_pid, signal.SIGKILL)
+        assert probe.spin_until(lambda: any("raster_node serving again (active)" in e for e in events), 60.0), events
+        assert runner.processes["raster_node"].pid != old_pid
+        assert any("raster_node restarted (warm spare" in e for e in events), events
+        assert not runner.not_ready(0.0)
+        assert lifecycle_get(probe, "/leapnbv/raster_node") == "active"
+        outputs.clear()
+        assert served()
+    finally:
+        codes = runner.stop()
+    assert codes == {"raster_node": 0}, runner.stop_report

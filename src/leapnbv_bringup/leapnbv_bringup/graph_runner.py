@@ -463,8 +463,8 @@ class GraphRunner:
         Args:
             require_all: True: every node must serve (the regression, the evaluation). False: return
                 as soon as every node serves or is in a failure (``failed_nodes``: a missing model),
-                or at the timeout, whatever is left; the lifecycle manager keeps retrying (``not_ready``
-                says what is not serving).
+                or at the timeout, whatever is left; the lifecycle manager keeps retrying and ``not_ready``
+                stays current while the caller spins ``probe_node``.
 
         Raises:
             GraphError: a node died for good, or (require_all) not all were serving before the timeout
@@ -478,6 +478,7 @@ class GraphRunner:
         owned = self._diag_subscription is None
         self.watch_diagnostics(probe_node)
         started = time.monotonic()
+        waiting: Dict[str, str] = {}
         try:
             while True:
                 self.check_alive()
@@ -494,7 +495,7 @@ class GraphRunner:
                     raise GraphError(f"graph not ready after {timeout_s:.0f} s: {reasons}")
                 spin(0.1)
         finally:
-            if owned:
+            if owned and not waiting:  # a node not serving yet: keep following it (not_ready stays current)
                 self.unwatch_diagnostics()
         with self._lock:
             if not self._ready:

@@ -58,6 +58,7 @@ class NodeLifecycle:
     managed: Optional[bool] = None  # True: it has the lifecycle services; False: a plain node; None: not known yet
     reason: str = ""  # why the last transition failed or why the node is not managed yet ("" when none)
     failed: bool = False  # the last transition failed (the reason says how); cleared by a success
+    reason_pending: bool = False  # failed, and its reason is still on its way on /diagnostics
     configure_attempts: int = 0
     since: float = 0.0  # monotonic: the manager (re)started on this node
     heard: float = -1.0  # monotonic: its last /diagnostics status
@@ -159,6 +160,7 @@ class LifecycleManager:
         self._calls.pop(record.name, None)  # an answer from the old process no longer counts
         self._failure_report.pop(record.name, None)
         record.since, record.managed, record.failed, record.reason = now, None, False, ""
+        record.reason_pending = False
         record.diag_state = None
         self._set_state(record, UNKNOWN, now)
         self._configure_at[record.name] = now
@@ -245,7 +247,7 @@ class LifecycleManager:
             return
         if response.success:
             was_failing = record.failed
-            record.failed, record.reason, record.reported = False, "", ""
+            record.failed, record.reason, record.reported, record.reason_pending = False, "", "", False
             self._failure_report.pop(record.name, None)
             self._set_state(record, TRANSITIONS[call.what][1], now)
             if record.state == ACTIVE and (self._goal.get(record.name) == ACTIVE or was_failing):
@@ -260,6 +262,7 @@ class LifecycleManager:
         record.failed = True
         record.reason = f"{call.what} failed"
         self._failure_report[record.name] = (call.what, call.sent)
+        record.reason_pending = True
         if call.what == "configure":
             self._configure_at[record.name] = now + max(self.configure_retry_s, 0.0)
         elif call.what == "activate":
@@ -287,6 +290,7 @@ class LifecycleManager:
         if not fresh and now - sent < REASON_WAIT_S:
             return
         del self._failure_report[record.name]
+        record.reason_pending = False
         record.reason = record.diag_reason if fresh else f"{transition} failed (no reason on /diagnostics)"
         if record.reason == record.reported:
             return

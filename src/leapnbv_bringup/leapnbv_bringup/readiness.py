@@ -89,7 +89,7 @@ def judge(health: Optional[NodeHealth], lifecycle, describe: str, heard_after: f
             if health.awaiting:
                 return f"active, waiting for a publisher of {health.awaiting}", False
             return "", False
-        failed = bool(lifecycle is not None and lifecycle.failed) or (
+        failed = bool(lifecycle is not None and lifecycle.failed and not lifecycle.reason_pending) or (
             lifecycle is None and fresh and health.lifecycle_state == UNCONFIGURED and bool(health.lifecycle_reason))
         if state == ACTIVE:
             return "active, its status not received yet", False
