@@ -218,9 +218,10 @@ _BOX_GROWTH = 1e-6
 @njit(cache=True)
 def _box_count(prefix: Array, lo0: int, hi0: int, lo1: int, hi1: int, lo2: int, hi2: int) -> int:
     """Occupied voxels in the index box [lo, hi] per axis, from the inclusive 3-D prefix sums."""
-    return (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
-            - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
-            + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
+    count: int = (prefix[hi0 + 1, hi1 + 1, hi2 + 1] - prefix[lo0, hi1 + 1, hi2 + 1] - prefix[hi0 + 1, lo1, hi2 + 1]
+                  - prefix[hi0 + 1, hi1 + 1, lo2] + prefix[lo0, lo1, hi2 + 1] + prefix[lo0, hi1 + 1, lo2]
+                  + prefix[hi0 + 1, lo1, lo2] - prefix[lo0, lo1, lo2])
+    return count
 
 
 @njit(cache=True)
@@ -232,8 +233,8 @@ def _piece_may_be_blocked(prefix: Array, sizes: Array, start: Array, delta: Arra
     for a in range(3):
         g_a = start[a] + t_a * delta[a]
         g_b = start[a] + t_b * delta[a]
-        low = max(np.int64(np.floor(min(g_a, g_b) - _BOX_GROWTH)), 0)
-        high = min(np.int64(np.floor(max(g_a, g_b) + _BOX_GROWTH)), sizes[a] - 1)
+        low = max(int(np.floor(min(g_a, g_b) - _BOX_GROWTH)), 0)
+        high = min(int(np.floor(max(g_a, g_b) + _BOX_GROWTH)), sizes[a] - 1)
         if low > high:
             return False  # wholly off the grid: free
         if a == 0:
@@ -364,8 +365,8 @@ def _fan_piece_may_be_blocked(prefix: Array, sizes: Array, start: Array, box: Ar
                 value = start[a] + t * (q - start[a])
                 low_value = min(low_value, value)
                 high_value = max(high_value, value)
-        low = max(np.int64(np.floor(low_value - _BOX_GROWTH)), 0)
-        high = min(np.int64(np.floor(high_value + _BOX_GROWTH)), sizes[a] - 1)
+        low = max(int(np.floor(low_value - _BOX_GROWTH)), 0)
+        high = min(int(np.floor(high_value + _BOX_GROWTH)), sizes[a] - 1)
         if low > high:
             return False
         if a == 0:
@@ -435,11 +436,11 @@ def _walk_one(occupied: Array, prefix: Array, sizes: Array, lower_index: Array,
                 inside = False
                 break
             if a == 0:
-                index_x = np.int64(index)
+                index_x = int(index)
             elif a == 1:
-                index_y = np.int64(index)
+                index_y = int(index)
             else:
-                index_z = np.int64(index)
+                index_z = int(index)
         if inside and occupied[index_x, index_y, index_z]:
             clear[c, m] = False
             return
@@ -450,9 +451,9 @@ def _walk_one(occupied: Array, prefix: Array, sizes: Array, lower_index: Array,
     # The walk of segments_clear, its arithmetic unchanged (scalars instead of 3-arrays).
     start_x, start_y, start_z = start[0], start[1], start[2]
     delta_x, delta_y, delta_z = delta[0], delta[1], delta[2]
-    cell_x = np.int64(np.floor(start_x))
-    cell_y = np.int64(np.floor(start_y))
-    cell_z = np.int64(np.floor(start_z))
+    cell_x = int(np.floor(start_x))
+    cell_y = int(np.floor(start_y))
+    cell_z = int(np.floor(start_z))
     step_x, t_delta_x, t_max_x = _walk_axis(start_x, delta_x, cell_x)
     step_y, t_delta_y, t_max_y = _walk_axis(start_y, delta_y, cell_y)
     step_z, t_delta_z, t_max_z = _walk_axis(start_z, delta_z, cell_z)

@@ -102,7 +102,13 @@ class Reachability:
     distances: Optional[Array] = None
 
     def path_lengths_at(self, foot_points: Array) -> Array:
-        """(N,) path lengths to (N, 3) floor points (their cells'; inf off the grid or without a path)."""
+        """(N,) path lengths to (N, 3) floor points (their cells'; inf off the grid or without a path).
+
+        Raises:
+            ReachabilityError: the Reachability was made without its grid distances.
+        """
+        if self.distances is None:
+            raise ReachabilityError("path_lengths_at needs the grid distances (Reachability.distances is None)")
         return _lengths_at(self.grid, self.distances, foot_points)
 
     def path_to(self, foot_point: Array) -> Optional[Array]:
