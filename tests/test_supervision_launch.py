@@ -1,7 +1,9 @@
-"""The robot's launch file: it compiles, its nodes, remaps and respawn come from leapnbv_bringup.graph.
+"""The robot's launch file: it compiles, its nodes, remaps and respawn come from leapnbv_bringup.graph, each
+stage is a lifecycle node that the lifecycle manager brings up.
 
 The `launch` / `launch_ros` packages are not on PyPI, so the launch file runs here against a
-small fake of the few classes it uses, which records each Node(...)'s keyword arguments.
+small fake of the few classes it uses, which records each Node(...)'s and LifecycleNode(...)'s
+keyword arguments.
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import types
 
 import pytest
 
-from leapnbv_bringup.graph import MONITOR_NODE, NAMESPACE, default_params_file, graph_nodes, node_names
+from leapnbv_bringup.graph import MANAGER_NODE, MONITOR_NODE, NAMESPACE, default_params_file, graph_nodes, node_names
 
 LAUNCH_FILE = "src/leapnbv_bringup/launch/leapnbv.launch.py"
 
@@ -41,6 +43,7 @@ def fake_launch_modules():
     launch_ros = types.ModuleType("launch_ros")
     ros_actions = types.ModuleType("launch_ros.actions")
     ros_actions.Node = type("Node", (_Recorded,), {})
+    ros_actions.LifecycleNode = type("LifecycleNode", (_Recorded,), {})
     return {"launch": launch, "launch.actions": actions, "launch.substitutions": substitutions,
             "launch_ros": launch_ros, "launch_ros.actions": ros_actions}
 
@@ -75,14 +78,22 @@ def test_launch_file_compiles(repo_root, tmp_path):
 def test_launch_nodes_remaps_and_respawn_come_from_the_graph(launch_description):
     nodes = run_launch(launch_description)
     by_name = {n.kwargs["name"]: n.kwargs for n in nodes}
-    assert list(by_name) == node_names() + [MONITOR_NODE.name]
+    kinds = {n.kwargs["name"]: type(n).__name__ for n in nodes}
+    assert list(by_name) == node_names() + [MANAGER_NODE.name, MONITOR_NODE.name]
     for spec in graph_nodes():
         kwargs = by_name[spec.name]
+        assert kinds[spec.name] == "LifecycleNode"
         assert (kwargs["package"], kwargs["executable"], kwargs["namespace"]) == (spec.package, spec.executable,
                                                                                   NAMESPACE)
         assert dict(kwargs["remappings"]) == spec.remaps
-        assert kwargs["parameters"] == [default_params_file()]
+        # The YAML, then autostart off: the lifecycle manager takes the node through its transitions.
+        assert kwargs["parameters"] == [default_params_file(), {"autostart": False}]
         assert (kwargs["respawn"], kwargs["respawn_delay"], kwargs["respawn_max_retries"]) == (True, 1.0, 5)
+    manager = by_name[MANAGER_NODE.name]
+    assert kinds[MANAGER_NODE.name] == "Node"
+    assert (manager["package"], manager["executable"], manager["namespace"]) == ("leapnbv_bringup",
+                                                                                 "lifecycle_manager", NAMESPACE)
+    assert manager["parameters"] == [{"node_names": node_names(), "autostart": True}]
     monitor = by_name[MONITOR_NODE.name]
     assert (monitor["package"], monitor["executable"]) == ("leapnbv_bringup", "graph_monitor")
     assert monitor["parameters"] == [{"nodes": node_names()}]
@@ -94,11 +105,20 @@ def test_launch_arguments_choose_respawn_topics_and_one_hosts_nodes(launch_descr
     nodes = run_launch(launch_description, respawn="false", respawn_delay="2.5", respawn_max_retries="-1",
                        nodes="raster_node,ground_node,nbv_node", depth_topic="/cam2/depth")
     by_name = {n.kwargs["name"]: n.kwargs for n in nodes}
-    assert list(by_name) == ["raster_node", "ground_node", "nbv_node", "graph_monitor"]
+    assert list(by_name) == ["raster_node", "ground_node", "nbv_node", "lifecycle_manager", "graph_monitor"]
     assert dict(by_name["raster_node"]["remappings"])["depth"] == "/cam2/depth"
     assert dict(by_name["ground_node"]["remappings"])["depth"] == "/cam2/depth"
     assert all((k["respawn"], k["respawn_delay"], k["respawn_max_retries"]) == (False, 2.5, -1)
                for k in by_name.values())
     assert by_name["graph_monitor"]["parameters"] == [{"nodes": ["raster_node", "ground_node", "nbv_node"]}]
+    assert by_name["lifecycle_manager"]["parameters"] == [{"node_names": ["raster_node", "ground_node", "nbv_node"],
+                                                           "autostart": True}]
     with pytest.raises(RuntimeError, match="unknown nodes"):
         run_launch(launch_description, nodes="detector_node,nbv_nod")
+
+
+def test_autostart_false_leaves_the_nodes_for_ros2_lifecycle_set(launch_description):
+    nodes = run_launch(launch_description, autostart="false")
+    by_name = {n.kwargs["name"]: n.kwargs for n in nodes}
+    assert by_name["lifecycle_manager"]["parameters"] == [{"node_names": node_names(), "autostart": False}]
+    assert all(by_name[name]["parameters"][1] == {"autostart": False} for name in node_names())

@@ -3,12 +3,20 @@
     ros2 launch leapnbv_bringup leapnbv.launch.py [image_topic:=...] [depth_topic:=...]
         [camera_pose_topic:=...] [obstacle_map_topic:=...]
         [params_file:=/path/to/leapnbv.yaml]   (backends and model paths are set in the YAML)
+        [autostart:=true]   (false: the nodes wait unconfigured for `ros2 lifecycle set`)
         [respawn:=true] [respawn_delay:=1.0] [respawn_max_retries:=5]
         [nodes:=detector_node,hmr_node]   (one host's share of the graph, docs/TWO_HOSTS.md)
         [monitor:=true] [fastdds_profile:=/path/to/profile.xml]
 
 The node list comes from leapnbv_bringup.graph (shared with leapnbv_bringup.graph_runner),
 so the launch file is only the launch-system wrapper around it.
+
+Lifecycle: each stage node is a managed (lifecycle) node, started with ``autostart:=false``; the
+lifecycle manager (``lifecycle_manager``, in the same namespace, parameters ``node_names`` and
+``autostart`` as nav2's) takes them through configure and activate, tries a failed configure
+again (a model file that appears later is loaded then; the reason is on /diagnostics,
+``/leapnbv/lifecycle_manager``), and brings a respawned node up again. ``ros2 lifecycle get/set
+/leapnbv/<node>`` works on every node.
 
 Respawn: a node that dies is started again after respawn_delay seconds (launch_ros
 ``respawn``), at most respawn_max_retries times over the whole launch (launch counts in total
@@ -20,10 +28,11 @@ publishes each node's start count and whether it is heard on /diagnostics
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import Node
+from launch_ros.actions import LifecycleNode, Node
 
 from leapnbv_bringup.graph import (
     INPUT_TOPICS,
+    MANAGER_NODE,
     MONITOR_NODE,
     NAMESPACE,
     default_params_file,
@@ -47,7 +56,7 @@ def _true(text):
 def _nodes(context):
     """The Node actions, built once the launch arguments are known."""
     value = {name: LaunchConfiguration(name).perform(context) for name in
-             ("params_file", "respawn", "respawn_delay", "respawn_max_retries", "nodes", "monitor")}
+             ("params_file", "respawn", "respawn_delay", "respawn_max_retries", "nodes", "monitor", "autostart")}
     camera_topics = {k: LaunchConfiguration(_arg_name(k)).perform(context) for k in INPUT_TOPICS}
     wanted = [n.strip() for n in value["nodes"].split(",") if n.strip()]
     unknown = sorted(set(wanted) - set(node_names()))
@@ -59,9 +68,13 @@ def _nodes(context):
     for spec in graph_nodes(camera_topics):
         if spec.name not in wanted:
             continue
-        actions.append(Node(package=spec.package, executable=spec.executable, name=spec.name, namespace=NAMESPACE,
-                            parameters=[value["params_file"]], remappings=list(spec.remaps.items()),
-                            output="screen", **respawn))
+        # The lifecycle manager below drives the transitions: the node itself does not autostart.
+        actions.append(LifecycleNode(package=spec.package, executable=spec.executable, name=spec.name,
+                                     namespace=NAMESPACE, parameters=[value["params_file"], {"autostart": False}],
+                                     remappings=list(spec.remaps.items()), output="screen", **respawn))
+    manager = {"node_names": wanted, "autostart": _true(value["autostart"])}
+    actions.append(Node(package=MANAGER_NODE.package, executable=MANAGER_NODE.executable, name=MANAGER_NODE.name,
+                        namespace=NAMESPACE, parameters=[manager], output="screen", **respawn))
     if _true(value["monitor"]):
         actions.append(Node(package=MONITOR_NODE.package, executable=MONITOR_NODE.executable, name=MONITOR_NODE.name,
                             namespace=NAMESPACE, parameters=[{"nodes": wanted}], output="screen", **respawn))
@@ -71,6 +84,8 @@ def _nodes(context):
 def generate_launch_description():
     args = [
         DeclareLaunchArgument("params_file", default_value=default_params_file(), description="parameter YAML"),
+        DeclareLaunchArgument("autostart", default_value="true",
+                              description="configure and activate every node (false: they wait unconfigured)"),
         DeclareLaunchArgument("respawn", default_value="true", description="start a node that dies again"),
         DeclareLaunchArgument("respawn_delay", default_value=RESPAWN_DELAY_S,
                               description="seconds before a dead node is started again"),

@@ -79,6 +79,10 @@ def node_names() -> List[str]:
 # starts (restarts) and silence on /diagnostics. The launch file runs it next to the five nodes
 # (the graph runner reports its own restarts, so it does not need it).
 MONITOR_NODE = NodeSpec("graph_monitor", "leapnbv_bringup", "leapnbv_bringup.graph_monitor")
+# The lifecycle manager: takes the graph's managed nodes through configure and activate (the launch file
+# starts them with autostart:=false), retries a failed configure and brings a respawned node up again
+# (leapnbv_bringup.lifecycle_manager; the graph runner runs the same manager in its own process).
+MANAGER_NODE = NodeSpec("lifecycle_manager", "leapnbv_bringup", "leapnbv_bringup.lifecycle_manager")
 
 
 def default_params_file() -> str:
