@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from typing import Dict, List, Tuple, Type
 
 from leapnbv_common.params import ParamsError, param
-from leapnbv_planner.score_terms import registered_terms, weight_parameter
+from leapnbv_planner.requirements import REQUIREMENTS
+from leapnbv_planner.score_terms import get_term, registered_terms, weight_parameter
 
 # The deployed score terms, in summation order: non-occlusion over the whole metric body mesh
 # (body_occlusion), which rewards a view of the hidden side; the paper's S_o over the observed points
@@ -114,7 +115,8 @@ class PlannerParams(CandidateRingParams):
                                    min=1, max=10_000, read_only=True)
 
     def check(self) -> None:
-        """Rules between fields: the score terms are registered, distinct, and each has its weight; the rings."""
+        """Rules between fields: the score terms are registered, distinct, each has its weight and its requirements are
+        registered; the rings."""
         if self.num_rings > 1 and not self.min_radius < self.radius:
             raise ParamsError(f"min_radius ({self.min_radius}) must be below radius ({self.radius}) with "
                               f"num_rings = {self.num_rings}")
@@ -127,6 +129,10 @@ class PlannerParams(CandidateRingParams):
             if not hasattr(self, weight_parameter(name)):
                 raise ParamsError(f"score_terms: {name!r} has no {weight_parameter(name)} parameter in"
                                   f" {type(self).__name__} (registered after the class was made)")
+            missing = sorted(need for need in get_term(name).requires if need not in REQUIREMENTS)
+            if missing:
+                raise ParamsError(f"score_terms: {name!r} needs the requirements {missing}, which are not registered;"
+                                  f" registered: {REQUIREMENTS.names()}")
         duplicates = sorted({name for name in self.score_terms if self.score_terms.count(name) > 1})
         if duplicates:
             raise ParamsError(f"score_terms: {duplicates} listed more than once")

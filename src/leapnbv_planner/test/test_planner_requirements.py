@@ -10,6 +10,7 @@ from typing import Optional
 import numpy as np
 import pytest
 
+from leapnbv_common.params import ParamsError, params_from_values
 from leapnbv_planner.arrays import Array
 from leapnbv_planner.inputs import CameraInMap, PlanFloor, PlanInputs, PlanTarget
 from leapnbv_planner.obstacle_map import voxel_map_from_centres
@@ -96,6 +97,9 @@ def test_a_term_that_reads_what_it_did_not_declare_is_refused():
         score_term("declared_unknown", 0.1, "a requirement nobody registered", requires=("wind_speed",))(sneaky)
         with pytest.raises(ValueError, match="unknown score-term requirement 'wind_speed'; known: body_mesh"):
             plan_views(PlanInputs(target, floor, nbv_params_class()(score_terms=["declared_unknown"])))
+        # The node's parameters refuse it before any frame.
+        with pytest.raises(ParamsError, match=r"'declared_unknown' needs the requirements \['wind_speed'\]"):
+            params_from_values(nbv_params_class(), {"score_terms": ["declared_unknown"]})
     finally:
         unregister_term("sneaky")
         unregister_term("declared_unknown")
