@@ -239,7 +239,7 @@ def _ring_start_direction(
 
 def ring_radii(params: CandidateRingParams) -> Array:
     """The ring radii, innermost first: ``radius`` alone, or num_rings radii evenly from min_radius to radius."""
-    rings = int(getattr(params, "num_rings", 1))
+    rings = int(params.num_rings)
     if rings <= 1:
         return np.array([float(params.radius)])
     return np.linspace(float(params.min_radius), float(params.radius), rings)
@@ -253,10 +253,10 @@ def cameras_at_feet(feet: Array, centroid: Array, unit_normal: Array, camera_hei
     camera's, when that is 0) above its foot point and looks at the centroid (``camera_tilt`` look_at), or
     turns toward it keeping the current camera's pitch (``fixed``).
     """
-    mounting = float(getattr(params, "camera_height", 0.0))
+    mounting = float(params.camera_height)
     positions = feet + (mounting if mounting > 0.0 else camera_height) * unit_normal[None, :]
     aim = centroid
-    if getattr(params, "camera_tilt", "look_at") == "fixed":
+    if params.camera_tilt == "fixed":
         # A head without tilt: aim along the level bearing to the target, pitched as the current camera is
         # (sin(pitch) = -z.n for the current optical axis z = (0, 0, 1)).
         sin_pitch = float(np.clip(-unit_normal[2], -0.999, 0.999))
