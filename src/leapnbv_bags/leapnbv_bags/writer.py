@@ -105,7 +105,7 @@ class _CrcMcapStorage:
     def close(self, version: int, metadata: str) -> None:
         del version
         self._writer.add_metadata("rosbag2", {"serialized_metadata": metadata})
-        self._writer.finish()  # type: ignore[no-untyped-call]  # (mcap's finish has no annotations)
+        self._writer.finish()  # type: ignore[no-untyped-call, unused-ignore]  # (untyped in some mcap releases)
         self._stream.close()
 
     def discard(self) -> None:
