@@ -27,8 +27,10 @@ NS = "/leapnbv"
 
 def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
                remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
-    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides); ``module``
-    is a module name, or the path of a script (a test's own node)."""
+    """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides).
+
+    ``module`` is a module name, or the path of a script (a test's own node).
+    """
     program = [module] if module.endswith(".py") else ["-m", module]
     cmd = [sys.executable, *program, "--ros-args", "-r", f"__ns:={namespace}",
            "--params-file", default_params_file()]
@@ -116,8 +118,11 @@ def diag_value(status: DiagnosticStatus, key: str, default: str = "0") -> str:
 
 def send_until(probe: Probe, send: Callable[[], None], arrived: Callable[[], bool], timeout_s: float,
                attempts: int = 3) -> bool:
-    """Send, and send the same frame again while nothing came of it: camera inputs are best effort,
-    and a large frame can be lost on a loaded machine like on a real camera link."""
+    """Send, and send the same frame again while nothing came of it.
+
+    Camera inputs are best effort, and a large frame can be lost on a loaded machine like on a real
+    camera link.
+    """
     for _ in range(attempts):
         send()
         if probe.spin_until(arrived, timeout_s / attempts):
@@ -136,8 +141,10 @@ def wait_ready(probe: Probe, procs: Dict[str, subprocess.Popen], timeout_s: floa
 
 @contextlib.contextmanager
 def running_graph(probe_name: str, procs: Dict[str, subprocess.Popen]) -> Iterator[Probe]:
-    """A probe node next to node processes already started; on leaving, the probe closes and every
-    process stops (also when the probe itself fails to start)."""
+    """A probe node next to node processes already started.
+
+    On leaving, the probe closes and every process stops (also when the probe itself fails to start).
+    """
     try:
         probe = Probe(probe_name)
         try:
@@ -187,8 +194,10 @@ def set_parameters(probe: Probe, node: str, **values) -> list:
 
 def start_graph(log_dir: str, overrides: Optional[Dict[str, Dict[str, str]]] = None,
                 namespace: str = NS) -> Dict[str, subprocess.Popen]:
-    """The five nodes of leapnbv_bringup.graph as processes, remapped and configured as the runner does,
-    keyed by full node name; ``overrides`` maps a node's short name to parameter values."""
+    """The five nodes of leapnbv_bringup.graph as processes, remapped and configured as the runner does.
+
+    Keyed by full node name; ``overrides`` maps a node's short name to parameter values.
+    """
     from leapnbv_bringup.graph import graph_nodes
 
     procs = {}

@@ -1,5 +1,6 @@
-"""Managed nodes over DDS, the way a robot user drives them (``ros2 lifecycle get/set``) and the way the
-lifecycle manager does: configure fails on a missing model (the reason reported, the node unconfigured),
+"""Managed nodes over DDS, driven as a robot user does (``ros2 lifecycle get/set``) and as the manager does.
+
+Configure fails on a missing model (the reason reported, the node unconfigured),
 succeeds once the file is there, activate makes the node serve, deactivate stops its output, cleanup
 releases, shutdown ends the process with 0.
 
@@ -64,8 +65,11 @@ def _detector_is_managed() -> bool:
 
 
 def stage_under_test() -> StageUnderTest:
-    """The real detector_node when it is a ManagedNode, else the test's own managed node (until the stage
-    nodes move onto ManagedNode; nothing else in this file changes then)."""
+    """The real detector_node when it is a ManagedNode, else the test's own managed node.
+
+    The test's node stands in until the stage nodes move onto ManagedNode; nothing else in this file
+    changes then.
+    """
     if _detector_is_managed():
         from sensor_msgs.msg import Image
 
@@ -305,9 +309,12 @@ def test_a_bad_parameter_value_still_ends_a_managed_node_with_exit_2(tmp_path):
 
 def test_graph_runner_brings_a_managed_node_up_reports_its_failure_and_restarts_it_through_the_lifecycle(
         probe, tmp_path):
-    """The runner with a managed node in raster_node's place (the test's node, as a module, so that the
-    runner's warm standby can become it): reported and retried while its model is missing, serving once it
-    is there, and after a kill -9 its standby comes up through configure and activate again."""
+    """The runner with a managed node in raster_node's place: failure reported, retried, restarted.
+
+    The test's node runs as a module, so that the runner's warm standby can become it. It is reported
+    and retried while its model is missing, serves once it is there, and after a kill -9 its standby
+    comes up through configure and activate again.
+    """
     from std_msgs.msg import String
 
     from leapnbv_bringup.graph import NodeSpec

@@ -1,6 +1,9 @@
-"""Supervision by the graph runner's command line: readiness means engines loaded, SIGINT/SIGTERM
-stop every node with exit 0, a node that keeps dying ends the runner with exit 1, the runner's
-status on /diagnostics; and the restart policy itself."""
+"""Supervision by the graph runner's command line.
+
+Readiness means every node serving (a node whose model is missing is reported and the rest runs;
+--require-all exits 1), SIGINT/SIGTERM stop every node with exit 0, a node that keeps dying ends the
+runner with exit 1, the runner's status on /diagnostics; and the restart policy itself.
+"""
 from __future__ import annotations
 
 import os

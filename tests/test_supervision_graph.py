@@ -1,5 +1,6 @@
-"""Supervision of the running graph: a killed node comes back and the graph plans again (each node
-in turn), a stalled node leaves no stale goal, and the graph monitor reports the restarts.
+"""Supervision of the running graph: a killed node comes back, a stalled node leaves no stale goal.
+
+Each node in turn is killed and the graph plans again; the graph monitor reports the restarts.
 
 The graph runs on ground-truth perception with the simulator as the camera (a separate process
 at 2 FPS, the camera driving to each goal), so goals keep coming while nodes are killed. (A
@@ -54,8 +55,11 @@ class Goals:
         self.items.append((time.monotonic(), time.time_ns(), stamp_to_ns(msg.header.stamp), msg))
 
     def first_from_frame_after(self, wall_ns: int) -> Optional[Tuple[float, int, int, PoseStamped]]:
-        """The first goal planned from a frame taken after wall_ns (not the withdrawal of a stale one:
-        "no current goal" has an empty frame_id and is stamped when it is sent)."""
+        """The first goal planned from a frame taken after wall_ns.
+
+        Not the withdrawal of a stale one: "no current goal" has an empty frame_id and is stamped when
+        it is sent.
+        """
         return next((g for g in self.items if g[2] > wall_ns and g[3].header.frame_id), None)
 
 
@@ -117,7 +121,7 @@ def wait_serving(runner: GraphRunner, probe: Probe, name: str, timeout_s: float)
 
 
 def kill_and_time(runner: GraphRunner, probe: Probe, goals: Goals, name: str) -> Dict[str, float]:
-    """kill -9 one node (its warm standby waiting); the times until the graph plans again."""
+    """Kill -9 one node (its warm standby waiting); the times until the graph plans again."""
     assert probe.spin_until(lambda: runner.spares_ready()[name], 60.0), f"no warm standby for {name}"
     before = sorted((g[1] - g[2]) * 1e-9 for g in goals.items[-10:])
     old_pid = runner.processes[name].pid

@@ -1,5 +1,6 @@
-"""The robot's launch file: it compiles, its nodes, remaps and respawn come from leapnbv_bringup.graph, each
-stage is a lifecycle node that the lifecycle manager brings up.
+"""The robot's launch file: it compiles, and its nodes, remaps and respawn come from leapnbv_bringup.graph.
+
+Each stage is a lifecycle node that the lifecycle manager brings up.
 
 The `launch` / `launch_ros` packages are not on PyPI, so the launch file runs here against a
 small fake of the few classes it uses, which records each Node(...)'s and LifecycleNode(...)'s

@@ -82,6 +82,7 @@ def _nodes(context):
 
 
 def generate_launch_description():
+    """The launch arguments, the Fast DDS profile and the nodes (built when the arguments are known)."""
     args = [
         DeclareLaunchArgument("params_file", default_value=default_params_file(), description="parameter YAML"),
         DeclareLaunchArgument("autostart", default_value="true",

@@ -105,6 +105,7 @@ class GraphHealth:
 
 
 def main(args=None) -> None:
+    """The graph monitor node (``ros2 run leapnbv_bringup graph_monitor``)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rclpy.node import Node
 

@@ -71,9 +71,12 @@ from leapnbv_bringup.supervision import (  # noqa: F401 - re-exported
     describe_exit,
     die_with_parent,
 )
+from leapnbv_common.exit_codes import GraphRunnerExit
 
 RUNNER_STATUS_NAME = f"{NAMESPACE}/graph_runner"
-EXIT_OK, EXIT_GRAPH_FAILED, EXIT_USAGE, EXIT_UNCLEAN_STOP = 0, 1, 2, 3
+# The exit codes (leapnbv_common.exit_codes, the one table), under the names the tools import from here.
+EXIT_OK, EXIT_GRAPH_FAILED, EXIT_USAGE, EXIT_UNCLEAN_STOP = (GraphRunnerExit.OK, GraphRunnerExit.GRAPH_FAILED,
+                                                            GraphRunnerExit.USAGE, GraphRunnerExit.UNCLEAN_STOP)
 CONFIGURE_RETRY_S = 2.0  # a node whose configure failed is tried again this often
 __all__ = ["GraphRunner", "GraphError", "RestartPolicy", "NodeHealth", "engine_state_of", "describe_exit",
            "RUNNER_STATUS_NAME", "EXIT_OK", "EXIT_GRAPH_FAILED", "EXIT_USAGE", "EXIT_UNCLEAN_STOP", "main"]
@@ -358,9 +361,11 @@ class GraphRunner:
         return f"{NAMESPACE}/{name}"
 
     def watch_diagnostics(self, probe_node) -> None:
-        """Follow the nodes' /diagnostics on ``probe_node`` (which the caller spins) into ``health``, and
-        drive the nodes' lifecycles from it (``lifecycle``: a LifecycleManager whose timer runs on the
-        node; it stays, also after unwatch_diagnostics, so that a restarted node is brought up)."""
+        """Follow the nodes' /diagnostics into ``health`` and drive their lifecycles, on ``probe_node``.
+
+        The caller spins ``probe_node``. ``lifecycle`` is a LifecycleManager whose timer runs on that
+        node; it stays, also after unwatch_diagnostics, so that a restarted node is brought up.
+        """
         self.manage(probe_node)
         if self._diag_subscription is not None:
             return
@@ -434,8 +439,11 @@ class GraphRunner:
         return {name: why for name, (why, _) in self.readiness(since).items() if why}
 
     def failed_nodes(self, since: float = 0.0) -> Dict[str, str]:
-        """{node: why} of the nodes in a failure they may stay in (a configure that failed; an engine
-        not loaded), which the runner reports and retries while the rest of the graph runs."""
+        """{node: why} of the nodes in a failure they may stay in.
+
+        A configure that failed, an engine not loaded: the runner reports and retries them while the
+        rest of the graph runs.
+        """
         return {name: why for name, (why, failed) in self.readiness(since).items() if why and failed}
 
     def readiness(self, since: float) -> Dict[str, Tuple[str, bool]]:
@@ -457,10 +465,11 @@ class GraphRunner:
         (leapnbv_bringup.readiness). The first frame sent after this is not lost to a node still
         starting up.
 
-        ``spin(timeout_s)`` runs the probe's callbacks (default: rclpy.spin_once on the global
-        executor; a caller with its own executor passes its spin_once).
-
         Args:
+            probe_node: The caller's ROS node: the lifecycle manager's calls and the diagnostics.
+            timeout_s: Seconds to wait.
+            spin: ``spin(timeout_s)`` runs the probe's callbacks (default: rclpy.spin_once on the global
+                executor; a caller with its own executor passes its spin_once).
             require_all: True: every node must serve (the regression, the evaluation). False: return
                 as soon as every node serves or is in a failure (``failed_nodes``: a missing model),
                 or at the timeout, whatever is left; the lifecycle manager keeps retrying and ``not_ready``
@@ -507,8 +516,10 @@ class GraphRunner:
         return time.monotonic() - started
 
     def diagnostic_status(self):
-        """The runner's own DiagnosticStatus: each node's state, pid, restarts, last exit, lifecycle state
-        and whether it serves (``<node>.serving``: "yes" or why not).
+        """The runner's own DiagnosticStatus: each node's process, restarts, lifecycle and whether it serves.
+
+        Per node: state, pid, standby, restarts, last exit, up time, lifecycle state and
+        ``<node>.serving`` ("yes" or why not).
 
         OK: all running and serving, no restart in the restart window; WARN: a node restarted in the
         window, is restarting or is coming up; ERROR: the runner gave up on a node, or a node failed

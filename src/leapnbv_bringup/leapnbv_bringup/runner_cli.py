@@ -36,6 +36,7 @@ def perception_overrides(perception: Optional[str], detector_model: Optional[str
 
 
 def merge_overrides(*parts: Overrides) -> Overrides:
+    """One {node: {parameter: value}} from several, the later ones winning."""
     merged: Overrides = {}
     for part in parts:
         for node, params in part.items():
@@ -106,6 +107,7 @@ def add_supervision_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def restart_policy_from_arguments(args: argparse.Namespace) -> Optional[RestartPolicy]:
+    """The RestartPolicy of the supervision options (None: --no-restart)."""
     if not getattr(args, "restart", False):
         return None
     return RestartPolicy(max_restarts=args.max_restarts, window_s=args.restart_window,
@@ -124,7 +126,7 @@ def runner_from_arguments(args: argparse.Namespace, **kwargs):
     return GraphRunner(args.params, overrides, topics, args.log_dir, **kwargs)
 
 
-class _StopSignal(Exception):
+class _StopSignal(Exception):  # noqa: N818 - a request to stop, not an error
     """SIGINT or SIGTERM reached the runner."""
 
     def __init__(self, signum: int) -> None:

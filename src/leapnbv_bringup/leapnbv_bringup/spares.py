@@ -16,9 +16,11 @@ from leapnbv_bringup.graph import NAMESPACE, NodeSpec
 
 
 def node_command(spec: NodeSpec, params_file: str, overrides: Dict[str, str]) -> List[str]:
-    """The command line of one node process: the namespace, the params file, ``autostart:=false`` (the
-    runner drives a managed node through its lifecycle; a node that is not one ignores it), the overrides
-    and the remaps."""
+    """The command line of one node process.
+
+    The namespace, the params file, ``autostart:=false`` (the runner drives a managed node through
+    its lifecycle; a node that is not one ignores it), the overrides and the remaps.
+    """
     cmd = [sys.executable, "-m", spec.module, "--ros-args", "-r", f"__ns:={NAMESPACE}",
            "--params-file", params_file, "-p", "autostart:=false"]
     for name, value in overrides.items():
@@ -36,10 +38,14 @@ def spare_command(spec: NodeSpec, params_file: str, overrides: Dict[str, str], r
 
 
 def warm_type_support() -> int:
-    """Load the C type support of every message and service type imported so far, and of the
-    parameter services every node creates: the node's constructor would otherwise load them
-    (about 0.1 s on an idle core, much more under load) while the graph waits for it.
-    Returns how many types were loaded."""
+    """Load the C type support of every message and service type imported so far.
+
+    Also that of the parameter services every node creates: the node's constructor would otherwise
+    load them (about 0.1 s on an idle core, much more under load) while the graph waits for it.
+
+    Returns:
+        How many types were loaded.
+    """
     for extra in ("rcl_interfaces.msg", "rcl_interfaces.srv", "type_description_interfaces.srv"):
         try:
             importlib.import_module(extra)

@@ -14,10 +14,12 @@ KILL_GRACE_S = 3.0  # after SIGTERM, before SIGKILL
 
 
 def die_with_parent() -> None:
-    """In the child before exec: Linux sends it SIGTERM when the runner dies, even by SIGKILL,
-    so no node outlives a crashed or killed runner (its own session hides it from Ctrl-C).
+    """In the child before exec: Linux sends it SIGTERM when the runner dies, even by SIGKILL.
+
+    So no node outlives a crashed or killed runner (its own session hides it from Ctrl-C).
     The signal follows the thread that started the child: the supervisor thread lives until
-    stop() has ended every child."""
+    stop() has ended every child.
+    """
     try:
         import ctypes
 

@@ -1,5 +1,7 @@
-"""Per-node health on /diagnostics: rate, latency, engine state, lifecycle state, why inputs were
-rejected, and why frames were dropped."""
+"""Per-node health on /diagnostics.
+
+Rate, latency, engine state, lifecycle state, why inputs were rejected, and why frames were dropped.
+"""
 from __future__ import annotations
 
 import collections
@@ -117,8 +119,11 @@ class StageDiagnostics:
             self.transport_ms[name] = (received - sent) * 1e-6
 
     def await_publishers(self, *inputs: str) -> None:
-        """Report ``engine_state`` "waiting for a publisher of <inputs>" (status OK) until each of these
-        stage inputs (relative topic names) has a publisher in the graph, then the state set by the node.
+        """Report "waiting for a publisher of <inputs>" until each of these inputs has a publisher.
+
+        ``engine_state`` says it (status OK) until each of these stage inputs (relative topic names)
+        has a publisher in the graph, then the state set by the node; a managed node also lists the
+        inputs still without one as ``awaiting_publishers``.
 
         A graph runner that waits for every engine to be "ready" then sends the first frame only once
         the stages are connected: a reliable, volatile stage output published before its subscriber

@@ -48,7 +48,7 @@ from leapnbv_common.diagnostics import StageDiagnostics
 from leapnbv_common.node_params import NodeParams
 from leapnbv_common.params import ParamsError, param
 
-__all__ = ["ManagedNode", "LifecycleParams", "StageNotReady", "UNCONFIGURED", "INACTIVE", "ACTIVE", "FINALIZED",
+__all__ = ["ManagedNode", "LifecycleParams", "StageNotReadyError", "UNCONFIGURED", "INACTIVE", "ACTIVE", "FINALIZED",
            "STATE_LABELS"]
 
 UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED = "unconfigured", "inactive", "active", "finalized"
@@ -75,13 +75,15 @@ class LifecycleParams:
                                                  "this often (0: never)", min=0.0, max=3600.0)
 
 
-class StageNotReady(RuntimeError):
-    """Raised by a hook with a complete reason: reported as its text alone (any other exception is
-    reported as ``<type>: <text>``)."""
+class StageNotReadyError(RuntimeError):
+    """Raised by a hook with a complete reason.
+
+    Reported as its text alone; any other exception is reported as ``<type>: <text>``.
+    """
 
 
 def _reason(error: BaseException) -> str:
-    if isinstance(error, StageNotReady):
+    if isinstance(error, StageNotReadyError):
         return str(error)
     return f"{type(error).__name__}: {error}"
 
@@ -136,9 +138,11 @@ class ManagedNode(LifecycleNode):
         """Release engines and caches (also after a configure that failed half-way)."""
 
     def on_params_change(self, params: Any, changed: Set[str]) -> None:
-        """A runtime ``ros2 param set`` while configured (inactive or active), before it takes effect:
-        rebuild what depends on it, or raise ValueError to refuse it. While unconfigured the values are
-        only stored: the next configure reads them."""
+        """A runtime ``ros2 param set`` while configured (inactive or active), before it takes effect.
+
+        Rebuild what depends on it, or raise ValueError to refuse it. While unconfigured the values are
+        only stored: the next configure reads them.
+        """
 
     # ------------------------------------------------------------------ state
 

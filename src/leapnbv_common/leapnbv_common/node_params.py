@@ -96,8 +96,10 @@ STOP_SIGNALS = ("SIGINT", "SIGTERM")
 
 
 def run_node(make_node, args=None) -> None:
-    """Standard main(): init, make the node (a class or any factory), spin until SIGINT, SIGTERM or an
-    external shutdown, clean up, and return (exit code 0, no traceback).
+    """Standard main(): init, make the node, spin until a signal or a shutdown, clean up, return.
+
+    The node is made by ``make_node`` (a class or any factory); it spins until SIGINT, SIGTERM or an
+    external shutdown; the clean-up ends with exit code 0 and no traceback.
 
     rclpy's own signal handler is off: on SIGINT it shuts the context down under the callback that
     is running, whose next publish then fails (a pybind ``RCLError`` traceback, exit 1; a planner

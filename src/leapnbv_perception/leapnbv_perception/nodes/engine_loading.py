@@ -47,14 +47,14 @@ class RetryingLoader:
         The lifecycle retries the whole configure (leapnbv_common.managed_node), so nothing is retried here.
 
         Raises:
-            StageNotReady: "<what> not loaded: <error type>: <error>" (the node stays unconfigured with it).
+            StageNotReadyError: "<what> not loaded: <error type>: <error>" (the node stays unconfigured with it).
         """
-        from leapnbv_common.managed_node import StageNotReady
+        from leapnbv_common.managed_node import StageNotReadyError
 
         try:
             value = load()
         except Exception as exc:  # noqa: BLE001 - any load failure is the configure's reason
-            raise StageNotReady(f"{what} not loaded: {type(exc).__name__}: {exc}") from exc
+            raise StageNotReadyError(f"{what} not loaded: {type(exc).__name__}: {exc}") from exc
         node.get_logger().info(f"{what} loaded")
         return value
 
