@@ -379,3 +379,57 @@ def test_graph_runner_brings_a_managed_node_up_reports_its_failure_and_restarts_
     finally:
         codes = runner.stop()
     assert codes == {"raster_node": 0}, runner.stop_report
+
+
+@pytest.mark.slow
+def test_the_graph_plans_once_a_missing_model_file_appears(probe, tmp_path):
+    """The whole graph on the simulator's frames, hmr_node's body model missing at start.
+
+    The runner reports hmr_node and runs the rest; no goal comes while hmr_node has no model; the file
+    appears, the retry loads it (a managed hmr_node: the lifecycle manager's configure; until then the
+    node's own engine retry) and the graph plans.
+    """
+    from geometry_msgs.msg import PoseStamped
+
+    from leapnbv_bringup.graph_runner import GraphRunner, perception_overrides
+    from leapnbv_common.qos import latched_goal_qos
+    from leapnbv_common.topics import NEXT_BEST_VIEW_TOPIC
+    from leapnbv_stand_ins.files import ensure_stand_in_body_model
+
+    body = tmp_path / "late_body.npz"
+    overrides = perception_overrides("ground_truth", body_model=str(body))
+    overrides["hmr_node"]["model_retry_period_s"] = "1.0"
+    events: List[str] = []
+    runner = GraphRunner(None, overrides, log_dir=str(tmp_path / "logs"), on_event=events.append,
+                         configure_retry_s=1.0)
+    goals: List[PoseStamped] = []
+    probe.node.create_subscription(PoseStamped, NEXT_BEST_VIEW_TOPIC, goals.append, latched_goal_qos())
+    spin = lambda t: probe.executor.spin_once(timeout_sec=t)  # noqa: E731
+    sim = None
+    try:
+        runner.start()
+        runner.wait_ready(probe.node, 120.0, spin=spin, require_all=False)
+        failed = runner.failed_nodes()
+        assert list(failed) == ["hmr_node"], (runner.not_ready(0.0), events)
+        assert "late_body.npz" in failed["hmr_node"], failed
+        sim = subprocess.Popen(
+            [sys.executable, "-m", "leapnbv_sim.nodes.simulator_node", "--ros-args", "-p", "rate_hz:=2.0",
+             "-p", "scene_seed:=3", "-r", f"goal:={NEXT_BEST_VIEW_TOPIC}"],
+            stdout=open(tmp_path / "simulator.log", "w"), stderr=subprocess.STDOUT,  # noqa: SIM115
+            env=dict(os.environ, PYTHONUNBUFFERED="1"), start_new_session=True)
+        probe.spin_for(5.0)
+        assert not [g for g in goals if g.header.frame_id], "a goal without hmr_node"
+
+        shutil.copy(ensure_stand_in_body_model("small"), body)
+        assert probe.spin_until(lambda: not runner.not_ready(0.0), 60.0), (runner.not_ready(0.0), events)
+        assert probe.spin_until(lambda: len([g for g in goals if g.header.frame_id]) >= 3, 90.0), events
+    finally:
+        if sim is not None:
+            sim.send_signal(signal.SIGINT)
+            try:
+                sim.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+                sim.wait()
+        codes = runner.stop()
+    assert set(codes.values()) == {0}, runner.stop_report
