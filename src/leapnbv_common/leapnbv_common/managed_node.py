@@ -38,7 +38,7 @@ import os
 import socket
 import traceback
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Set, Tuple, Type
+from typing import Any, Callable, Dict, List, Optional, Set, Tuple, Type, Union
 
 from lifecycle_msgs.msg import State
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -94,7 +94,8 @@ class ManagedNode(LifecycleNode):
     Args:
         node_name: The node's name.
         params_class: The core's params dataclass (``self.params``: a NodeParams; ``self.params.value``).
-        hardware_id: The /diagnostics hardware id (e.g. the engine's backend).
+        hardware_id: The /diagnostics hardware id, or a function of the params instance that returns it
+            (e.g. ``lambda p: p.backend``: the params are declared only here).
         diagnostics_class: StageDiagnostics or a subclass (``self.diagnostics``).
         **node_kwargs: Passed on to rclpy's Node (e.g. ``parameter_overrides`` in tests).
 
@@ -102,11 +103,14 @@ class ManagedNode(LifecycleNode):
         ParamsError: a parameter value from the params file or the command line is invalid.
     """
 
-    def __init__(self, node_name: str, params_class: Type[Any], *, hardware_id: str = "",
+    def __init__(self, node_name: str, params_class: Type[Any], *,
+                 hardware_id: Union[str, Callable[[Any], str]] = "",
                  diagnostics_class: Type[StageDiagnostics] = StageDiagnostics, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         self.params = NodeParams(self, params_class, self._on_params_change)
         self.lifecycle_params = NodeParams(self, LifecycleParams, self._on_lifecycle_params_change)
+        if callable(hardware_id):
+            hardware_id = str(hardware_id(self.params.value))
         self.diagnostics = diagnostics_class(self, hardware_id=hardware_id)
         self.process = f"{socket.gethostname()}:{os.getpid()}"
         #: Why the last transition failed ("" once one succeeded); what /diagnostics and the manager say.

@@ -36,7 +36,7 @@ class FileStage(ManagedNode):
     """Loads a text file in configure; while active, answers each input with the file's text + the input."""
 
     def __init__(self, **kwargs) -> None:
-        super().__init__("file_stage", FileStageParams, hardware_id="test", **kwargs)
+        super().__init__("file_stage", FileStageParams, hardware_id=lambda p: f"suffix {p.suffix}", **kwargs)
         self.model = None
         self.cleanups = 0
         self.changes: List[Set[str]] = []
@@ -131,7 +131,8 @@ def test_configure_fails_while_the_file_is_missing_and_succeeds_once_it_exists(c
     try:
         node = h.node
         assert node.lifecycle_state == UNCONFIGURED and not node.autostart
-        assert values(h.status())["lifecycle_state"] == UNCONFIGURED
+        status = h.status()
+        assert values(status)["lifecycle_state"] == UNCONFIGURED and status.hardware_id == "suffix !"
         base_publishers = {id(p) for p in node.publishers}
         base_timers = {id(t) for t in node.timers}
 
