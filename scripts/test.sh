@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up (idempotent) and run every check: ruff, the Python 3.8 syntax check of src/ (the robot
+# Set up (idempotent) and run every check: ruff, mypy, the Python 3.8 syntax check of src/ (the robot
 # runs JetPack 5), the ROS-free cores under Python 3.8 + numpy 1.24 when that interpreter exists,
 # and the whole pytest suite (unit + integration) on an isolated ROS domain.
 # Extra arguments go to pytest (e.g. scripts/test.sh -k raster).
@@ -20,6 +20,9 @@ fi
 
 log "ruff"
 .venv/bin/ruff check src tests scripts
+
+log "mypy (mypy.ini: strict on the ROS-free cores)"
+.venv/bin/mypy
 
 log "vermin: src/ must run on Python 3.8"
 .venv/bin/vermin -q -t=3.8- --no-tips --violations --eval-annotations --backport dataclasses \

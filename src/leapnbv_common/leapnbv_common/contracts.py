@@ -30,9 +30,12 @@ from __future__ import annotations
 import array
 import zlib
 from collections import OrderedDict
-from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Optional, Protocol, Sequence, Tuple
+from typing import OrderedDict as TypingOrderedDict  # collections.OrderedDict[...] needs Python 3.9
 
 import numpy as np
+
+from leapnbv_common.array_types import Float32Array, FloatArray
 
 #: | |q| - 1 | of an accepted orientation.
 QUATERNION_TOLERANCE = 1e-3
@@ -62,7 +65,14 @@ class ContractError(ValueError):
 # --------------------------------------------------------------------------- helpers
 
 
-def refused(diagnostics, reason: str, check: Callable[..., Any], *args: Any) -> bool:
+class RejectionCounter(Protocol):
+    """What :func:`refused` counts a refused input with (leapnbv_common.diagnostics.StageDiagnostics)."""
+
+    def reject(self, reason: str, detail: str = "") -> None:
+        """Count one refused input under ``reason``; ``detail`` says what was wrong."""
+
+
+def refused(diagnostics: RejectionCounter, reason: str, check: Callable[..., Any], *args: Any) -> bool:
     """Run ``check(*args)``; when it raises ContractError, count the input as rejected and say so.
 
     The one-line hook of a node::
@@ -74,6 +84,7 @@ def refused(diagnostics, reason: str, check: Callable[..., Any], *args: Any) -> 
         diagnostics: anything with ``reject(reason, detail)`` (a StageDiagnostics).
         reason: counted when the error names no reason of its own (a malformed message).
         check: a contract check or a conversion function.
+        *args: what ``check`` is called with.
 
     Returns:
         True when the input was refused (and counted), False when it passed.
@@ -86,7 +97,7 @@ def refused(diagnostics, reason: str, check: Callable[..., Any], *args: Any) -> 
     return False
 
 
-def check_finite(what: str, values: Any, reason: Optional[str] = None) -> np.ndarray:
+def check_finite(what: str, values: Any, reason: Optional[str] = None) -> FloatArray:
     """``values`` as a float64 array, or ContractError when any is NaN or inf."""
     array_values = np.asarray(values, dtype=np.float64)
     if not np.all(np.isfinite(array_values)):
@@ -148,7 +159,7 @@ def check_ground_plane(normal: Sequence[float], offset: float, valid: bool, sour
                             "(d > 0 needed)", reason)
 
 
-def check_intrinsics(k: np.ndarray, width: int, height: int, what: str = "camera_info",
+def check_intrinsics(k: FloatArray, width: int, height: int, what: str = "camera_info",
                      reason: Optional[str] = None) -> None:
     """A pinhole K (finite, fx, fy > 0) whose principal point lies inside a positive width x height."""
     k = np.asarray(k, dtype=np.float64).reshape(3, 3)
@@ -161,19 +172,21 @@ def check_intrinsics(k: np.ndarray, width: int, height: int, what: str = "camera
                             f"{int(width)}x{int(height)} image", reason)
 
 
-def check_boxes(boxes: np.ndarray, image_size: Tuple[int, int], what: str = "detection",
-                reason: Optional[str] = None) -> np.ndarray:
+def check_boxes(boxes: FloatArray, image_size: Tuple[int, int], what: str = "detection",
+                reason: Optional[str] = None) -> Float32Array:
     """(N, 5) [x0, y0, x1, y1, score] rows: finite, x1 > x0, y1 > y0, score in [0, 1], overlapping the image.
 
     Args:
         boxes: the rows (N may be 0).
         image_size: (width, height) of the image the boxes are in; (0, 0) skips the overlap test.
+        what: how the error text names a box ("detection 2 ...").
+        reason: the rejection reason the error carries (None: the caller's).
 
     Returns:
         The boxes as an (N, 5) float32 array.
     """
-    boxes = np.asarray(boxes, dtype=np.float32).reshape(-1, 5)
-    for i, (x0, y0, x1, y1, score) in enumerate(boxes.astype(np.float64)):
+    rows: Float32Array = np.asarray(boxes, dtype=np.float32).reshape(-1, 5)
+    for i, (x0, y0, x1, y1, score) in enumerate(rows.astype(np.float64)):
         if not np.all(np.isfinite([x0, y0, x1, y1, score])):
             raise ContractError(f"{what} {i} is not finite: {[x0, y0, x1, y1, score]}", reason)
         if not 0.0 <= score <= 1.0:
@@ -185,7 +198,7 @@ def check_boxes(boxes: np.ndarray, image_size: Tuple[int, int], what: str = "det
         if width > 0 and height > 0 and (x1 <= 0 or y1 <= 0 or x0 >= width or y0 >= height):
             raise ContractError(f"{what} {i} box [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}] lies outside the "
                                 f"{width}x{height} image", reason)
-    return boxes
+    return rows
 
 
 # --------------------------------------------------------------------------- cross-message contracts
@@ -256,7 +269,7 @@ class DuplicateStampGuard:
 
     def __init__(self, capacity: int = DUPLICATE_MEMORY) -> None:
         self.capacity = max(1, int(capacity))
-        self._seen: Dict[str, Dict[int, int]] = {}  # per stream, an OrderedDict: oldest stamp first
+        self._seen: Dict[str, TypingOrderedDict[int, int]] = {}  # per stream: oldest stamp first
         self.repeats = 0  # identical repeats let through
 
     def check(self, stream: str, message: Any) -> None:

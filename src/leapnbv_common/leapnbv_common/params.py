@@ -16,9 +16,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Type, TypeVar
+from typing import TYPE_CHECKING, Any, Dict, List, Mapping, Optional, Sequence, Type, TypeVar
 
-P = TypeVar("P")
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+    P = TypeVar("P", bound=DataclassInstance)  # a params dataclass
+else:
+    P = TypeVar("P")
 
 
 class ParamsError(ValueError):
@@ -50,7 +55,8 @@ def param(default: Any, description: str, *, min: Optional[float] = None, max: O
     Args:
         default: The value that works on the robot (lists are copied per instance).
         description: One line for ``ros2 param describe``: unit first where there is one.
-        min, max: Inclusive range of a number (or of each element of a list of numbers).
+        min: Inclusive lower bound of a number (or of each element of a list of numbers).
+        max: Inclusive upper bound, likewise.
         read_only: Settable only at start-up (the node builds state from it that it cannot rebuild).
         choices: The allowed values of a string parameter (or of each element of a list).
     """
@@ -68,7 +74,12 @@ def param_specs(cls: Type[Any]) -> List[ParamSpec]:
     for f in dataclasses.fields(cls):
         if "description" not in f.metadata:
             raise TypeError(f"{cls.__name__}.{f.name} is not declared with param()")
-        default = f.default_factory() if f.default is dataclasses.MISSING else f.default
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name} has no default")
         meta = f.metadata
         specs.append(ParamSpec(f.name, default, meta["description"], meta["min"], meta["max"], meta["read_only"],
                                meta["choices"]))
@@ -160,7 +171,7 @@ def replace_params(params: P, changes: Mapping[str, Any], allow_read_only: bool 
 
 
 def params_as_dict(params: Any) -> Dict[str, Any]:
-    """name -> value of every field (lists copied)."""
+    """The name -> value of every field (lists copied)."""
     values = {}
     for spec in param_specs(type(params)):
         value = getattr(params, spec.name)

@@ -34,6 +34,7 @@ from typing import Callable, Deque, Dict, List, Mapping, Optional, Sequence, Tup
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
 from leapnbv_common.params import param
 
 LOGGER = logging.getLogger(__name__)
@@ -219,9 +220,12 @@ class FrameEnergy:
     complete: bool = True
 
 
-def integrate_power(times: np.ndarray, powers: np.ndarray, t0: float, t1: float) -> float:
-    """Integral of a sampled power over [t0, t1]: trapezoids on the samples, linear interpolation at
-    the ends, the edge sample's power held outside the sampled span (joules for watts and seconds)."""
+def integrate_power(times: FloatArray, powers: FloatArray, t0: float, t1: float) -> float:
+    """Integral of a sampled power over [t0, t1] (joules for watts and seconds).
+
+    Trapezoids on the samples, linear interpolation at the ends, the edge sample's power held
+    outside the sampled span.
+    """
     if t1 <= t0 or len(times) == 0:
         return 0.0
     inside = (times > t0) & (times < t1)
@@ -307,7 +311,7 @@ class PowerMonitor:
     def __enter__(self) -> PowerMonitor:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     def _run(self) -> None:
@@ -403,8 +407,11 @@ POWER_NODE_ENV = "LEAPNBV_POWER_NODE"
 
 
 def power_node_wanted(sysfs_root: str = "/sys") -> bool:
-    """Whether the graph runs power_node: $LEAPNBV_POWER_NODE "1"/"on" always, "0"/"off" never,
-    unset or "auto" when the board's rails exist (a Jetson)."""
+    """Whether the graph runs power_node.
+
+    $LEAPNBV_POWER_NODE "1"/"on" always, "0"/"off" never, unset or "auto" when the board's rails
+    exist (a Jetson).
+    """
     choice = os.environ.get(POWER_NODE_ENV, "auto").strip().lower()
     if choice in ("1", "on", "true", "yes"):
         return True

@@ -11,8 +11,9 @@ checks the seeds with the body model.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, FrozenSet, List, Optional
 
+from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
 from leapnbv_sim.scene import Scene, SceneError
 
@@ -102,7 +103,7 @@ MIN_PERSON_PIXELS = 1500
 #: (BENCHMARK_CONFIG, small stand-in body) ...
 VERIFIED_BELOW = 2104
 #: ... and these are the ones that do not qualify (left out of the set).
-UNQUALIFIED_SEEDS: frozenset = frozenset()
+UNQUALIFIED_SEEDS: FrozenSet[int] = frozenset()
 
 #: Rooms of the benchmark: "furnished" (BENCHMARK_CONFIG) or "open" (no furniture; the seeds
 #: qualify under both, the furniture keeps off the start view's line of sight) ...
@@ -174,7 +175,7 @@ def checked_seed_count() -> int:
     return len(BENCHMARK_SEEDS) + sum(1 for seed in later if seed not in UNQUALIFIED_SEEDS)
 
 
-def benchmark_seeds(count: int, offset: int = 0, body_model: Any = None) -> List[int]:
+def benchmark_seeds(count: int, offset: int = 0, body_model: Optional[SMPLXModel] = None) -> List[int]:
     """Seeds ``[offset, offset + count)`` of the benchmark sequence (deterministic for any count).
 
     Args:
@@ -208,8 +209,10 @@ def benchmark_seeds(count: int, offset: int = 0, body_model: Any = None) -> List
 
 
 def benchmark_config(seed: int, room: str = "furnished") -> SceneConfig:
-    """The scene config of one benchmark seed in a room ("furnished": BENCHMARK_CONFIG; "open": no furniture;
-    a family of FAMILY_CHANGES: BENCHMARK_CONFIG with the family's changes).
+    """The scene config of one benchmark seed in a room.
+
+    "furnished": BENCHMARK_CONFIG; "open": no furniture; a family of FAMILY_CHANGES:
+    BENCHMARK_CONFIG with the family's changes.
 
     Raises:
         ValueError: An unknown room.
@@ -227,10 +230,11 @@ def benchmark_config(seed: int, room: str = "furnished") -> SceneConfig:
     return dataclasses.replace(BENCHMARK_CONFIG, seed=int(seed), **changes)
 
 
-def room_seeds(room: str, count: int, offset: int = 0, body_model: Any = None) -> List[int]:
-    """Seeds [offset, offset + count) of a room: the benchmark sequence for "furnished" / "open", a
-    family's committed FAMILY_SEEDS (then, past them, the family's next qualifying seeds, checked with
-    ``body_model``).
+def room_seeds(room: str, count: int, offset: int = 0, body_model: Optional[SMPLXModel] = None) -> List[int]:
+    """Seeds [offset, offset + count) of a room.
+
+    The benchmark sequence for "furnished" / "open", a family's committed FAMILY_SEEDS (then, past
+    them, the family's next qualifying seeds, checked with ``body_model``).
 
     Raises:
         ValueError: an unknown room, a bad count or offset, or seeds past the committed ones without a body model.
@@ -252,14 +256,14 @@ def room_seeds(room: str, count: int, offset: int = 0, body_model: Any = None) -
     return seeds[offset:offset + count]
 
 
-def benchmark_scene(seed: int, body_model: Any, room: str = "furnished") -> Scene:
+def benchmark_scene(seed: int, body_model: SMPLXModel, room: str = "furnished") -> Scene:
     """The scene of one benchmark seed (see :func:`benchmark_config`)."""
     return generate_scene(benchmark_config(seed, room), body_model)
 
 
 def select_benchmark_seeds(
     n: int,
-    body_model: Any,
+    body_model: SMPLXModel,
     base_config: Optional[SceneConfig] = None,
     first_seed: int = 0,
     max_seed: int = 100_000,
@@ -303,7 +307,7 @@ def select_benchmark_seeds(
 
 def load_benchmark_scenes(
     n: int,
-    body_model: Any,
+    body_model: SMPLXModel,
     base_config: Optional[SceneConfig] = None,
 ) -> List[Scene]:
     """Generate the first ``n`` scenes of the benchmark set.

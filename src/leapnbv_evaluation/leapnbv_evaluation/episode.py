@@ -28,6 +28,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
 from leapnbv_common.conversions import GroundPlaneArrays, TargetGeometryArrays, ViewCandidatesArrays
 from leapnbv_evaluation.metrics import body_coverage, is_success, surface_coverage
 from leapnbv_evaluation.results import GraphVsTruth, MethodResult, PoseRecord, ViewMetrics
@@ -229,5 +230,5 @@ def graph_vs_truth(scene: Scene, target: Optional[TargetGeometryArrays], ground:
     return record
 
 
-def _rounded(values: np.ndarray, digits: int) -> List[float]:
+def _rounded(values: FloatArray, digits: int) -> List[float]:
     return [round(float(v), digits) for v in values]

@@ -6,6 +6,7 @@ from typing import Dict, Sequence
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray, IntArray
 from leapnbv_sim.visibility import self_visible_vertex_mask, visible_vertex_mask
 
 # Success rule of the task table: coverage rises by at least this many points (fraction) ...
@@ -34,9 +35,9 @@ def is_success(coverage_before: float, coverage_after: float) -> bool:
 
 
 def body_coverage(
-    gt_vertices_cam: np.ndarray,
-    scene_depth_m: np.ndarray,
-    K: np.ndarray,
+    gt_vertices_cam: FloatArray,
+    scene_depth_m: FloatingArray,
+    K: FloatArray,
     tolerance: float = 0.02,
 ) -> float:
     """Share of ground-truth body vertices visible in the view (docs/ALGORITHMS.md §8).
@@ -58,7 +59,7 @@ def body_coverage(
     return float(np.count_nonzero(visible)) / float(visible.size)
 
 
-def reconstructed_area(mask: np.ndarray, depth: np.ndarray) -> int:
+def reconstructed_area(mask: BoolArray, depth: FloatArray) -> int:
     """Pixels of the person mask with valid depth (docs/ALGORITHMS.md §8).
 
     Args:
@@ -82,7 +83,7 @@ def reconstructed_area(mask: np.ndarray, depth: np.ndarray) -> int:
     return int(np.count_nonzero(mask & valid))
 
 
-def procrustes_align(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+def procrustes_align(pred: FloatArray, gt: FloatArray) -> FloatArray:
     """Similarity-align pred to gt: argmin over s, R, t of sum |s R pred_i + t - gt_i|^2.
 
     Umeyama's closed form: with centred X = pred - mean, Y = gt - mean and
@@ -117,10 +118,11 @@ def procrustes_align(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     R = Vt.T @ D @ U.T
     scale = float(np.sum(S * np.diag(D))) / variance_x
     t = mean_y - scale * (R @ mean_x)
-    return scale * (X @ R.T) + t
+    aligned: FloatArray = scale * (X @ R.T) + t
+    return aligned
 
 
-def pa_mpvpe_mm(pred: np.ndarray, gt: np.ndarray) -> float:
+def pa_mpvpe_mm(pred: FloatArray, gt: FloatArray) -> float:
     """PA-MPVPE: mean per-vertex distance after Procrustes alignment (scale, rotation, translation).
 
     Args:
@@ -159,10 +161,10 @@ def latency_summary(samples_ms: Sequence[float]) -> Dict[str, float]:
 
 
 def surface_coverage(
-    gt_vertices_cam: np.ndarray,
-    body_faces: np.ndarray,
-    scene_depth_m: np.ndarray,
-    K: np.ndarray,
+    gt_vertices_cam: FloatArray,
+    body_faces: IntArray,
+    scene_depth_m: FloatingArray,
+    K: FloatArray,
     tolerance: float = 0.02,
 ) -> float:
     """Share of the body surface this viewpoint could show that it does show (in [0, 1]).

@@ -11,6 +11,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, Float32Array, FloatArray, FloatingArray, IntArray
+
 from .target_geometry import backproject
 
 __all__ = [
@@ -50,15 +52,15 @@ class GroundPlaneResult:
     """
 
     valid: bool
-    normal: np.ndarray
+    normal: FloatArray
     offset: float
-    inlier_mask: np.ndarray
+    inlier_mask: BoolArray
     inlier_count: int
     inlier_ratio: float
     tilt_deg: float
 
 
-def _refine_plane(points: np.ndarray, up: np.ndarray):
+def _refine_plane(points: FloatArray, up: FloatArray) -> Tuple[FloatArray, float]:
     """Least-squares plane (unit normal oriented to ``up``, offset) through (K, 3) points.
 
     The normal is the direction of least variance: the eigenvector of the smallest eigenvalue
@@ -86,7 +88,7 @@ LOW_PLANE_SCORE_SHARE = 0.3  # low hypotheses with at least this share of the be
 
 
 def fit_ground_plane(
-    points: np.ndarray,
+    points: FloatingArray,
     max_tilt_deg: float = 30.0,
     inlier_threshold: float = 0.02,
     iterations: int = 128,
@@ -229,7 +231,7 @@ def fit_ground_plane(
     # of the winner would crowd out the runner-up, e.g. the floor behind a larger box top),
     # and the lowest few among those with a fair share of the best score (the floor is the
     # lowest surface, however little of it is in view).
-    def distinct(candidates: np.ndarray, chosen: List[int], limit: int) -> None:
+    def distinct(candidates: IntArray, chosen: List[int], limit: int) -> None:
         for h in candidates:
             if len(chosen) >= limit:
                 return
@@ -285,7 +287,7 @@ def fit_ground_plane(
 ROTATION_TOLERANCE = 1e-3  # largest |R^T R - I| entry of an accepted rotation matrix
 
 
-def floor_plane_from_camera_pose(rotation: np.ndarray, position: np.ndarray) -> Tuple[np.ndarray, float]:
+def floor_plane_from_camera_pose(rotation: FloatArray, position: FloatArray) -> Tuple[FloatArray, float]:
     """The floor z = 0 of a floor-aligned fixed frame, in the camera optical frame.
 
     The pose T_fixed_camera maps a camera point x to R x + p in the fixed frame (z up, floor at
@@ -332,13 +334,13 @@ def floor_plane_from_camera_pose(rotation: np.ndarray, position: np.ndarray) -> 
 
 
 def ground_points_from_depth(
-    depth: np.ndarray,
-    K: np.ndarray,
-    exclude_mask: Optional[np.ndarray] = None,
+    depth: FloatingArray,
+    K: FloatArray,
+    exclude_mask: Optional[BoolArray] = None,
     stride: int = 4,
     min_depth: float = 0.1,
     max_depth: float = 10.0,
-) -> np.ndarray:
+) -> Float32Array:
     """Background points for the ground fit: valid depth pixels not in ``exclude_mask``.
 
     Args:
@@ -374,7 +376,7 @@ def ground_points_from_depth(
 # --------------------------------------------------------------------------- priors and fusion
 
 
-def expected_up(pitch_deg: float) -> np.ndarray:
+def expected_up(pitch_deg: float) -> FloatArray:
     """The floor's up in the optical frame of a camera pitched down by ``pitch_deg`` (no roll).
 
     A camera whose optical axis points ``pitch_deg`` below the horizon sees the world's up as
@@ -389,8 +391,8 @@ def mounting_priors(camera_height: float, height_tolerance: float) -> Tuple[floa
     return max(0.0, float(camera_height) - float(height_tolerance)), float(camera_height) + float(height_tolerance)
 
 
-def box_exclusion_mask(shape: Tuple[int, int], boxes: np.ndarray, grow_px: float = 10.0,
-                       top_share: float = 1.0) -> np.ndarray:
+def box_exclusion_mask(shape: Tuple[int, int], boxes: FloatArray, grow_px: float = 10.0,
+                       top_share: float = 1.0) -> BoolArray:
     """Pixels inside any person box (x1, y1, x2, y2[, score]) grown by ``grow_px``: the person is not floor.
 
     Used on a frame for which no person mask exists yet (the first frame of a scene), so that the
@@ -451,7 +453,7 @@ class FloorEstimate:
     """
 
     valid: bool
-    normal: np.ndarray
+    normal: FloatArray
     offset: float
     from_pose: bool
     decision: str
@@ -481,7 +483,7 @@ def floor_quality(decision: str, inlier_ratio: float, full_support_ratio: float 
 
 def fuse_floor(
     ransac: GroundPlaneResult,
-    pose_floor: Optional[Tuple[np.ndarray, float]],
+    pose_floor: Optional[Tuple[FloatArray, float]],
     max_angle_deg: float = 2.0,
     max_height_m: float = 0.05,
     full_support_ratio: float = 0.2,

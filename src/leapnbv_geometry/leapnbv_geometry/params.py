@@ -50,8 +50,11 @@ class RasterParams:
 
 @dataclass
 class GroundParams:
-    """ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC, or the camera
-    pose's floor)."""
+    """Parameters of ground_node.
+
+    ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC, or the
+    camera pose's floor).
+    """
 
     # The priors describe the robot's camera mounting (its height above the floor and its pitch), not any
     # simulator: a robot with another mounting sets them (the evaluation sets them from its robot model).

@@ -4,10 +4,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional, Tuple, TypeVar
 
 import numpy as np
-from numba import njit
+
+from leapnbv_common.array_types import BoolArray, Float32Array, FloatArray, Int32Array, Int64Array, IntArray
+
+if TYPE_CHECKING:
+    _Kernel = TypeVar("_Kernel", bound=Callable[..., Any])
+
+    def njit(*args: Any, **kwargs: Any) -> Callable[[_Kernel], _Kernel]:
+        """The njit decorator of numba as the type checker sees it: the compiled kernel keeps its signature."""
+else:
+    from numba import njit
 
 # Conventions (shared with ``target_geometry.backproject``):
 #
@@ -48,18 +57,18 @@ class RasterResult:
             ``None`` unless ``face_object_id`` was given.
     """
 
-    depth: np.ndarray
-    face_index: np.ndarray
-    object_id: Optional[np.ndarray] = None
+    depth: Float32Array
+    face_index: Int32Array
+    object_id: Optional[Int32Array] = None
 
     @property
-    def silhouette(self) -> np.ndarray:
+    def silhouette(self) -> BoolArray:
         """(H, W) bool: True where a triangle was hit."""
         return self.face_index >= 0
 
 
 @njit(cache=True, nogil=True)
-def _edge_coefficients(pu: float, pv: float, qu: float, qv: float, orientation: float):
+def _edge_coefficients(pu: float, pv: float, qu: float, qv: float, orientation: float) -> Tuple[float, float, float]:
     """Coefficients (A, B, C) of the edge function of edge p->q, pointing into the triangle.
 
     E(x, y) = A x + B y + C = cross(q - p, (x, y) - p) * orientation. The end points are first
@@ -83,8 +92,8 @@ def _raster_triangle(
     u1: float, v1: float, w1: float,
     u2: float, v2: float, w2: float,
     face: int,
-    inv_depth: np.ndarray,
-    face_index: np.ndarray,
+    inv_depth: Float32Array,
+    face_index: Int32Array,
 ) -> None:
     """Draw one screen-space triangle (u, v, w = 1/z per vertex) into the z-buffer."""
     height = inv_depth.shape[0]
@@ -167,12 +176,12 @@ def _raster_triangle(
 
 @njit(cache=True, nogil=True)
 def _rasterize_kernel(
-    vertices: np.ndarray,
-    faces: np.ndarray,
+    vertices: FloatArray,
+    faces: Int64Array,
     fx: float, skew: float, cx: float, fy: float, cy: float,
     near: float,
-    inv_depth: np.ndarray,
-    face_index: np.ndarray,
+    inv_depth: Float32Array,
+    face_index: Int32Array,
 ) -> None:
     """Rasterize every face into ``inv_depth`` (1/z, 0 = empty) and ``face_index``."""
     n_vertices = vertices.shape[0]
@@ -251,7 +260,7 @@ def _rasterize_kernel(
 
 
 @njit(cache=True, nogil=True)
-def _inverse_depth_to_depth(inv_depth: np.ndarray) -> None:
+def _inverse_depth_to_depth(inv_depth: Float32Array) -> None:
     """In place: 1/z -> z where hit, 0 stays 0."""
     for i in range(inv_depth.shape[0]):
         for j in range(inv_depth.shape[1]):
@@ -261,7 +270,7 @@ def _inverse_depth_to_depth(inv_depth: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _lookup_object_id(face_index: np.ndarray, face_object_id: np.ndarray) -> np.ndarray:
+def _lookup_object_id(face_index: Int32Array, face_object_id: Int32Array) -> Int32Array:
     """(H, W) object id of the face hit in each pixel, -1 where none."""
     out = np.empty(face_index.shape, dtype=np.int32)
     for i in range(face_index.shape[0]):
@@ -272,13 +281,13 @@ def _lookup_object_id(face_index: np.ndarray, face_object_id: np.ndarray) -> np.
 
 
 def rasterize_mesh(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    K: np.ndarray,
+    vertices: FloatArray,
+    faces: IntArray,
+    K: FloatArray,
     width: int,
     height: int,
     near: float = 0.01,
-    face_object_id: Optional[np.ndarray] = None,
+    face_object_id: Optional[IntArray] = None,
 ) -> RasterResult:
     """Render the depth and face-index images of a mesh with a z-buffer.
 
@@ -335,12 +344,13 @@ def rasterize_mesh(
             f"rasterize_mesh: face indices must lie in [0, {vertices.shape[0]}), "
             f"got [{faces.min()}, {faces.max()}]"
         )
+    object_ids32 = None
     if face_object_id is not None:
-        face_object_id = np.ascontiguousarray(face_object_id, dtype=np.int32)
-        if face_object_id.shape != (faces.shape[0],):
+        object_ids32 = np.ascontiguousarray(face_object_id, dtype=np.int32)
+        if object_ids32.shape != (faces.shape[0],):
             raise RasterError(
                 f"rasterize_mesh: face_object_id must be ({faces.shape[0]},), "
-                f"got {face_object_id.shape}"
+                f"got {object_ids32.shape}"
             )
 
     # One dtype per argument keeps numba to a single compiled signature.
@@ -355,8 +365,8 @@ def rasterize_mesh(
     )
     _inverse_depth_to_depth(inv_depth)
     object_id = None
-    if face_object_id is not None:
-        object_id = _lookup_object_id(face_index, face_object_id)
+    if object_ids32 is not None:
+        object_id = _lookup_object_id(face_index, object_ids32)
     return RasterResult(depth=inv_depth, face_index=face_index, object_id=object_id)
 
 

@@ -7,6 +7,8 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, Float32Array, FloatArray, FloatingArray, IntArray
+
 from .raster import rasterize_mesh
 
 __all__ = [
@@ -58,23 +60,23 @@ class TargetGeometryResult:
 
     valid: bool
     invalid_reason: str
-    target_points: np.ndarray
-    centroid: np.ndarray
-    bbox_min: np.ndarray
-    bbox_max: np.ndarray
-    mask: np.ndarray
-    silhouette: np.ndarray
-    box_mask: np.ndarray
+    target_points: Float32Array
+    centroid: FloatArray
+    bbox_min: FloatArray
+    bbox_max: FloatArray
+    mask: BoolArray
+    silhouette: BoolArray
+    box_mask: BoolArray
     mask_pixel_count: int
     silhouette_pixel_count: int
     visible_fraction: float
     depth_offset: float
-    background_points: np.ndarray
-    metric_vertices: np.ndarray
-    mesh_depth: np.ndarray
+    background_points: Float32Array
+    metric_vertices: Float32Array
+    mesh_depth: Float32Array
 
 
-def _intrinsics(K: np.ndarray, name: str = "K") -> Tuple[float, float, float, float, float]:
+def _intrinsics(K: FloatArray, name: str = "K") -> Tuple[float, float, float, float, float]:
     """(fx, skew, cx, fy, cy) of a (3, 3) camera matrix, validated."""
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] == 0.0 or K[1, 1] == 0.0:
@@ -82,7 +84,7 @@ def _intrinsics(K: np.ndarray, name: str = "K") -> Tuple[float, float, float, fl
     return float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
 
 
-def pixels_to_points(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
+def pixels_to_points(rows: IntArray, cols: IntArray, z: FloatingArray, K: FloatArray) -> Float32Array:
     """Back-project pixels with known depth: the one inverse of the projection used here.
 
     Pixel (row i, column j) is the image point (u, v) = (j, i) (integer coordinates are pixel
@@ -113,11 +115,11 @@ def pixels_to_points(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, K: np.nd
 
 
 def backproject(
-    depth: np.ndarray,
-    K: np.ndarray,
-    mask: Optional[np.ndarray] = None,
+    depth: FloatingArray,
+    K: FloatArray,
+    mask: Optional[BoolArray] = None,
     stride: int = 1,
-) -> np.ndarray:
+) -> Float32Array:
     """Back-project every valid depth pixel (finite, > 0), optionally masked and strided.
 
     Args:
@@ -154,13 +156,13 @@ def backproject(
 
 
 def place_mesh_metric(
-    vertices_virtual: np.ndarray,
+    vertices_virtual: FloatArray,
     virtual_K_params: Sequence[float],
-    real_K: np.ndarray,
-    cam_translation: np.ndarray,
+    real_K: FloatArray,
+    cam_translation: FloatArray,
     virtual_image_size: Optional[Tuple[int, int]] = None,
     real_image_size: Optional[Tuple[int, int]] = None,
-) -> np.ndarray:
+) -> FloatArray:
     """Move a mesh from the HMR virtual camera into the real camera frame (weak perspective).
 
     The HMR mesh is ``vertices_virtual = body + t`` with t = ``cam_translation`` and is meant to
@@ -225,10 +227,13 @@ def place_mesh_metric(
         t[1] + (cy_v - cy_r) * t[2] / fy_v,
         t[2] * f_ratio,
     ])
-    return vertices_virtual + (t_new - t)
+    placed: FloatArray = vertices_virtual + (t_new - t)
+    return placed
 
 
-def _dilated_box(box_xyxy: Sequence[float], dilation_px: float, width: int, height: int):
+def _dilated_box(
+    box_xyxy: Sequence[float], dilation_px: float, width: int, height: int
+) -> Optional[Tuple[int, int, int, int]]:
     """Integer pixel ranges [row0, row1) x [col0, col1) of the dilated box, clipped; or None."""
     box = np.asarray(box_xyxy, dtype=np.float64).reshape(-1)
     if box.shape != (4,) or not np.all(np.isfinite(box)):
@@ -247,7 +252,7 @@ def _dilated_box(box_xyxy: Sequence[float], dilation_px: float, width: int, heig
 MIN_CLUSTER_SHARE = 0.15
 
 
-def _robust_depth_offset(offsets: np.ndarray, tolerance: float, min_share: float = MIN_CLUSTER_SHARE) -> float:
+def _robust_depth_offset(offsets: FloatArray, tolerance: float, min_share: float = MIN_CLUSTER_SHARE) -> float:
     """Depth offset of the person's cluster of D - D_mesh values.
 
     The person's offsets are tightly clustered (the mesh models its surface, so D - D_mesh is
@@ -279,17 +284,17 @@ def _robust_depth_offset(offsets: np.ndarray, tolerance: float, min_share: float
 
 
 def compute_target_geometry(
-    vertices_metric: np.ndarray,
-    faces: np.ndarray,
-    depth: np.ndarray,
-    K: np.ndarray,
+    vertices_metric: FloatArray,
+    faces: IntArray,
+    depth: FloatingArray,
+    K: FloatArray,
     box_xyxy: Sequence[float],
     box_dilation_px: float = 10.0,
     depth_tolerance: float = 0.15,
     min_depth: float = 0.1,
     max_depth: float = 10.0,
     background_stride: int = 4,
-    ground_plane: Optional[Tuple[np.ndarray, float]] = None,
+    ground_plane: Optional[Tuple[FloatArray, float]] = None,
     ground_inlier_threshold: float = 0.03,
 ) -> TargetGeometryResult:
     """Person mask, target points and background points of one frame (docs/ALGORITHMS.md §4).
@@ -358,7 +363,7 @@ def compute_target_geometry(
     mask = np.zeros((height, width), dtype=bool)
     box_mask = np.zeros((height, width), dtype=bool)
 
-    def valid_depth(values: np.ndarray) -> np.ndarray:
+    def valid_depth(values: FloatingArray) -> BoolArray:
         # NaN and +-inf fail one of the comparisons: no separate isfinite pass needed.
         return (values >= min_depth) & (values <= max_depth)
 

@@ -1,5 +1,7 @@
-"""Carrying a person box from one frame to a later one with the person's mesh, so that the detector
-need not run on every frame (ROS-free; the detector node's ``detect_every_n_frames`` uses it).
+"""Carrying a person box from one frame to a later one with the person's mesh.
+
+The detector then need not run on every frame (ROS-free; the detector node's
+``detect_every_n_frames`` uses it).
 
 The box of frame A (a detection: the visible part of the person) is moved into frame B by the image
 motion of the mesh estimated in frame A: each vertex is projected into A, moved by the camera's
@@ -19,6 +21,8 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, FloatArray
+
 MIN_DEPTH_M = 0.1
 MIN_POINTS = 8
 
@@ -34,13 +38,13 @@ class CarriedBox:
         scale: the fitted image scale from A to B (1 = same apparent size).
     """
 
-    box: np.ndarray
+    box: FloatArray
     confidence: float
     scale: float
 
 
-def camera_motion(pose_a: Optional[Tuple[np.ndarray, np.ndarray]],
-                  pose_b: Optional[Tuple[np.ndarray, np.ndarray]]) -> Tuple[np.ndarray, np.ndarray]:
+def camera_motion(pose_a: Optional[Tuple[FloatArray, FloatArray]],
+                  pose_b: Optional[Tuple[FloatArray, FloatArray]]) -> Tuple[FloatArray, FloatArray]:
     """(R, t) taking points from A's camera frame to B's: T_B_world T_world_A; identity without poses."""
     if pose_a is None or pose_b is None:
         return np.eye(3), np.zeros(3)
@@ -49,23 +53,25 @@ def camera_motion(pose_a: Optional[Tuple[np.ndarray, np.ndarray]],
     return rotation, rb.T @ (np.asarray(ta, np.float64) - np.asarray(tb, np.float64))
 
 
-def project(points: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def project(points: FloatArray, K: FloatArray) -> Tuple[FloatArray, BoolArray]:
     """(uv (N, 2), in front (N,) bool) of camera-frame points."""
     z = points[:, 2]
     front = z > MIN_DEPTH_M
     safe = np.where(front, z, 1.0)
-    uv = np.stack((K[0, 0] * points[:, 0] / safe + K[0, 2], K[1, 1] * points[:, 1] / safe + K[1, 2]), axis=1)
+    uv: FloatArray = np.stack(
+        (K[0, 0] * points[:, 0] / safe + K[0, 2], K[1, 1] * points[:, 1] / safe + K[1, 2]), axis=1)
     return uv, front
 
 
-def carry_box(box_a: Sequence[float], vertices_a: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
-              image_size_b: Tuple[int, int], motion: Tuple[np.ndarray, np.ndarray]) -> Optional[CarriedBox]:
+def carry_box(box_a: Sequence[float], vertices_a: FloatArray, K_a: FloatArray, K_b: FloatArray,
+              image_size_b: Tuple[int, int], motion: Tuple[FloatArray, FloatArray]) -> Optional[CarriedBox]:
     """Move ``box_a`` into frame B with the mesh's image motion (None: too few points to fit).
 
     Args:
         box_a: (x_min, y_min, x_max, y_max) in A.
         vertices_a: (V, 3) the person's mesh in A's camera frame.
-        K_a, K_b: intrinsics of A and B.
+        K_a: (3, 3) intrinsics of A.
+        K_b: (3, 3) intrinsics of B.
         image_size_b: (width, height) of B.
         motion: (R, t) from A's camera frame to B's (camera_motion).
     """

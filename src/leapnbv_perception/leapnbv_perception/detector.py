@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
-
+from leapnbv_common.array_types import Float32Array, UInt8Array
 from leapnbv_perception.backends.base import EngineBackend
 from leapnbv_perception.detector_families import (
     DEFAULT_DETECTOR_FAMILY,
@@ -51,7 +50,7 @@ class PersonDetector:
         self.iou_threshold = float(iou_threshold)
         self.max_detections = int(max_detections)
 
-    def detect(self, rgb: np.ndarray) -> np.ndarray:
+    def detect(self, rgb: UInt8Array) -> Float32Array:
         """Detect people in one RGB image.
 
         Args:

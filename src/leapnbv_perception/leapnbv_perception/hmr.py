@@ -8,6 +8,7 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray, FloatingArray, IntArray, UInt8Array
 from leapnbv_perception.backends.base import EngineBackend
 from leapnbv_perception.hmr_crop import DEFAULT_BOX_SCALE, engine_input_for_box
 from leapnbv_perception.hmr_tail import camera_translation, unmirror_left_hand, virtual_intrinsics
@@ -75,7 +76,7 @@ def check_export_metadata(metadata: Mapping[str, str], input_hw: Tuple[int, int]
     problems = []
     size = metadata.get(EXPORT_METADATA_PREFIX + "input_size")
     if size is not None and size != "%dx%d" % tuple(input_hw):
-        problems.append("metadata input_size %s but the graph's input is %dx%d" % ((size,) + tuple(input_hw)))
+        problems.append(f"metadata input_size {size} but the graph's input is {int(input_hw[0])}x{int(input_hw[1])}")
     flag = metadata.get(EXPORT_METADATA_PREFIX + "unmirror_left_hand")
     if flag is not None and (flag == "true") != bool(unmirror_left_hand):
         problems.append("exported with unmirror_left_hand=%s but the parameter is %s"
@@ -112,23 +113,23 @@ class HumanMeshEstimate:
         cam_translation: (3,) metres in the virtual crop camera.
     """
 
-    vertices: np.ndarray
-    faces: np.ndarray
-    joints: np.ndarray
+    vertices: FloatArray
+    faces: IntArray
+    joints: FloatArray
     fx: float
     fy: float
     cx: float
     cy: float
-    processed_box: np.ndarray
-    crop_affine: np.ndarray
-    root: np.ndarray
-    body: np.ndarray
-    left_hand: np.ndarray
-    right_hand: np.ndarray
-    jaw: np.ndarray
-    betas: np.ndarray
-    expression: np.ndarray
-    cam_translation: np.ndarray
+    processed_box: FloatArray
+    crop_affine: FloatArray
+    root: FloatArray
+    body: FloatArray
+    left_hand: FloatArray
+    right_hand: FloatArray
+    jaw: FloatArray
+    betas: FloatArray
+    expression: FloatArray
+    cam_translation: FloatArray
 
 
 class HumanMeshEstimator:
@@ -164,7 +165,10 @@ class HumanMeshEstimator:
         self.box_scale = float(box_scale)
         self.unmirror_left_hand = bool(unmirror_left_hand)
         input_shape = backend.input_specs[HMR_INPUT_NAME].shape
-        self.input_hw: Tuple[int, int] = (int(input_shape[2]), int(input_shape[3]))
+        height, width = input_shape[2], input_shape[3]
+        if not isinstance(height, int) or not isinstance(width, int):
+            raise ValueError(f"the HMR model's input must have a static height and width, got {input_shape}")
+        self.input_hw: Tuple[int, int] = (height, width)
         model_path = getattr(backend, "model_path", None)
         self.export_metadata = read_export_metadata(model_path if isinstance(model_path, str) else None)
         check_export_metadata(self.export_metadata, self.input_hw, self.box_scale, self.unmirror_left_hand,
@@ -172,7 +176,7 @@ class HumanMeshEstimator:
         # A body-only engine (export-hmr --without-hands): every estimate's hands are the SMPL-X hand mean pose.
         self.hands_estimated = hands_estimated(self.export_metadata)
 
-    def _read_outputs(self, outputs: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    def _read_outputs(self, outputs: Mapping[str, FloatingArray]) -> Dict[str, FloatArray]:
         """Flatten each named output to its per-item length and reject non-finite values."""
         values = {}
         for name, size in HMR_OUTPUT_SIZES.items():
@@ -186,7 +190,7 @@ class HumanMeshEstimator:
             values[name] = array
         return values
 
-    def estimate(self, rgb: np.ndarray, box_xyxy: Sequence[float]) -> HumanMeshEstimate:
+    def estimate(self, rgb: UInt8Array, box_xyxy: Sequence[float]) -> HumanMeshEstimate:
         """Estimate the mesh of the person in one box.
 
         Args:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Sequence, Tuple
+from typing import Sequence, Tuple, Union
 
 import cv2
 import numpy as np
+
+from leapnbv_common.array_types import FloatArray, UInt8Array
 
 CROP_H = 512
 CROP_W = 384
@@ -19,13 +21,13 @@ class InvalidBoxError(ValueError):
     """A box is not usable: no area inside the image, or at most one pixel wide or high."""
 
 
-def xyxy_to_xywh(box_xyxy: Sequence[float]) -> np.ndarray:
+def xyxy_to_xywh(box_xyxy: Union[Sequence[float], FloatArray]) -> FloatArray:
     """[x_min, y_min, x_max, y_max, ...] -> [x, y, w, h] float64."""
     x_min, y_min, x_max, y_max = (float(v) for v in box_xyxy[:4])
     return np.array([x_min, y_min, x_max - x_min, y_max - y_min], dtype=np.float64)
 
 
-def sanitize_box(box_xywh: Sequence[float], image_w: int, image_h: int) -> np.ndarray:
+def sanitize_box(box_xywh: Union[Sequence[float], FloatArray], image_w: int, image_h: int) -> FloatArray:
     """A detection box made to lie on the image's pixel grid, as SMPLer-X's sanitize_bbox does.
 
     The box [x, y, w, h] starts at (max(0, x), max(0, y)): a box starting outside the image is
@@ -55,12 +57,12 @@ def sanitize_box(box_xywh: Sequence[float], image_w: int, image_h: int) -> np.nd
 
 
 def process_box(
-    box_xywh: Sequence[float],
+    box_xywh: Union[Sequence[float], FloatArray],
     image_w: int,
     image_h: int,
     aspect: float = DEFAULT_ASPECT,
     scale: float = DEFAULT_BOX_SCALE,
-) -> np.ndarray:
+) -> FloatArray:
     """Turn a detection box into the crop box SMPLer-X expects (its process_bbox).
 
     Steps: `sanitize_box` (SMPLer-X's pixel convention: w - 1 / h - 1, clip at W - 1 / H - 1,
@@ -93,7 +95,9 @@ def process_box(
     return np.array([center_x - 0.5 * width, center_y - 0.5 * height, width, height], dtype=np.float64)
 
 
-def crop_affine(processed_box: Sequence[float], out_h: int = CROP_H, out_w: int = CROP_W) -> np.ndarray:
+def crop_affine(
+    processed_box: Union[Sequence[float], FloatArray], out_h: int = CROP_H, out_w: int = CROP_W
+) -> FloatArray:
     """Affine (2, 3) mapping source pixels to crop pixels for a processed box.
 
     The box centre goes to (out_w / 2, out_h / 2) with the uniform scale s = out_w / box_w,
@@ -116,14 +120,14 @@ def crop_affine(processed_box: Sequence[float], out_h: int = CROP_H, out_w: int 
     )
 
 
-def invert_affine(affine: np.ndarray) -> np.ndarray:
+def invert_affine(affine: FloatArray) -> FloatArray:
     """Inverse of a (2, 3) affine, as (2, 3)."""
     return cv2.invertAffineTransform(np.asarray(affine, dtype=np.float64))
 
 
 def crop_for_hmr(
-    rgb: np.ndarray, processed_box: Sequence[float], out_h: int = CROP_H, out_w: int = CROP_W
-) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rgb: UInt8Array, processed_box: Union[Sequence[float], FloatArray], out_h: int = CROP_H, out_w: int = CROP_W
+) -> Tuple[FloatArray, FloatArray, FloatArray]:
     """Crop the processed box into the HMR input tensor.
 
     Args:
@@ -154,7 +158,7 @@ def crop_for_hmr(
     return np.ascontiguousarray(tensor), affine, invert_affine(affine)
 
 
-def fit_to_engine_input(tensor: np.ndarray, input_hw: Tuple[int, int]) -> np.ndarray:
+def fit_to_engine_input(tensor: FloatArray, input_hw: Tuple[int, int]) -> FloatArray:
     """Give the engine the crop at the size it declares.
 
     SMPLer-X downsamples the 512x384 crop to 256x192 with nearest interpolation, which
@@ -181,11 +185,13 @@ def fit_to_engine_input(tensor: np.ndarray, input_hw: Tuple[int, int]) -> np.nda
     )
 
 
-def engine_input_for_box(rgb: np.ndarray, box_xyxy, input_hw: Tuple[int, int],
-                         box_scale: float = DEFAULT_BOX_SCALE) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The HMR engine's input for one person box, as inference makes it (the node, the INT8 calibration
-    and the distillation data all use this): SMPLer-X's box processing (process_box), the 512x384
-    affine crop, then the engine's input size (fit_to_engine_input).
+def engine_input_for_box(rgb: UInt8Array, box_xyxy: Union[Sequence[float], FloatArray], input_hw: Tuple[int, int],
+                         box_scale: float = DEFAULT_BOX_SCALE) -> Tuple[FloatArray, FloatArray, FloatArray]:
+    """The HMR engine's input for one person box, as inference makes it.
+
+    The node, the INT8 calibration and the distillation data all use this: SMPLer-X's box
+    processing (process_box), the 512x384 affine crop, then the engine's input size
+    (fit_to_engine_input).
 
     Args:
         rgb: (H, W, 3) uint8 RGB image.

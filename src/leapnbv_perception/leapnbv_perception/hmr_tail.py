@@ -1,12 +1,16 @@
-"""The FP32 tail after the HMR engine: camera translation, virtual intrinsics, hand un-mirroring
-(docs/ALGORITHMS.md §3)."""
+"""The FP32 tail after the HMR engine.
+
+Camera translation, virtual intrinsics, hand un-mirroring (docs/ALGORITHMS.md §3).
+"""
 
 from __future__ import annotations
 
 import math
-from typing import Sequence, Tuple
+from typing import Sequence, Tuple, Union
 
 import numpy as np
+
+from leapnbv_common.array_types import FloatArray, FloatingArray
 
 # SMPLer-X's virtual camera for the 256x192 body crop.
 VIRTUAL_FOCAL = (5000.0, 5000.0)
@@ -28,7 +32,7 @@ def _sigmoid(value: float) -> float:
 def depth_scale(
     focal: Sequence[float] = VIRTUAL_FOCAL, input_body_shape: Sequence[int] = BODY_INPUT_SHAPE
 ) -> float:
-    """k = sqrt(fx fy 2.5^2 / (H W)) = 56.38 for SMPLer-X's defaults."""
+    """The depth factor k = sqrt(fx fy 2.5^2 / (H W)) = 56.38 for SMPLer-X's defaults."""
     return math.sqrt(
         float(focal[0]) * float(focal[1]) * CAMERA_3D_SIZE * CAMERA_3D_SIZE
         / (float(input_body_shape[0]) * float(input_body_shape[1]))
@@ -36,10 +40,10 @@ def depth_scale(
 
 
 def camera_translation(
-    cam_param: Sequence[float],
+    cam_param: Union[Sequence[float], FloatingArray],
     focal: Sequence[float] = VIRTUAL_FOCAL,
     input_body_shape: Sequence[int] = BODY_INPUT_SHAPE,
-) -> np.ndarray:
+) -> FloatArray:
     """Translation of the body in the virtual crop camera.
 
     t_xy = cam_param[:2]; t_z = k * sigmoid(cam_param[2]), k = sqrt(fx fy 2.5^2 / (H W)).
@@ -61,7 +65,7 @@ def camera_translation(
     return np.array([values[0], values[1], t_z], dtype=np.float64)
 
 
-def virtual_intrinsics(processed_box: Sequence[float]) -> Tuple[float, float, float, float]:
+def virtual_intrinsics(processed_box: Union[Sequence[float], FloatArray]) -> Tuple[float, float, float, float]:
     """Intrinsics that project the crop-camera mesh onto the person in the source image.
 
     focal = (5000/192 * w, 5000/256 * h), principal = (96/192 * w + x, 128/256 * h + y)
@@ -82,7 +86,7 @@ def virtual_intrinsics(processed_box: Sequence[float]) -> Tuple[float, float, fl
     return fx, fy, cx, cy
 
 
-def unmirror_left_hand(rotations: np.ndarray) -> np.ndarray:
+def unmirror_left_hand(rotations: FloatArray) -> FloatArray:
     """Undo the mirrored left-hand crop: R_L = S R S, S = diag(-1, 1, 1).
 
     In axis-angle terms this negates the y and z components, as SMPLer-X does.
@@ -93,4 +97,5 @@ def unmirror_left_hand(rotations: np.ndarray) -> np.ndarray:
     Returns:
         (..., 3, 3) rotations for the real left hand (still proper rotations).
     """
-    return _MIRROR @ np.asarray(rotations) @ _MIRROR
+    unmirrored: FloatArray = _MIRROR @ np.asarray(rotations) @ _MIRROR
+    return unmirrored

@@ -25,6 +25,7 @@ from typing import Dict, Mapping, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray, FloatingArray, GenericArray, Int64Array, IntArray
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 NUM_JOINTS = 55
@@ -96,13 +97,13 @@ class SMPLXParams:
         expression: (10,) expression coefficients.
     """
 
-    root_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
-    body_rotations: np.ndarray = field(default_factory=lambda: np.tile(np.eye(3), (NUM_BODY_JOINTS, 1, 1)))
-    jaw_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
-    left_hand_rotations: np.ndarray = field(default_factory=lambda: np.tile(np.eye(3), (NUM_HAND_JOINTS, 1, 1)))
-    right_hand_rotations: np.ndarray = field(default_factory=lambda: np.tile(np.eye(3), (NUM_HAND_JOINTS, 1, 1)))
-    betas: np.ndarray = field(default_factory=lambda: np.zeros(NUM_BETAS))
-    expression: np.ndarray = field(default_factory=lambda: np.zeros(NUM_EXPRESSION))
+    root_rotation: FloatArray = field(default_factory=lambda: np.eye(3))
+    body_rotations: FloatArray = field(default_factory=lambda: np.tile(np.eye(3), (NUM_BODY_JOINTS, 1, 1)))
+    jaw_rotation: FloatArray = field(default_factory=lambda: np.eye(3))
+    left_hand_rotations: FloatArray = field(default_factory=lambda: np.tile(np.eye(3), (NUM_HAND_JOINTS, 1, 1)))
+    right_hand_rotations: FloatArray = field(default_factory=lambda: np.tile(np.eye(3), (NUM_HAND_JOINTS, 1, 1)))
+    betas: FloatArray = field(default_factory=lambda: np.zeros(NUM_BETAS))
+    expression: FloatArray = field(default_factory=lambda: np.zeros(NUM_EXPRESSION))
 
     @classmethod
     def zeros(cls) -> SMPLXParams:
@@ -112,13 +113,13 @@ class SMPLXParams:
     @classmethod
     def from_axis_angle(
         cls,
-        root: np.ndarray,
-        body: np.ndarray,
-        left_hand: np.ndarray,
-        right_hand: np.ndarray,
-        jaw: np.ndarray,
-        betas: Optional[np.ndarray] = None,
-        expression: Optional[np.ndarray] = None,
+        root: FloatArray,
+        body: FloatArray,
+        left_hand: FloatArray,
+        right_hand: FloatArray,
+        jaw: FloatArray,
+        betas: Optional[FloatArray] = None,
+        expression: Optional[FloatArray] = None,
     ) -> SMPLXParams:
         """Build from axis-angle vectors.
 
@@ -138,7 +139,7 @@ class SMPLXParams:
             ValueError: naming the argument with a wrong size.
         """
 
-        def rotations(name: str, values: np.ndarray, count: int) -> np.ndarray:
+        def rotations(name: str, values: FloatArray, count: int) -> FloatArray:
             array = np.asarray(values, dtype=np.float64)
             if array.size != count * 3:
                 raise ValueError(
@@ -146,7 +147,7 @@ class SMPLXParams:
                 )
             return axis_angle_to_matrix(array.reshape(count, 3))
 
-        def coefficients(name: str, values: Optional[np.ndarray], count: int) -> np.ndarray:
+        def coefficients(name: str, values: Optional[FloatArray], count: int) -> FloatArray:
             if values is None:
                 return np.zeros(count)
             array = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -174,8 +175,8 @@ class SMPLXOutput:
         joints: (55, 3) float32 posed joint locations.
     """
 
-    vertices: np.ndarray
-    joints: np.ndarray
+    vertices: FloatArray
+    joints: FloatArray
 
 
 # ----------------------------------------------------------------------------------------
@@ -183,7 +184,7 @@ class SMPLXOutput:
 # ----------------------------------------------------------------------------------------
 
 
-def blend_shapes(coefficients: np.ndarray, shape_dirs_flat: np.ndarray) -> np.ndarray:
+def blend_shapes(coefficients: FloatArray, shape_dirs_flat: FloatArray) -> FloatArray:
     """Shape (and expression) offsets: S c.
 
     Args:
@@ -196,7 +197,7 @@ def blend_shapes(coefficients: np.ndarray, shape_dirs_flat: np.ndarray) -> np.nd
     return (shape_dirs_flat @ coefficients).reshape(-1, 3)
 
 
-def vertices2joints(joint_regressor: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+def vertices2joints(joint_regressor: FloatArray, vertices: FloatArray) -> FloatArray:
     """Joint locations regressed from vertices: J = J_regressor v.
 
     Args:
@@ -209,7 +210,7 @@ def vertices2joints(joint_regressor: np.ndarray, vertices: np.ndarray) -> np.nda
     return joint_regressor @ vertices
 
 
-def pose_blend(rotations: np.ndarray, pose_dirs_flat: np.ndarray) -> np.ndarray:
+def pose_blend(rotations: FloatArray, pose_dirs_flat: FloatArray) -> FloatArray:
     """Pose-corrective offsets: P vec(R_k - I) over joints 1..J-1.
 
     Args:
@@ -224,8 +225,8 @@ def pose_blend(rotations: np.ndarray, pose_dirs_flat: np.ndarray) -> np.ndarray:
 
 
 def batch_rigid_transform(
-    rotations: np.ndarray, joints: np.ndarray, parents: np.ndarray
-) -> Tuple[np.ndarray, np.ndarray]:
+    rotations: FloatArray, joints: FloatArray, parents: IntArray
+) -> Tuple[FloatArray, FloatArray]:
     """Kinematic chain: world transforms of every joint and the skinning transforms.
 
     G_k = G_parent(k) [R_k | J_k - J_parent(k)]; the skinning transform A_k = G_k [I | -J_k]
@@ -258,7 +259,7 @@ def batch_rigid_transform(
     return posed_joints, skinning_transforms
 
 
-def skinning(vertices: np.ndarray, skinning_transforms: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def skinning(vertices: FloatingArray, skinning_transforms: FloatingArray, weights: FloatingArray) -> FloatArray:
     """Linear blend skinning: v'_i = (sum_k w_ik A_k) v_i.
 
     Args:
@@ -278,7 +279,7 @@ def skinning(vertices: np.ndarray, skinning_transforms: np.ndarray, weights: np.
     return blended[:, :, 0] * x + blended[:, :, 1] * y + blended[:, :, 2] * z + blended[:, :, 3]
 
 
-def parents_from_kintree(kintree_table: np.ndarray, source: str = "") -> np.ndarray:
+def parents_from_kintree(kintree_table: GenericArray, source: str = "") -> Int64Array:
     """Parent indices from kintree_table[0], the root's parent as -1.
 
     The official files store the root's parent as 4294967295 (uint32 -1); both it and -1
@@ -290,7 +291,7 @@ def parents_from_kintree(kintree_table: np.ndarray, source: str = "") -> np.ndar
     table = np.asarray(kintree_table)
     if table.ndim != 2 or table.shape[0] != 2:
         raise SMPLXModelError("kintree_table in %s must be (2, J), got %s" % (source, table.shape))
-    raw = table[0].astype(np.int64)
+    raw: Int64Array = table[0].astype(np.int64)
     raw[raw >= 2**31] = -1  # uint32 0xFFFFFFFF stored for the root
     parents = raw
     if parents[0] != -1:
@@ -315,7 +316,7 @@ class SMPLXModel:
         SMPLXModelError: for missing keys or inconsistent shapes.
     """
 
-    def __init__(self, arrays: Mapping[str, np.ndarray], source: str = "<arrays>") -> None:
+    def __init__(self, arrays: Mapping[str, GenericArray], source: str = "<arrays>") -> None:
         missing = [key for key in REQUIRED_KEYS if key not in arrays]
         if missing:
             raise SMPLXModelError(
@@ -372,7 +373,7 @@ class SMPLXModel:
         self.pose_dirs_flat = np.ascontiguousarray(posedirs.reshape(num_vertices * 3, -1).T)
 
     @staticmethod
-    def _check_shape(key: str, arrays: Mapping[str, np.ndarray], expected: Tuple[Optional[int], ...]) -> None:
+    def _check_shape(key: str, arrays: Mapping[str, GenericArray], expected: Tuple[Optional[int], ...]) -> None:
         shape = np.shape(arrays[key])
         if len(shape) != len(expected) or any(e is not None and e != s for e, s in zip(expected, shape)):
             wanted = tuple("*" if e is None else e for e in expected)
@@ -426,7 +427,7 @@ class SMPLXModel:
                     "SMPL-X model '%s' lacks key(s): %s (has: %s)"
                     % (path, ", ".join(missing), ", ".join(archive.files))
                 )
-            arrays: Dict[str, np.ndarray] = {}
+            arrays: Dict[str, FloatArray] = {}
             for key in REQUIRED_KEYS:
                 try:
                     arrays[key] = archive[key]
@@ -448,7 +449,7 @@ class SMPLXModel:
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
 
-    def full_pose_rotations(self, params: SMPLXParams, add_hand_mean: bool = True) -> np.ndarray:
+    def full_pose_rotations(self, params: SMPLXParams, add_hand_mean: bool = True) -> FloatArray:
         """The 55 local joint rotations in SMPL-X order.
 
         Order: global, body (21), jaw, left eye (identity), right eye (identity),
@@ -476,7 +477,7 @@ class SMPLXModel:
         rotations[RIGHT_HAND_FIRST_JOINT : RIGHT_HAND_FIRST_JOINT + NUM_HAND_JOINTS] = right
         return rotations
 
-    def shape_coefficients(self, params: SMPLXParams) -> np.ndarray:
+    def shape_coefficients(self, params: SMPLXParams) -> FloatArray:
         """[betas (10), expression (10)] as float32 (20,)."""
         return np.concatenate(
             [np.asarray(params.betas, dtype=np.float32).reshape(NUM_BETAS),

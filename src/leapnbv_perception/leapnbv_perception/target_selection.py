@@ -5,8 +5,10 @@ from typing import Optional
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, FloatArray
 
-def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+
+def box_iou(box: FloatArray, boxes: FloatArray) -> FloatArray:
     """IoU of one [x0, y0, x1, y1] box with each row of boxes (N, >=4)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, boxes.shape[-1] if np.ndim(boxes) > 1 else 4)
     x0 = np.maximum(box[0], boxes[:, 0])
@@ -20,15 +22,16 @@ def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
-def usable_boxes(boxes: np.ndarray) -> np.ndarray:
+def usable_boxes(boxes: FloatArray) -> BoolArray:
     """(N,) bool: rows that are finite, have x_max > x_min, y_max > y_min and a score in [0, 1]."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
     with np.errstate(invalid="ignore"):
-        return (np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
-                & (boxes[:, 4] >= 0.0) & (boxes[:, 4] <= 1.0))
+        usable: BoolArray = (np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] > boxes[:, 0])
+                             & (boxes[:, 3] > boxes[:, 1]) & (boxes[:, 4] >= 0.0) & (boxes[:, 4] <= 1.0))
+    return usable
 
 
-def select_target(boxes: np.ndarray, previous_box: Optional[np.ndarray] = None, min_track_iou: float = 0.3) -> int:
+def select_target(boxes: FloatArray, previous_box: Optional[FloatArray] = None, min_track_iou: float = 0.3) -> int:
     """Index of the person to reconstruct, or -1 when there is none.
 
     The best-scoring box, unless a box overlaps the previous frame's target by at least

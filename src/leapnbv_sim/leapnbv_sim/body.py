@@ -8,12 +8,13 @@ camera's view of them is :func:`body_params_in_camera`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Tuple
+from typing import Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray, IntArray
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from leapnbv_perception.smplx_layer import SMPLXParams
+from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
 from leapnbv_sim.poses import CameraPose, yaw_matrix
 
 # SMPL-X joint indices (body_pose holds joints 1..21, three values each).
@@ -30,13 +31,13 @@ BODY_TO_WORLD_FACING_MINUS_X = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.
 class BodyParams:
     """SMPL-X parameters, axis-angle (radians) per joint; shapes as in SceneGroundTruth.msg."""
 
-    root_pose: np.ndarray  # (3,)
-    body_pose: np.ndarray  # (63,)
-    left_hand_pose: np.ndarray  # (45,)
-    right_hand_pose: np.ndarray  # (45,)
-    jaw_pose: np.ndarray  # (3,)
-    betas: np.ndarray  # (10,)
-    expression: np.ndarray  # (10,)
+    root_pose: FloatArray  # (3,)
+    body_pose: FloatArray  # (63,)
+    left_hand_pose: FloatArray  # (45,)
+    right_hand_pose: FloatArray  # (45,)
+    jaw_pose: FloatArray  # (3,)
+    betas: FloatArray  # (10,)
+    expression: FloatArray  # (10,)
 
     def to_smplx_params(self) -> SMPLXParams:
         """The same parameters as ``leapnbv_perception.smplx_layer.SMPLXParams``."""
@@ -50,7 +51,7 @@ class BodyParams:
             self.expression,
         )
 
-    def with_root(self, root_pose: np.ndarray) -> BodyParams:
+    def with_root(self, root_pose: FloatArray) -> BodyParams:
         """A copy with another root orientation."""
         return BodyParams(
             np.asarray(root_pose, dtype=np.float64).reshape(3),
@@ -76,18 +77,18 @@ class PlacedBody:
     """
 
     params_world: BodyParams
-    forward_vertices: np.ndarray
-    root_joint: np.ndarray
-    translation_world: np.ndarray
-    faces: np.ndarray
+    forward_vertices: FloatArray
+    root_joint: FloatArray
+    translation_world: FloatArray
+    faces: IntArray
 
     @property
-    def vertices_world(self) -> np.ndarray:
+    def vertices_world(self) -> FloatArray:
         """(V,3) body vertices in the world."""
         return self.forward_vertices + self.translation_world
 
 
-def sample_body_pose(rng: np.random.Generator) -> Tuple[np.ndarray, np.ndarray]:
+def sample_body_pose(rng: np.random.Generator) -> Tuple[FloatArray, FloatArray]:
     """A mild standing pose and shape.
 
     Arms lowered from the T-pose by 55-80 degrees at the shoulders, elbows bent 0-40 degrees,
@@ -120,7 +121,7 @@ def sample_body_pose(rng: np.random.Generator) -> Tuple[np.ndarray, np.ndarray]:
     return pose.reshape(63), betas
 
 
-def place_body(body_model: Any, heading_rad: float, body_pose: np.ndarray, betas: np.ndarray) -> PlacedBody:
+def place_body(body_model: SMPLXModel, heading_rad: float, body_pose: FloatArray, betas: FloatArray) -> PlacedBody:
     """Pose the body and stand it on the floor, pelvis above the world origin.
 
     With heading 0 the body faces -x (toward a camera on the -x side); the heading turns it
@@ -155,8 +156,8 @@ def place_body(body_model: Any, heading_rad: float, body_pose: np.ndarray, betas
 
 
 def body_params_in_camera(
-    params_world: BodyParams, root_joint: np.ndarray, translation_world: np.ndarray, camera: CameraPose
-) -> Tuple[BodyParams, np.ndarray]:
+    params_world: BodyParams, root_joint: FloatArray, translation_world: FloatArray, camera: CameraPose
+) -> Tuple[BodyParams, FloatArray]:
     """Body parameters and translation in a camera's optical frame.
 
     With R_cw = R^T and J the root joint, the forward pass with root orientation
@@ -180,7 +181,7 @@ def body_params_in_camera(
     return params_world.with_root(root_camera), translation
 
 
-def body_model_id(body_model: Any, body_resolution: str) -> str:
+def body_model_id(body_model: SMPLXModel, body_resolution: str) -> str:
     """The model's own id, or "stand_in_<resolution>" for a model without one."""
     model_id = getattr(body_model, "model_id", None)
     return str(model_id) if model_id else "stand_in_" + body_resolution

@@ -1,5 +1,7 @@
-"""A RealSense-like depth noise model: depth-squared Gaussian noise, edge dropouts, range limits
-(docs/ALGORITHMS.md §9)."""
+"""A RealSense-like depth noise model.
+
+Depth-squared Gaussian noise, edge dropouts, range limits (docs/ALGORITHMS.md §9).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +9,8 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+
+from leapnbv_common.array_types import BoolArray, Float32Array, FloatingArray, UInt16Array
 
 
 @dataclass(frozen=True)
@@ -39,7 +43,7 @@ class DepthNoiseConfig:
     max_depth_m: float = 10.0
 
 
-def depth_edge_mask(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
+def depth_edge_mask(depth_m: FloatingArray, jump_m: float) -> BoolArray:
     """Pixels at a depth discontinuity (a 4-neighbour differs by > jump_m, or has no return).
 
     Args:
@@ -63,10 +67,10 @@ def depth_edge_mask(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
 
 
 def apply_depth_noise(
-    depth_m: np.ndarray,
+    depth_m: Float32Array,
     seed: int,
     config: Optional[DepthNoiseConfig] = None,
-) -> np.ndarray:
+) -> Float32Array:
     """Corrupt an ideal depth image like an active stereo camera would; deterministic for a seed.
 
     Args:
@@ -97,7 +101,7 @@ def apply_depth_noise(
     return np.where(keep, noisy, 0.0).astype(np.float32)
 
 
-def depth_m_to_mm(depth_m: np.ndarray) -> np.ndarray:
+def depth_m_to_mm(depth_m: FloatingArray) -> UInt16Array:
     """Convert metres to the camera's uint16 millimetres (rounded; 0 stays 0; clipped to 65535).
 
     Args:
@@ -107,4 +111,5 @@ def depth_m_to_mm(depth_m: np.ndarray) -> np.ndarray:
         (H,W) uint16 depth in millimetres.
     """
     millimetres = np.rint(np.asarray(depth_m, dtype=np.float64) * 1000.0)
-    return np.clip(millimetres, 0, 65535).astype(np.uint16)
+    depth_mm: UInt16Array = np.clip(millimetres, 0, 65535).astype(np.uint16)
+    return depth_mm

@@ -12,11 +12,13 @@ stands around the person off the start view's line of sight.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, List, Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, FloatArray
 from leapnbv_geometry.raster import rasterize_mesh
+from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.body import body_model_id, place_body, sample_body_pose
 from leapnbv_sim.depth_noise import DepthNoiseConfig
 from leapnbv_sim.meshes import box_footprint, box_mesh, convex_hull_2d, convex_polygons_apart, quad_mesh
@@ -108,12 +110,12 @@ class SceneConfig:
     room_layout: str = "default"
 
     @property
-    def K(self) -> np.ndarray:
+    def K(self) -> FloatArray:
         """(3,3) intrinsics."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
 
-def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
+def generate_scene(config: SceneConfig, body_model: SMPLXModel) -> Scene:
     """Generate a scene: posed body on the floor, occluders hiding part of it, floor, walls.
 
     Random choices, all from ``np.random.default_rng(config.seed)``: camera height and
@@ -222,7 +224,7 @@ def generate_scene(config: SceneConfig, body_model: Any) -> Scene:
         width = rng.uniform(0.3, 1.1)
         thickness = rng.uniform(0.2, 0.5)
         yaw = rng.uniform(-0.4, 0.4)
-        extras: List[Tuple[np.ndarray, np.ndarray]] = []
+        extras: List[Tuple[FloatArray, FloatArray]] = []
         for _ in range(count - 1):
             side_lateral = rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 0.9)
             size = np.array([rng.uniform(0.2, 0.5), rng.uniform(0.2, 0.5), rng.uniform(0.4, 1.6)])
@@ -304,7 +306,7 @@ def _layout_walls(config: SceneConfig, distance: float) -> Tuple[List[SceneObjec
     rng = np.random.default_rng([int(config.seed) & 0xFFFFFFFF, _LAYOUT_STREAM])
     far_x = -distance - 8.0  # behind the start camera
 
-    def wall(name: str, corners: np.ndarray, shade: float = 1.0) -> SceneObject:
+    def wall(name: str, corners: FloatArray, shade: float = 1.0) -> SceneObject:
         return (name, *quad_mesh(corners), _WALL_COLOUR * shade)
 
     if config.room_layout == "corridor":
@@ -337,9 +339,9 @@ def _clutter_rng(seed: int) -> np.random.Generator:
 
 def _place_clutter(
     config: SceneConfig,
-    body_world: np.ndarray,
+    body_world: FloatArray,
     start_camera: CameraPose,
-    occluder_boxes: List[Tuple[np.ndarray, np.ndarray, float]],
+    occluder_boxes: List[Tuple[FloatArray, FloatArray, float]],
     wall_back_x: Optional[float],
     wall_side_y: Optional[float],
 ) -> List[SceneObject]:
@@ -424,9 +426,9 @@ class _OccluderLayout:
     width: float
     thickness: float
     yaw: float
-    extras: List[Tuple[np.ndarray, np.ndarray]]
+    extras: List[Tuple[FloatArray, FloatArray]]
 
-    def boxes(self, main_height: float) -> List[Tuple[np.ndarray, np.ndarray, float]]:
+    def boxes(self, main_height: float) -> List[Tuple[FloatArray, FloatArray, float]]:
         """(centre, size, yaw) per box, the main box first, standing on the floor."""
         main = (
             np.array([-self.along, self.lateral, 0.5 * main_height]),
@@ -437,10 +439,10 @@ class _OccluderLayout:
 
 
 def _occluder_share_of_boxes(
-    boxes: List[Tuple[np.ndarray, np.ndarray, float]],
+    boxes: List[Tuple[FloatArray, FloatArray, float]],
     camera: CameraPose,
-    body_camera: np.ndarray,
-    self_visible: np.ndarray,
+    body_camera: FloatArray,
+    self_visible: BoolArray,
     config: SceneConfig,
 ) -> float:
     """Share of the self-visible body vertices that the boxes hide (boxes-only render)."""

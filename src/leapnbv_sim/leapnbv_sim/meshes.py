@@ -11,8 +11,10 @@ from typing import List, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray, Int32Array
 
-def box_mesh(centre: np.ndarray, size: np.ndarray, yaw: float) -> Tuple[np.ndarray, np.ndarray]:
+
+def box_mesh(centre: FloatArray, size: FloatArray, yaw: float) -> Tuple[FloatArray, Int32Array]:
     """Axis-aligned-in-yaw box: 8 vertices, 12 triangles (world frame)."""
     half = 0.5 * np.asarray(size, dtype=np.float64)
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64) * half
@@ -40,20 +42,21 @@ def box_mesh(centre: np.ndarray, size: np.ndarray, yaw: float) -> Tuple[np.ndarr
     return vertices, faces
 
 
-def quad_mesh(corners: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def quad_mesh(corners: FloatArray) -> Tuple[FloatArray, Int32Array]:
     """Planar quad from 4 corners in order: 4 vertices, 2 triangles."""
     return np.asarray(corners, dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
 
 
-def box_footprint(centre: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
+def box_footprint(centre: FloatArray, size: FloatArray, yaw: float) -> FloatArray:
     """(4,2) floor footprint of a box of :func:`box_mesh`, counter-clockwise."""
     half = 0.5 * np.asarray(size, dtype=np.float64)[:2]
     corners = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * half
     c, s = np.cos(yaw), np.sin(yaw)
-    return corners @ np.array([[c, s], [-s, c]]) + np.asarray(centre, dtype=np.float64)[:2]
+    footprint: FloatArray = corners @ np.array([[c, s], [-s, c]]) + np.asarray(centre, dtype=np.float64)[:2]
+    return footprint
 
 
-def convex_hull_2d(points: np.ndarray) -> np.ndarray:
+def convex_hull_2d(points: FloatArray) -> FloatArray:
     """(K,2) convex hull, counter-clockwise (Andrew's monotone chain) of (N,2) points."""
     unique = sorted(set(map(tuple, np.asarray(points, dtype=np.float64).tolist())))
     if len(unique) < 3:
@@ -75,7 +78,7 @@ def convex_hull_2d(points: np.ndarray) -> np.ndarray:
     return np.asarray(lower[:-1] + upper[:-1], dtype=np.float64)
 
 
-def convex_polygons_apart(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
+def convex_polygons_apart(a: FloatArray, b: FloatArray, gap: float) -> bool:
     """Whether two convex polygons (K,2) are at least ``gap`` apart along one of their edge normals.
 
     A separating axis with a gap of ``gap`` proves a distance of at least ``gap`` (conservative:

@@ -11,15 +11,17 @@ from typing import Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
+
 
 @dataclass
 class CameraPose:
     """T_world_camera: rotation (3,3) whose columns are the optical axes in the world, position (3,)."""
 
-    rotation: np.ndarray
-    position: np.ndarray
+    rotation: FloatArray
+    position: FloatArray
 
-    def as_matrix(self) -> np.ndarray:
+    def as_matrix(self) -> FloatArray:
         """(4,4) homogeneous T_world_camera."""
         matrix = np.eye(4)
         matrix[:3, :3] = self.rotation
@@ -27,7 +29,7 @@ class CameraPose:
         return matrix
 
     @classmethod
-    def from_matrix(cls, matrix: np.ndarray) -> CameraPose:
+    def from_matrix(cls, matrix: FloatArray) -> CameraPose:
         """Build from a (4,4) homogeneous T_world_camera."""
         matrix = np.asarray(matrix, dtype=np.float64)
         if matrix.shape != (4, 4):
@@ -38,19 +40,19 @@ class CameraPose:
         """An independent copy (the arrays are copied)."""
         return CameraPose(self.rotation.copy(), self.position.copy())
 
-    def world_to_camera(self, points_world: np.ndarray) -> np.ndarray:
+    def world_to_camera(self, points_world: FloatArray) -> FloatArray:
         """(N,3) world points -> (N,3) camera optical frame: R^T (p - position)."""
         return (np.asarray(points_world, dtype=np.float64) - self.position) @ self.rotation
 
 
-def yaw_matrix(angle: float) -> np.ndarray:
+def yaw_matrix(angle: float) -> FloatArray:
     """(3,3) rotation by ``angle`` radians about world z."""
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def look_at_pose(
-    position: np.ndarray, target: np.ndarray, up: Tuple[float, float, float] = (0.0, 0.0, 1.0)
+    position: FloatArray, target: FloatArray, up: Tuple[float, float, float] = (0.0, 0.0, 1.0)
 ) -> CameraPose:
     """Camera at ``position`` with its optical z toward ``target`` and x parallel to the floor.
 
@@ -73,7 +75,7 @@ def look_at_pose(
     if norm < 1e-9:
         raise ValueError("look_at_pose: target coincides with position")
     z_axis = forward / norm
-    x_axis = np.cross(z_axis, np.asarray(up, dtype=np.float64))
+    x_axis: FloatArray = np.cross(z_axis, np.asarray(up, dtype=np.float64))
     x_norm = np.linalg.norm(x_axis)
     if x_norm < 1e-9:
         raise ValueError("look_at_pose: viewing direction is parallel to up")
@@ -82,7 +84,7 @@ def look_at_pose(
     return CameraPose(np.stack([x_axis, y_axis, z_axis], axis=1), position)
 
 
-def pose_in_world(T_world_obscam: CameraPose, R_obs_new: np.ndarray, p_obs_new: np.ndarray) -> CameraPose:
+def pose_in_world(T_world_obscam: CameraPose, R_obs_new: FloatArray, p_obs_new: FloatArray) -> CameraPose:
     """Move the camera to a pose given in an observation's optical frame.
 
     T_world_new = T_world_obs T_obs_new: R = R_wo R_on, p = R_wo p_on + p_wo.
@@ -104,7 +106,7 @@ def pose_in_world(T_world_obscam: CameraPose, R_obs_new: np.ndarray, p_obs_new: 
 
 
 def camera_pose_from_base_goal(
-    base_xy: np.ndarray,
+    base_xy: FloatArray,
     heading_rad: float,
     camera_height: float,
     pitch_rad: float = 0.0,

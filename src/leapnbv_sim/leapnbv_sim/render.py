@@ -16,6 +16,17 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import (
+    BoolArray,
+    Float32Array,
+    FloatArray,
+    FloatingArray,
+    Int16Array,
+    Int32Array,
+    IntArray,
+    UInt8Array,
+    UInt16Array,
+)
 from leapnbv_geometry.raster import rasterize_mesh
 from leapnbv_sim.body import BodyParams
 from leapnbv_sim.depth_noise import apply_depth_noise, depth_m_to_mm
@@ -55,9 +66,9 @@ class FrameGroundTruth:
 
     person_box_xyxy: Optional[Tuple[int, int, int, int]]
     body_params_camera: BodyParams
-    translation_camera: np.ndarray
-    vertices_camera: np.ndarray
-    visible_vertices: np.ndarray
+    translation_camera: FloatArray
+    vertices_camera: FloatArray
+    visible_vertices: BoolArray
     occlusion_share: float
     occluder_share: float
     person_pixel_count: int
@@ -78,17 +89,17 @@ class RenderedFrame:
         ground_truth: FrameGroundTruth.
     """
 
-    rgb: np.ndarray
-    depth_mm: np.ndarray
-    depth_m: np.ndarray
-    depth_clean_m: np.ndarray
-    object_id: np.ndarray
-    K: np.ndarray
+    rgb: UInt8Array
+    depth_mm: UInt16Array
+    depth_m: Float32Array
+    depth_clean_m: Float32Array
+    object_id: Int16Array
+    K: FloatArray
     camera_pose: CameraPose
     ground_truth: FrameGroundTruth
 
 
-def shade_faces(vertices: np.ndarray, faces: np.ndarray, base_rgb: np.ndarray) -> np.ndarray:
+def shade_faces(vertices: FloatArray, faces: IntArray, base_rgb: FloatArray) -> UInt8Array:
     """Lambert flat shading per face (both sides lit: |n . l|), (M,3) uint8."""
     a = vertices[faces[:, 0]]
     normals = np.cross(vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a)
@@ -97,12 +108,13 @@ def shade_faces(vertices: np.ndarray, faces: np.ndarray, base_rgb: np.ndarray) -
     lambert = np.abs(normals @ _LIGHT_DIRECTION)
     shade = _AMBIENT + (1.0 - _AMBIENT) * lambert
     colour = base_rgb[None, :] * shade[:, None] if base_rgb.ndim == 1 else base_rgb * shade[:, None]
-    return np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
+    rgb: UInt8Array = np.clip(np.rint(colour * 255.0), 0, 255).astype(np.uint8)
+    return rgb
 
 
 def render_depth(
-    scene: Scene, camera: CameraPose, include: Optional[np.ndarray] = None
-) -> Tuple[np.ndarray, np.ndarray]:
+    scene: Scene, camera: CameraPose, include: Optional[IntArray] = None
+) -> Tuple[Float32Array, Int32Array]:
     """Noise-free depth and object id of the scene (or of a subset of its objects).
 
     Args:
@@ -127,12 +139,13 @@ def render_depth(
         scene.config.height,
         face_object_id=face_ids,
     )
+    assert result.object_id is not None  # face_object_id was given
     return result.depth, result.object_id
 
 
 def occluder_share(
-    scene: Scene, camera: CameraPose, scene_depth_m: Optional[np.ndarray] = None
-) -> Tuple[float, np.ndarray]:
+    scene: Scene, camera: CameraPose, scene_depth_m: Optional[FloatingArray] = None
+) -> Tuple[float, BoolArray]:
     """Share of the body's self-visible in-image vertices hidden by other objects.
 
     Args:
@@ -176,6 +189,7 @@ def render_frame(scene: Scene, camera: CameraPose, frame_index: int = 0) -> Rend
     depth_clean = result.depth
     # One gather: index -1 (no hit) picks the background colour appended as the last row.
     rgb = np.take(scene.colour_table, result.face_index, axis=0)
+    assert result.object_id is not None  # face_object_id was given
     object_id = result.object_id.astype(np.int16)
 
     if scene.config.depth_noise:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Union
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -21,18 +21,29 @@ from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
 from leapnbv_sim.poses import CameraPose
 from leapnbv_sim.render import RenderedFrame
+from leapnbv_sim.scene import Scene
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
+
+class SampleBagSpec(NamedTuple):
+    """The scene of one sample bag."""
+
+    seed: int
+    walls: bool
+
+
 # name -> scene seed and options; two different scenes (with and without walls).
-SAMPLE_BAGS = {
-    "sample_a": {"seed": 3, "walls": True},
-    "sample_b": {"seed": 11, "walls": False},
+SAMPLE_BAGS: Dict[str, SampleBagSpec] = {
+    "sample_a": SampleBagSpec(seed=3, walls=True),
+    "sample_b": SampleBagSpec(seed=11, walls=False),
 }
 NUM_FRAMES = 10
 DRIFT_M_PER_FRAME = 0.02
 
 
-def render_drifting_frames(scene, num_frames: int = NUM_FRAMES, drift_m: float = DRIFT_M_PER_FRAME) -> List:
+def render_drifting_frames(
+    scene: Scene, num_frames: int = NUM_FRAMES, drift_m: float = DRIFT_M_PER_FRAME
+) -> List[RenderedFrame]:
     """Frames from the start view moved drift_m per frame along the camera's x axis (level)."""
     start = scene.start_camera
     frames = []
@@ -42,12 +53,34 @@ def render_drifting_frames(scene, num_frames: int = NUM_FRAMES, drift_m: float =
     return frames
 
 
-def make_sample_bag(path: Path, seed: int, walls: bool, body_model, body_model_id: str, overwrite: bool) -> Dict:
+class SampleBagInfo(NamedTuple):
+    """What :func:`make_sample_bag` wrote."""
+
+    counts: Dict[str, int]  # messages per topic
+    occluder_share: Tuple[float, float]  # smallest and largest over the frames
+
+
+def make_sample_bag(
+    path: Path, seed: int, walls: bool, body_model: SMPLXModel, body_model_id: str, overwrite: bool
+) -> SampleBagInfo:
+    """Generate a sample scene, render its drifting frames and record them (:func:`write_scene_bag`).
+
+    Args:
+        path: Bag directory to create.
+        seed: Scene seed.
+        walls: Whether the scene has walls.
+        body_model: The body model the scene's person is posed with.
+        body_model_id: Stored in each SceneGroundTruth.
+        overwrite: Replace an existing bag.
+
+    Returns:
+        Message counts and the frames' occluder-share range.
+    """
     scene = generate_scene(SceneConfig(seed=seed, walls=walls, body_resolution="small"), body_model)
     frames = render_drifting_frames(scene)
     counts = write_scene_bag(path, frames, body_model_id=body_model_id, overwrite=overwrite)
     shares = [f.ground_truth.occluder_share for f in frames]
-    return {"counts": counts, "occluder_share": (float(np.min(shares)), float(np.max(shares)))}
+    return SampleBagInfo(counts, (float(np.min(shares)), float(np.max(shares))))
 
 
 def write_scene_bag(
@@ -86,7 +119,8 @@ def write_scene_bag(
     """
     from leapnbv_sim.frame_messages import serialized_camera_frames  # the ROS glue: rclpy and messages
 
-    msgtypes = {CAMERA_TOPICS["image"]: "sensor_msgs/msg/Image", CAMERA_TOPICS["camera_info"]: "sensor_msgs/msg/CameraInfo",
+    msgtypes = {CAMERA_TOPICS["image"]: "sensor_msgs/msg/Image",
+                CAMERA_TOPICS["camera_info"]: "sensor_msgs/msg/CameraInfo",
                 CAMERA_TOPICS["depth"]: "sensor_msgs/msg/Image",
                 CAMERA_TOPICS["depth/camera_info"]: "sensor_msgs/msg/CameraInfo",
                 GROUND_TRUTH_TOPIC: "leapnbv_msgs/msg/SceneGroundTruth"}
@@ -101,6 +135,7 @@ def write_scene_bag(
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    """Write the sample bags (the command line above); returns the exit status."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="bags", help="folder for the bags")
     parser.add_argument("--force", action="store_true", help="replace existing bags (atomically)")
@@ -112,8 +147,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         if path.exists() and not args.force:
             print(f"[bags] {path} exists (use --force to replace)")
             continue
-        info = make_sample_bag(path, spec["seed"], spec["walls"], body_model, "stand_in_small", args.force)
-        print(f"[bags] wrote {path}: {info['counts']}; occluder share {info['occluder_share']}")
+        info = make_sample_bag(path, spec.seed, spec.walls, body_model, "stand_in_small", args.force)
+        print(f"[bags] wrote {path}: {info.counts}; occluder share {info.occluder_share}")
     return 0
 
 

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, Float32Array, FloatArray, Int32Array, IntArray, UInt8Array
 from leapnbv_sim.body import BodyParams, PlacedBody, body_params_in_camera
 from leapnbv_sim.poses import CameraPose
 from leapnbv_sim.render import (
@@ -36,7 +37,7 @@ if TYPE_CHECKING:  # annotation only: generation.py builds scenes, so it imports
     from leapnbv_sim.generation import SceneConfig
 
 #: One named object of a scene: (name, vertices (N,3), faces (M,3), base colour RGB 0..1 (3,)).
-SceneObject = Tuple[str, np.ndarray, np.ndarray, np.ndarray]
+SceneObject = Tuple[str, FloatArray, IntArray, FloatArray]
 
 
 class SceneError(RuntimeError):
@@ -66,59 +67,62 @@ class Scene:
     """
 
     config: SceneConfig
-    vertices_world: np.ndarray
-    faces: np.ndarray
-    face_object_id: np.ndarray
-    face_rgb: np.ndarray
+    vertices_world: FloatArray
+    faces: IntArray
+    face_object_id: IntArray
+    face_rgb: UInt8Array
     object_names: Dict[int, str]
     body_vertex_slice: slice
-    body_faces: np.ndarray
+    body_faces: IntArray
     body_params_world: BodyParams
-    body_forward_vertices: np.ndarray
-    body_root_joint: np.ndarray
-    body_translation_world: np.ndarray
+    body_forward_vertices: FloatArray
+    body_root_joint: FloatArray
+    body_translation_world: FloatArray
     start_camera: CameraPose
     start_occluder_share: float
     body_model_id: str
     # obstacle_voxel_centres per resolution, computed on first use.
-    _obstacle_voxels: Dict[float, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _obstacle_voxels: Dict[float, FloatArray] = field(default_factory=dict, init=False, repr=False, compare=False)
     # face_rgb with the background colour as the last row, made on first use.
-    _colour_table: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
+    _colour_table: Optional[UInt8Array] = field(default=None, init=False, repr=False, compare=False)
 
     @property
-    def K(self) -> np.ndarray:
+    def K(self) -> FloatArray:
         """(3,3) intrinsics."""
         return self.config.K
 
     @property
-    def colour_table(self) -> np.ndarray:
+    def colour_table(self) -> UInt8Array:
         """(M+1,3) uint8 face colours with the background colour as the last row (face index -1)."""
         if self._colour_table is None or len(self._colour_table) != len(self.face_rgb) + 1:
             self._colour_table = np.concatenate([self.face_rgb, BACKGROUND_RGB[None, :]], axis=0)
         return self._colour_table
 
     @property
-    def body_vertices_world(self) -> np.ndarray:
+    def body_vertices_world(self) -> FloatArray:
         """(V,3) body vertices in the world."""
         return self.vertices_world[self.body_vertex_slice]
 
     @property
-    def body_centre_world(self) -> np.ndarray:
+    def body_centre_world(self) -> FloatArray:
         """(3,) centre of the body's axis-aligned bounding box in the world."""
         body = self.body_vertices_world
-        return 0.5 * (body.min(axis=0) + body.max(axis=0))
+        centre: FloatArray = 0.5 * (body.min(axis=0) + body.max(axis=0))
+        return centre
 
-    def body_params_in_camera(self, camera: CameraPose) -> Tuple[BodyParams, np.ndarray]:
+    def body_params_in_camera(self, camera: CameraPose) -> Tuple[BodyParams, FloatArray]:
         """Body parameters and translation in a camera's frame (:func:`leapnbv_sim.body.body_params_in_camera`)."""
         return body_params_in_camera(self.body_params_world, self.body_root_joint, self.body_translation_world, camera)
 
-    def render_depth(self, camera: CameraPose, include: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    def render_depth(
+        self, camera: CameraPose, include: Optional[IntArray] = None
+    ) -> Tuple[Float32Array, Int32Array]:
         """Noise-free depth and object id of the scene or of some objects (:func:`leapnbv_sim.render.render_depth`)."""
         return render_depth(self, camera, include)
 
     def occluder_share(
-        self, camera: CameraPose, scene_depth_m: Optional[np.ndarray] = None
-    ) -> Tuple[float, np.ndarray]:
+        self, camera: CameraPose, scene_depth_m: Optional[FloatArray] = None
+    ) -> Tuple[float, BoolArray]:
         """Share of the self-visible body hidden by other objects (:func:`leapnbv_sim.render.occluder_share`)."""
         return occluder_share(self, camera, scene_depth_m)
 
@@ -131,7 +135,7 @@ class Scene:
         """
         return render_frame(self, self.start_camera if camera is None else camera, frame_index)
 
-    def obstacle_voxel_centres(self, resolution: float = 0.1) -> np.ndarray:
+    def obstacle_voxel_centres(self, resolution: float = 0.1) -> FloatArray:
         """World-frame centres of the voxels that the scene's static obstacles occupy.
 
         The obstacles are every object but the floor and the person: the occluder boxes, the
@@ -173,10 +177,10 @@ def assemble_scene(
     every other object (walls, clutter) after the occluders in order. ``start_occluder_share``
     is left 0 for the caller to measure.
     """
-    vertex_blocks: List[np.ndarray] = []
-    face_blocks: List[np.ndarray] = []
-    id_blocks: List[np.ndarray] = []
-    colour_blocks: List[np.ndarray] = []
+    vertex_blocks: List[FloatArray] = []
+    face_blocks: List[IntArray] = []
+    id_blocks: List[Int32Array] = []
+    colour_blocks: List[UInt8Array] = []
     names: Dict[int, str] = {}
     offset = 0
     body_slice = slice(0, 0)

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray, IntArray
 from leapnbv_geometry.raster import rasterize_mesh
 
 
-def project_points(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+def project_points(points_cam: FloatArray, K: FloatArray) -> FloatArray:
     """Pinhole projection u = fx x/z + cx, v = fy y/z + cy (pixel centres at integer u, v).
 
     Args:
@@ -26,11 +27,11 @@ def project_points(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def visible_vertex_mask(
-    vertices_cam: np.ndarray,
-    scene_depth_m: np.ndarray,
-    K: np.ndarray,
+    vertices_cam: FloatArray,
+    scene_depth_m: FloatingArray,
+    K: FloatArray,
     tolerance: float = 0.02,
-) -> np.ndarray:
+) -> BoolArray:
     """Which vertices the camera sees: inside the image, in front, not behind the scene depth.
 
     A vertex projects to pixel (round(v), round(u)); it is visible when that pixel lies in the
@@ -73,12 +74,12 @@ MAX_SELF_VISIBILITY_IMAGE_PX = 4096
 
 
 def self_visible_vertex_mask(
-    vertices_cam: np.ndarray,
-    faces: np.ndarray,
-    K: np.ndarray,
+    vertices_cam: FloatArray,
+    faces: IntArray,
+    K: FloatArray,
     tolerance: float = 0.02,
     max_image_px: int = MAX_SELF_VISIBILITY_IMAGE_PX,
-) -> np.ndarray:
+) -> BoolArray:
     """Which vertices the body shows by itself from this viewpoint, image bounds ignored.
 
     The body alone is rendered with a virtual camera at the same pose, with the same focal

@@ -17,6 +17,8 @@ from typing import Iterable, Optional, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray, Int64Array, IntArray
+
 # Half thickness (m) given to a flat obstacle (a wall quad) so that it occupies the voxels its
 # plane passes through, and the slack of the separating-axis test against round-off.
 _FLAT_HALF_THICKNESS = 1e-6
@@ -24,12 +26,12 @@ _SEPARATION_SLACK = 1e-9
 
 
 def occupied_voxel_centres(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    face_object_id: np.ndarray,
+    vertices: FloatArray,
+    faces: IntArray,
+    face_object_id: IntArray,
     object_ids: Iterable[int],
     resolution: float,
-) -> np.ndarray:
+) -> FloatArray:
     """World-frame centres of the voxels that the given objects of a mesh occupy.
 
     Args:
@@ -61,7 +63,7 @@ def occupied_voxel_centres(
     return (indices.astype(np.float64) + 0.5) * res
 
 
-def oriented_box_of(vertices: np.ndarray, face_count: int) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def oriented_box_of(vertices: FloatArray, face_count: int) -> Optional[Tuple[FloatArray, FloatArray, FloatArray]]:
     """(centre (3,), axes (3,3) unit rows, half extents (3,)) of a box mesh or quad mesh object.
 
     A box has 8 vertices (corner index 4 ix + 2 iy + iz) and 12 faces; a quad has 4 corners in
@@ -94,7 +96,7 @@ def oriented_box_of(vertices: np.ndarray, face_count: int) -> Optional[Tuple[np.
     return vertices.mean(axis=0), axes, half
 
 
-def oriented_box_voxels(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, res: float) -> np.ndarray:
+def oriented_box_voxels(centre: FloatArray, axes: FloatArray, half: FloatArray, res: float) -> Int64Array:
     """(N,3) int64 indices of the voxels (edge ``res``, OctoMap convention) an oriented box reaches into.
 
     Separating-axis test of every voxel of the box's bounding range: the 3 world axes, the 3
@@ -121,10 +123,11 @@ def oriented_box_voxels(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, 
         axis = axis / norm
         reach = 0.5 * res * np.abs(axis).sum() + np.abs(axes @ axis) @ half
         keep &= np.abs(offsets @ axis) < reach - _SEPARATION_SLACK
-    return indices[keep]
+    kept: Int64Array = indices[keep]
+    return kept
 
 
-def triangle_voxels(vertices: np.ndarray, faces: np.ndarray, res: float) -> np.ndarray:
+def triangle_voxels(vertices: FloatArray, faces: IntArray, res: float) -> Int64Array:
     """(N,3) int64 indices of the voxels (edge ``res``) holding samples of triangles at <= res/4 spacing."""
     blocks = [np.zeros((0, 3), dtype=np.int64)]
     for a, b, c in np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]:

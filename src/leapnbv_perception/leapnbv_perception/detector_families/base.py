@@ -9,10 +9,11 @@ parameter to one.
 from __future__ import annotations
 
 import abc
-from typing import Any, Dict, Mapping, Tuple
+from typing import Any, Dict, List, Mapping, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import Float32Array, FloatArray, FloatingArray, Int64Array, UInt8Array
 from leapnbv_perception.model_contracts import ModelContract
 
 DEFAULT_MAX_DETECTIONS = 100  # most boxes a decode returns when the caller does not say
@@ -48,7 +49,7 @@ class DetectorFamily(abc.ABC):
         return self
 
     @abc.abstractmethod
-    def preprocess(self, rgb: np.ndarray) -> Tuple[Dict[str, np.ndarray], Any]:
+    def preprocess(self, rgb: UInt8Array) -> Tuple[Dict[str, Float32Array], Any]:
         """The engine inputs for one image, and what :meth:`decode` needs to map boxes back.
 
         Args:
@@ -59,14 +60,15 @@ class DetectorFamily(abc.ABC):
         """
 
     @abc.abstractmethod
-    def decode(self, outputs: Mapping[str, np.ndarray], context: Any, image_w: int, image_h: int,
-               score_threshold: float, iou_threshold: float, max_detections: int) -> np.ndarray:
+    def decode(self, outputs: Mapping[str, FloatingArray], context: Any, image_w: int, image_h: int,
+               score_threshold: float, iou_threshold: float, max_detections: int) -> Float32Array:
         """Person boxes from the engine outputs of one image.
 
         Args:
             outputs: name -> array, as the backend returned them.
             context: the second value :meth:`preprocess` returned for this image.
-            image_w, image_h: source image size (boxes are clipped to it).
+            image_w: source image width (boxes are clipped to it).
+            image_h: source image height.
             score_threshold: minimum person score.
             iou_threshold: NMS IoU above which the lower-scored box is dropped.
             max_detections: most boxes returned.
@@ -80,7 +82,7 @@ class DetectorFamily(abc.ABC):
         """
 
 
-def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float, max_detections: int) -> np.ndarray:
+def nms(boxes_xyxy: FloatArray, scores: FloatArray, iou_threshold: float, max_detections: int) -> Int64Array:
     """Greedy non-maximum suppression, vectorized per kept box.
 
     Args:
@@ -95,7 +97,7 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float, max_de
     order = np.argsort(-scores, kind="stable")
     x1, y1, x2, y2 = boxes_xyxy[:, 0], boxes_xyxy[:, 1], boxes_xyxy[:, 2], boxes_xyxy[:, 3]
     areas = np.maximum(x2 - x1, 0.0) * np.maximum(y2 - y1, 0.0)
-    keep = []
+    keep: List[int] = []
     while order.size > 0 and len(keep) < max_detections:
         best = order[0]
         keep.append(best)

@@ -1,5 +1,6 @@
-"""The "yolov8" detector family: ultralytics YOLOv8 ONNX exports (COCO classes, person = class 0);
-decoded as the ultralytics predictor does (docs/ALGORITHMS.md §1), multi-label as an option.
+"""The "yolov8" detector family: ultralytics YOLOv8 ONNX exports (COCO classes, person = class 0).
+
+Decoded as the ultralytics predictor does (docs/ALGORITHMS.md §1), multi-label as an option.
 
 Input ``images`` (1, 3, S, S) float32 RGB / 255, letterboxed (aspect kept, padded with 114,
 centred as ultralytics does); S is the export's (640 by default; 320 or 480 are cheaper on a CPU);
@@ -15,6 +16,7 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 import cv2
 import numpy as np
 
+from leapnbv_common.array_types import Float32Array, FloatArray, FloatingArray, UInt8Array
 from leapnbv_perception.detector_families.base import DEFAULT_MAX_DETECTIONS, DetectorFamily, nms
 from leapnbv_perception.model_contracts import (
     YOLO_INPUT_NAME,
@@ -49,23 +51,23 @@ class LetterboxTransform:
     gain_x: Optional[float] = None
     gain_y: Optional[float] = None
 
-    def gains(self) -> np.ndarray:
+    def gains(self) -> FloatArray:
         """(gain_x, gain_y)."""
         return np.array([self.scale if self.gain_x is None else self.gain_x,
                          self.scale if self.gain_y is None else self.gain_y], dtype=np.float64)
 
-    def to_source(self, points_xy: np.ndarray) -> np.ndarray:
+    def to_source(self, points_xy: FloatArray) -> FloatArray:
         """Letterbox (..., 2) x, y -> source image x, y: (xy - pad) / gain."""
         offset = np.array([self.pad_x, self.pad_y], dtype=np.float64)
         return (np.asarray(points_xy, dtype=np.float64) - offset) / self.gains()
 
-    def to_letterbox(self, points_xy: np.ndarray) -> np.ndarray:
+    def to_letterbox(self, points_xy: FloatArray) -> FloatArray:
         """Source (..., 2) x, y -> letterbox x, y."""
         offset = np.array([self.pad_x, self.pad_y], dtype=np.float64)
         return np.asarray(points_xy, dtype=np.float64) * self.gains() + offset
 
 
-def letterbox(rgb: np.ndarray, size: int = YOLO_INPUT_SIZE) -> Tuple[np.ndarray, LetterboxTransform]:
+def letterbox(rgb: UInt8Array, size: int = YOLO_INPUT_SIZE) -> Tuple[Float32Array, LetterboxTransform]:
     """Resize keeping the aspect ratio and pad (value 114, centred) to size x size.
 
     Args:
@@ -91,10 +93,9 @@ def letterbox(rgb: np.ndarray, size: int = YOLO_INPUT_SIZE) -> Tuple[np.ndarray,
     top = int(round(pad_h - 0.1))
     canvas = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
     if (new_w, new_h) != (width, height):
-        resized = cv2.resize(rgb, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
+        canvas[top : top + new_h, left : left + new_w] = cv2.resize(rgb, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
     else:
-        resized = rgb
-    canvas[top : top + new_h, left : left + new_w] = resized
+        canvas[top : top + new_h, left : left + new_w] = rgb
     # HWC uint8 -> NCHW float32 / 255
     tensor = canvas.transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1.0 / 255.0)
     transform = LetterboxTransform(float(scale), float(left), float(top), new_w / width, new_h / height)
@@ -102,7 +103,7 @@ def letterbox(rgb: np.ndarray, size: int = YOLO_INPUT_SIZE) -> Tuple[np.ndarray,
 
 
 def decode_person_boxes(
-    output0: np.ndarray,
+    output0: FloatingArray,
     transform: LetterboxTransform,
     image_w: int,
     image_h: int,
@@ -110,7 +111,7 @@ def decode_person_boxes(
     iou_threshold: float = 0.5,
     max_detections: int = DEFAULT_MAX_DETECTIONS,
     multi_label: bool = False,
-) -> np.ndarray:
+) -> Float32Array:
     """Decode YOLOv8 output into person boxes in source-image pixels (docs/ALGORITHMS.md §1).
 
     As the ultralytics predictor with ``classes=[0]``: each anchor takes its best class and is a
@@ -160,7 +161,7 @@ def decode_person_boxes(
     boxes[:, [1, 3]] = (boxes[:, [1, 3]] - transform.pad_y) / gain_y
     boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0.0, float(image_w))
     boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0.0, float(image_h))
-    result = np.concatenate([boxes, scores[keep, None]], axis=1).astype(np.float32)
+    result: Float32Array = np.concatenate([boxes, scores[keep, None]], axis=1).astype(np.float32)
     return result
 
 
@@ -187,8 +188,10 @@ class YoloV8Family(DetectorFamily):
         return YoloV8Family(multi_label=options.get("multi_label", self.multi_label), input_size=self.input_size)
 
     def for_backend(self, backend: Any) -> YoloV8Family:
-        """The letterbox side is the model's input side (an export at 320, 480, 640, ...); its output must
-        have that size's anchor count."""
+        """This family for a backend's model: the letterbox side is the model's input side.
+
+        An export at 320, 480, 640, ...; its output must have that size's anchor count.
+        """
         size = int(backend.input_specs[YOLO_INPUT_NAME].shape[2])
         anchors = int(backend.output_specs[YOLO_OUTPUT_NAME].shape[2])
         if anchors != yolo_anchor_count(size):
@@ -197,12 +200,12 @@ class YoloV8Family(DetectorFamily):
                                      f"{anchors}")
         return YoloV8Family(multi_label=self.multi_label, input_size=size)
 
-    def preprocess(self, rgb: np.ndarray) -> Tuple[Dict[str, np.ndarray], LetterboxTransform]:
+    def preprocess(self, rgb: UInt8Array) -> Tuple[Dict[str, Float32Array], LetterboxTransform]:
         tensor, transform = letterbox(rgb, self.input_size)
         return {YOLO_INPUT_NAME: tensor}, transform
 
-    def decode(self, outputs: Mapping[str, np.ndarray], context: Any, image_w: int, image_h: int,
-               score_threshold: float, iou_threshold: float, max_detections: int) -> np.ndarray:
+    def decode(self, outputs: Mapping[str, FloatingArray], context: Any, image_w: int, image_h: int,
+               score_threshold: float, iou_threshold: float, max_detections: int) -> Float32Array:
         return decode_person_boxes(outputs[YOLO_OUTPUT_NAME], context, image_w, image_h, score_threshold,
                                    iou_threshold, max_detections, self.multi_label)
 
