@@ -111,7 +111,8 @@ class ManagedNode(LifecycleNode):
         self.lifecycle_params = NodeParams(self, LifecycleParams, self._on_lifecycle_params_change)
         if callable(hardware_id):
             hardware_id = str(hardware_id(self.params.value))
-        self.diagnostics = diagnostics_class(self, hardware_id=hardware_id)
+        # A StageDiagnostics subclass that takes the node alone works too (without a hardware id).
+        self.diagnostics = diagnostics_class(self, hardware_id=hardware_id) if hardware_id else diagnostics_class(self)
         self.process = f"{socket.gethostname()}:{os.getpid()}"
         #: Why the last transition failed ("" once one succeeded); what /diagnostics and the manager say.
         self.lifecycle_reason = ""
