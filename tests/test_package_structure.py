@@ -1,10 +1,10 @@
-"""The packages import one way, each package.xml declares what its package imports, cores stay ROS-free.
+"""Imports go one way, each package.xml declares what its package imports, and cores are ROS-free.
 
 Every module under src/<package>/<package>/ is parsed (imports inside functions included); a
 module may import its own package and packages of a lower layer only. docs/ARCHITECTURE.md
 explains the layers. A core module (any module outside a ``nodes/`` folder and outside the ROS
-glue listed in ``ROS_GLUE``) imports neither rclpy nor a message package. Tests (src/*/test, tests/) are not checked: they may use anything
-below or beside what they test.
+glue listed in ``ROS_GLUE``) imports neither rclpy nor a message package. Tests (src/*/test,
+tests/) are not checked: they may use anything below or beside what they test.
 """
 from __future__ import annotations
 
@@ -108,7 +108,7 @@ def test_package_xml_declares_what_the_package_imports(package_dir: Path) -> Non
     for module, places in sorted(imported_modules(package_dir).items()):
         if module == package_dir.name or module in stdlib or module in PROVIDED_BY_JETPACK:
             continue
-        if module in ("__future__", "setuptools"):
+        if module in ("__future__", "setuptools", "_typeshed"):  # _typeshed: the type checker's, under TYPE_CHECKING
             continue
         key = THIRD_PARTY_KEYS.get(module, module)
         if key not in declared:
