@@ -239,7 +239,7 @@ def test_manager_retries_configure_until_the_model_appears_and_brings_a_restarte
         harness.stop_node(proc)
         killed = time.monotonic()
         proc = STAGE.start(ns, tmp_path / "node2.log", str(model), autostart="false")
-        assert probe.spin_until(lambda: any("restarted" in e for e in events), 60.0), events
+        assert probe.spin_until(lambda: any("runs in a new process" in e for e in events), 60.0), events
         assert probe.spin_until(lambda: record.since > killed and record.state == "active", 60.0), (record, events)
         assert lifecycle_get(probe, name) == "active"
         assert feed.served(), harness.read_log(proc)[-3000:]

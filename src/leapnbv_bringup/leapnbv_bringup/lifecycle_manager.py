@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -67,6 +67,7 @@ class NodeLifecycle:
     process: str = ""
     state_since: float = 0.0  # monotonic: when `state` last changed
     reported: str = ""  # the last failure reason said as an event (a retry failing the same way is not said again)
+    retired: Set[str] = field(default_factory=set)  # processes replaced by a newer one: their statuses are ignored
 
 
 @dataclass
@@ -149,17 +150,23 @@ class LifecycleManager:
 
     def step(self) -> None:
         now = time.monotonic()
+        self._take_resets(now)
+        for record in self.nodes.values():
+            self._step_one(record, now)
+
+    def _take_resets(self, now: float) -> None:
         with self._reset_lock:
             resets, self._resets = self._resets, []
         for name in resets:
             self._forget(self.nodes[name], now)
-        for record in self.nodes.values():
-            self._step_one(record, now)
 
     def _forget(self, record: NodeLifecycle, now: float) -> None:
         self._calls.pop(record.name, None)  # an answer from the old process no longer counts
         self._failure_report.pop(record.name, None)
         record.since, record.managed, record.failed, record.reason = now, None, False, ""
+        if record.process:
+            record.retired.add(record.process)
+        record.process = ""
         record.reason_pending = False
         record.diag_state = None
         self._set_state(record, UNKNOWN, now)
@@ -301,17 +308,21 @@ class LifecycleManager:
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         now = time.monotonic()
+        self._take_resets(now)  # a reset asked for before this status: its new process is expected
         for status in msg.status:
             record = self.nodes.get(status.name)
             if record is None:
                 continue
             values = {kv.key: kv.value for kv in status.values}
+            process = values.get("process", "")
+            if process in record.retired:
+                continue  # a status of a process that was replaced (still in flight, or its DDS lease)
             record.heard = now
             record.diag_state = values.get("lifecycle_state")
             record.diag_reason = values.get("lifecycle_reason", "")
-            process = values.get("process", "")
             if process and record.process and process != record.process:
-                self.on_event(f"{short(record.name)} restarted (process {process}); bringing it up again")
+                # Restarted by someone else (launch's respawn): bring the new process up.
+                self.on_event(f"{short(record.name)} runs in a new process ({process}): bringing it up")
                 self.reset(record.name)
             if process:
                 record.process = process
