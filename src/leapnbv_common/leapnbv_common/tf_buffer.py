@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
 from leapnbv_common.rotations import quaternion_to_rotation, rotations_to_quaternions
 
 __all__ = ["DEFAULT_CACHE_TIME_NS", "TransformError", "MissingTransformError", "ExtrapolationError", "Transform",
@@ -78,15 +79,16 @@ class ExtrapolationError(TransformError):
                    parent, child, stamp_ns, by_ns)
 
 
-def _normalized(quaternion: Sequence[float]) -> np.ndarray:
-    q = np.asarray(quaternion, dtype=np.float64).reshape(4)
+def _normalized(quaternion: Union[Sequence[float], FloatArray]) -> FloatArray:
+    q: FloatArray = np.asarray(quaternion, dtype=np.float64).reshape(4)
     norm = float(np.sqrt(q @ q))
     if not (np.all(np.isfinite(q)) and abs(norm - 1.0) <= QUATERNION_TOLERANCE):
         raise ValueError(f"not a unit quaternion (|q| = {norm:.4f}; tolerance {QUATERNION_TOLERANCE})")
-    return q / norm
+    unit: FloatArray = q / norm
+    return unit
 
 
-def _multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _multiply(a: FloatArray, b: FloatArray) -> FloatArray:
     """Hamilton product a b of (x, y, z, w) quaternions: the rotation b, then a."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
@@ -96,14 +98,15 @@ def _multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * bw - ax * bx - ay * by - az * bz])
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+def _rotate(q: FloatArray, v: FloatArray) -> FloatArray:
     """R(q) v for a unit (x, y, z, w) quaternion: v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)."""
     u, w = q[:3], q[3]
     uv = np.cross(u, v)
-    return v + 2.0 * w * uv + 2.0 * np.cross(u, uv)
+    rotated: FloatArray = v + 2.0 * w * uv + 2.0 * np.cross(u, uv)
+    return rotated
 
 
-def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
+def slerp(q0: FloatArray, q1: FloatArray, fraction: float) -> FloatArray:
     """The rotation ``fraction`` of the way from q0 to q1 on the shorter arc (unit (x, y, z, w) quaternions).
 
     q(f) = sin((1 - f) theta) / sin(theta) q0 + sin(f theta) / sin(theta) q1, cos(theta) = |q0 . q1|,
@@ -115,11 +118,14 @@ def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
     dot = float(q0 @ q1)
     if dot < 0.0:
         q1, dot = -q1, -dot
+    q: FloatArray
     if dot > 0.9995:
         q = q0 + fraction * (q1 - q0)
-        return q / np.sqrt(q @ q)
+        q = q / np.sqrt(q @ q)
+        return q
     theta = np.arccos(min(1.0, dot))
-    return (np.sin((1.0 - fraction) * theta) * q0 + np.sin(fraction * theta) * q1) / np.sin(theta)
+    q = (np.sin((1.0 - fraction) * theta) * q0 + np.sin(fraction * theta) * q1) / np.sin(theta)
+    return q
 
 
 @dataclass(frozen=True)
@@ -131,15 +137,16 @@ class Transform:
         translation: (3,) metres.
     """
 
-    rotation: np.ndarray
-    translation: np.ndarray
+    rotation: FloatArray
+    translation: FloatArray
 
     @classmethod
     def identity(cls) -> Transform:
         return cls(np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3))
 
     @classmethod
-    def checked(cls, rotation: Sequence[float], translation: Sequence[float]) -> Transform:
+    def checked(cls, rotation: Union[Sequence[float], FloatArray],
+                translation: Union[Sequence[float], FloatArray]) -> Transform:
         """A transform from published values: a unit quaternion (normalized), a finite translation.
 
         Raises:
@@ -161,12 +168,12 @@ class Transform:
         return Transform(conjugate, -_rotate(conjugate, self.translation))
 
     @classmethod
-    def from_matrix(cls, rotation: np.ndarray, translation: Sequence[float]) -> Transform:
+    def from_matrix(cls, rotation: FloatArray, translation: Union[Sequence[float], FloatArray]) -> Transform:
         """The transform of a (3, 3) rotation matrix (columns: the child's axes in the parent) and a translation."""
         return cls(rotations_to_quaternions(np.asarray(rotation, dtype=np.float64).reshape(1, 3, 3))[0],
                    np.asarray(translation, dtype=np.float64).reshape(3).copy())
 
-    def rotation_matrix(self) -> np.ndarray:
+    def rotation_matrix(self) -> FloatArray:
         """(3, 3) R(q): its columns are the child's axes in the parent's frame."""
         return quaternion_to_rotation(self.rotation)
 

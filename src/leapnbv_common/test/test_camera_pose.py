@@ -59,3 +59,41 @@ def test_topic_source_remembers_by_stamp_and_counts_bad_poses():
         node.destroy_node()
     finally:
         rclpy.shutdown()
+
+
+def test_another_source_is_one_class_registered_from_its_own_file():
+    """docs/ARCHITECTURE.md's trace: a source registered outside camera_pose is made by the nodes' call."""
+    from leapnbv_common.camera_pose import camera_pose_source, checked_camera_pose
+    from leapnbv_common.pulled_input import PulledInput
+
+    @camera_pose_source("fixed_for_test")
+    class FixedCameraPoseSource:
+        """Every frame's pose is one fixed pose (a camera on a tripod)."""
+
+        def __init__(self, node, capacity, on_pose=None):
+            self.on_pose = on_pose
+
+        def pose_at(self, stamp_ns, camera_frame=""):
+            return checked_camera_pose(stamp_ns, "map", [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.5])
+
+        def expect(self, stamp_ns, camera_frame=""):
+            if self.on_pose is not None:
+                self.on_pose(self.pose_at(stamp_ns, camera_frame))
+
+    rclpy.init()
+    try:
+        node = rclpy.create_node("camera_pose_plugin_test")
+        node.diagnostics = StageDiagnostics(node)
+        arrived = []
+        source = create_camera_pose_source("fixed_for_test", node, 5, arrived.append)
+        assert PulledInput.adopt(node, source) is None  # no subscription: nothing to pull
+        assert source.pose_at(7, "camera_color_optical_frame").position[2] == 1.5
+        source.expect(8)
+        assert [p.stamp_ns for p in arrived] == [8]
+        assert "fixed_for_test" in CAMERA_POSE_SOURCES.names()
+        with pytest.raises(TypeError, match="lacks pose_at, expect"):
+            camera_pose_source("not_a_source")(object())
+        node.destroy_node()
+    finally:
+        CAMERA_POSE_SOURCES.unregister("fixed_for_test")
+        rclpy.shutdown()
