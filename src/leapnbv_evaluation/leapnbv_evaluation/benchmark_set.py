@@ -132,7 +132,7 @@ FAMILY_GRAPH_PARAMETERS: Dict[str, List[str]] = {
 }
 
 #: The first 40 qualifying seeds of each family (``select_benchmark_seeds(40, small_model,
-#: family_config(0, family))``, produced once by ``scripts/family_seeds.py``; do not edit by hand).
+#: family_config(0, family))``, produced once by ``scripts/experiments/family_seeds.py``; do not edit by hand).
 FAMILY_SEEDS: Dict[str, List[int]] = {
     "corner": [
         0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,

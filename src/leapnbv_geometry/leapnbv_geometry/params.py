@@ -115,8 +115,9 @@ class GroundParams:
     detection_grow_px: float = param(10.0, "px: person boxes are grown by this much when left out", min=0.0,
                                      max=1000.0)
     # The floor round the feet is often the only floor an occluder leaves in view. Measured on 50 start views per
-    # family (scripts/floor_check.py, RANSAC alone): leaving the person out did not lower the wrong floors there
-    # (3 -> 2-6 on the committed views, within RANSAC's own variation); the pose check (fuse_floor) removes them.
+    # family (scripts/experiments/floor_check.py, RANSAC alone): leaving the person out did not lower the wrong
+    # floors there (3 -> 2-6 on the committed views, within RANSAC's own variation); the pose check (fuse_floor)
+    # removes them.
     detection_top_share: float = param(0.6, "share of each person box's height, from its top, left out (the rest "
                                        "keeps the floor round the feet)", min=0.05, max=1.0)
     camera_pose_source: str = param("topic", "where the camera pose comes from: a key of "
