@@ -398,7 +398,7 @@ def test_the_graph_plans_once_a_missing_model_file_appears(probe, tmp_path):
 
     body = tmp_path / "late_body.npz"
     overrides = perception_overrides("ground_truth", body_model=str(body))
-    overrides["hmr_node"]["model_retry_period_s"] = "1.0"
+    overrides["hmr_node"]["configure_retry_period_s"] = "1.0"
     events: List[str] = []
     runner = GraphRunner(None, overrides, log_dir=str(tmp_path / "logs"), on_event=events.append,
                          configure_retry_s=1.0)

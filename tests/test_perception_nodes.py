@@ -75,7 +75,7 @@ def graph(models, tmp_path_factory):
                                                      "body_model_path": models["body"]}),
         f"{MISSING_NS}/detector_node": harness.start_node(
             "leapnbv_perception.nodes.detector_node", str(logs / "detector_missing.log"), namespace=MISSING_NS,
-            params={**engine, "model_file_path": MISSING_MODEL, "model_retry_period_s": "0.5"}),
+            params={**engine, "model_file_path": MISSING_MODEL, "configure_retry_period_s": "0.5"}),
         f"{GT_NS}/detector_node": harness.start_node("leapnbv_perception.nodes.detector_node",
                                                      str(logs / "detector_gt.log"), namespace=GT_NS,
                                                      params={"backend": "ground_truth"}),
@@ -258,7 +258,7 @@ def test_hmr_waits_briefly_for_an_image_that_comes_after_its_detections(graph):
     probe.node.destroy_publisher(det_pub)
 
 
-def test_missing_model_file_keeps_the_detector_running_with_an_error(graph):
+def test_missing_model_file_leaves_the_detector_unconfigured_with_the_reason(graph):
     probe = graph["probe"]
     name = f"{MISSING_NS}/detector_node"
     proc = graph["procs"][name]
@@ -267,14 +267,15 @@ def test_missing_model_file_keeps_the_detector_running_with_an_error(graph):
     assert MISSING_MODEL in error.message
     assert MISSING_MODEL in diag_value(error, "engine_state")
 
-    # It keeps serving: frames are counted as rejected (engine not ready), and retries never crash it.
+    # A managed node: it stays unconfigured with the reason (retried, never crashing) and takes no frames.
+    assert diag_value(error, "lifecycle_state") == "unconfigured"
+    assert MISSING_MODEL in diag_value(error, "lifecycle_reason")
     image_pub = probe.node.create_publisher(Image, f"{MISSING_NS}/image", stage_output_qos(5))
-    assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 1, 10.0)
-    image_pub.publish(numpy_to_image(person_blob_image(100, 100)[0], "rgb8", make_header(4000)))
-    assert probe.spin_until(lambda: probe.status_where(
-        name, lambda s: int(diag_value(s, "rejected.engine_not_ready")) >= 1), 10.0)
+    probe.spin_for(3.0)  # longer than a configure retry
+    assert image_pub.get_subscription_count() == 0
     latest = probe.statuses[name][-1]
     assert latest.level == DiagnosticStatus.ERROR and MISSING_MODEL in latest.message
+    assert diag_value(latest, "lifecycle_state") == "unconfigured"
     assert proc.poll() is None
     assert MISSING_MODEL in read_log(proc)
 

@@ -143,8 +143,7 @@ def test_graph_runs_without_a_node_whose_model_is_missing_and_takes_it_in_when_t
     detector_model, hmr_model = ensure_contract_models()
     late = tmp_path / "late_detector.onnx"
     proc = runner_cli(tmp_path, "--perception", "onnxruntime", "--detector-model", str(late), "--hmr-model",
-                      hmr_model, "--body-model", ensure_stand_in_body_model("small"), "--configure-retry", "1",
-                      "--set", "detector_node.model_retry_period_s=1.0")
+                      hmr_model, "--body-model", ensure_stand_in_body_model("small"), "--configure-retry", "1")
     try:
         running, out = read_until(proc, r"\[graph\] (running without|ready in)", 120.0)
         assert running and "[graph] running without detector_node after" in out, out

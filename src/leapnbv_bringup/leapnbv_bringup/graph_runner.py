@@ -52,7 +52,14 @@ from dataclasses import dataclass, field
 from typing import Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from leapnbv_bringup.graph import NAMESPACE, NodeSpec, default_params_file, fastdds_profile_file, graph_nodes
-from leapnbv_bringup.readiness import NOT_HEARD, NodeHealth, engine_state_of, health_from_status, judge
+from leapnbv_bringup.readiness import (
+    AWAITING_PUBLISHER,
+    NOT_HEARD,
+    NodeHealth,
+    engine_state_of,
+    health_from_status,
+    judge,
+)
 from leapnbv_bringup.runner_cli import (  # noqa: F401 - re-exported: tools import them from here
     Overrides,
     add_graph_arguments,
@@ -450,6 +457,11 @@ class GraphRunner:
         """{node: (why it is not serving or "", whether that is a failure)} for every node."""
         with self._lock:
             judged = {spec.name: self._judge(spec.name, since) for spec in self.nodes}
+            if any(failed for _, failed in judged.values()):
+                # With a node in a failure (a missing model) its downstream nodes are active and wait for its
+                # output: they serve as far as they can, and the graph runs without the failed node.
+                judged = {name: ("", False) if why.startswith(AWAITING_PUBLISHER) else (why, failed)
+                          for name, (why, failed) in judged.items()}
             for name in judged:
                 if self._states[name].restarted_at is not None:
                     self._note_serving(name)

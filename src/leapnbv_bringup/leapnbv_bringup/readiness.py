@@ -23,6 +23,8 @@ from leapnbv_common.managed_node import ACTIVE, UNCONFIGURED
 
 ERROR_LEVEL = 2
 NOT_HEARD = "no diagnostics yet"
+#: How a judge says that an active node waits for a publisher of one of its inputs.
+AWAITING_PUBLISHER = "active, waiting for a publisher of "
 
 
 @dataclass
@@ -87,7 +89,7 @@ def judge(health: Optional[NodeHealth], lifecycle, describe: str, heard_after: f
         state = lifecycle.state if lifecycle is not None else health.lifecycle_state
         if state == ACTIVE and fresh and health.lifecycle_state == ACTIVE:
             if health.awaiting:
-                return f"active, waiting for a publisher of {health.awaiting}", False
+                return f"{AWAITING_PUBLISHER}{health.awaiting}", False
             return "", False
         failed = bool(lifecycle is not None and lifecycle.failed and not lifecycle.reason_pending) or (
             lifecycle is None and fresh and health.lifecycle_state == UNCONFIGURED and bool(health.lifecycle_reason))

@@ -43,7 +43,7 @@ class StageDiagnostics:
     def __init__(self, node, hardware_id: str = "", period_s: float = 1.0) -> None:
         self._node = node
         self._name = node.get_fully_qualified_name()
-        self._hardware_id = hardware_id
+        self.hardware_id = hardware_id
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.frames_in = 0
         self.frames_out = 0
@@ -195,7 +195,7 @@ class StageDiagnostics:
             level=level,
             name=self._name,
             message=message[:200],
-            hardware_id=self._hardware_id,
+            hardware_id=self.hardware_id,
             values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
         )
 

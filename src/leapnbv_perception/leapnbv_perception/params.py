@@ -17,7 +17,6 @@ ENGINE_BACKENDS = ("onnxruntime", "tensorrt", "ground_truth")
 PRECISIONS = ("fp16", "fp32")
 THREADS_MAX = 256
 GRAPH_OPTIMIZATION_LEVELS = tuple(GRAPH_OPTIMIZATIONS)
-RETRY_PERIOD_MAX_S = 3600.0
 
 
 @dataclass
@@ -45,8 +44,6 @@ class EngineParams:
     thread_spinning: bool = param(True, "onnxruntime: idle intra-op threads spin for work (faster hand-over inside "
                                   "one run); off: they sleep, leaving the cores to the other nodes between runs",
                                   read_only=True)
-    model_retry_period_s: float = param(5.0, "s: retry loading a missing or broken model this often (0 = never)",
-                                        min=0.0, max=RETRY_PERIOD_MAX_S, read_only=True)
 
 
 @dataclass
@@ -67,7 +64,7 @@ class DetectorParams(EngineParams):
                               read_only=True)
     # Latest-frame scheduling: the detector is the graph's first stage, so it is where a frame the graph
     # cannot finish is dropped before any stage works on it (docs/ARCHITECTURE.md, "Timing").
-    # 1: measured on the 2-core machine at 30 FPS (scripts/bench_load.py, 40 s each, same load): 2 in flight
+    # 1: measured on the 2-core machine at 30 FPS (scripts/bench/bench_load.py, 40 s each, same load): 2 in flight
     # gave 14.6 goals/s at p50 160 ms / p95 220 ms, 1 gave 11.8 goals/s at p50 112 ms / p95 152 ms (the stages
     # share the cores: a second frame in flight slows the first).
     max_frames_in_flight: int = param(1, "camera frames admitted into the graph whose view candidates have not "
@@ -94,7 +91,7 @@ class DetectorParams(EngineParams):
     timing_stand_in: bool = param(False, "benchmarks only, with backend ground_truth: also run the onnxruntime engine "
                                   "of model_file_path on every admitted frame and discard its boxes (the truth's "
                                   "are published), so that a whole-frame benchmark pays a real detector's cost "
-                                  "with a network that has no weights (scripts/bench_load.py)", read_only=True)
+                                  "with a network that has no weights (scripts/bench/bench_load.py)", read_only=True)
 
     def check(self) -> None:
         if self.timing_stand_in and (self.backend != "ground_truth" or not self.model_file_path):

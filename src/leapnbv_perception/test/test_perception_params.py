@@ -6,8 +6,7 @@ import pytest
 from leapnbv_common.params import ParamsError, param_specs, params_from_values, replace_params, validate_params
 from leapnbv_perception.params import DetectorParams, HmrParams
 
-ENGINE_SETTINGS = {"backend", "model_file_path", "engine_cache_dir", "precision", "providers", "intra_op_threads",
-                   "model_retry_period_s"}
+ENGINE_SETTINGS = {"backend", "model_file_path", "engine_cache_dir", "precision", "providers", "intra_op_threads"}
 
 
 @pytest.mark.parametrize("cls", [DetectorParams, HmrParams])

@@ -29,7 +29,6 @@ from typing import Dict, NamedTuple, Optional, Set, Tuple
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
@@ -49,7 +48,8 @@ from leapnbv_common.conversions import (
     stamp_to_ns,
 )
 from leapnbv_common.diagnostics import StageDiagnostics
-from leapnbv_common.node_params import NodeParams, run_node
+from leapnbv_common.managed_node import ManagedNode
+from leapnbv_common.node_params import run_node
 from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
@@ -113,17 +113,13 @@ class GroundDiagnostics(StageDiagnostics):
         return status
 
 
-class GroundNode(Node):
+class GroundNode(ManagedNode):
     def __init__(self) -> None:
-        super().__init__("ground_node")
-        self.params = NodeParams(self, GroundParams, self.on_params_change)
-        self.diagnostics = GroundDiagnostics(self)
-        self.configure_stage()
-        self.activate_stage()
+        super().__init__("ground_node", GroundParams, diagnostics_class=GroundDiagnostics)
 
     def configure_stage(self) -> None:
         p = self.params.value
-        self.publisher = self.create_publisher(GroundPlane, GROUND_PLANE, stage_output_qos())
+        self.publisher = self.create_lifecycle_publisher(GroundPlane, GROUND_PLANE, stage_output_qos())
         # The mask excluded from frame t is the previous fitted frame's. Waiting briefly for it (while masks
         # flow) makes the fit independent of message timing, so replays repeat.
         self.previous_fit_stamp: Optional[int] = None
@@ -174,6 +170,9 @@ class GroundNode(Node):
         self.stage.start()
         if self.params.value.fit_detected_frames_only:
             self.diagnostics.await_publishers(DETECTIONS)  # ready once the detector is connected
+
+    def deactivate_stage(self) -> None:
+        self.stage.stop()
 
     def on_params_change(self, params: GroundParams, changed: Set[str]) -> None:
         """Everything is read per frame (the waits too, for the frames already waiting)."""

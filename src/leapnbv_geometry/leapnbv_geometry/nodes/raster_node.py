@@ -20,7 +20,6 @@ import time
 from typing import Set
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from leapnbv_common.contracts import check_same_frame, check_same_size, refused
@@ -36,8 +35,8 @@ from leapnbv_common.conversions import (
     image_size,
     numpy_to_image,
 )
-from leapnbv_common.diagnostics import StageDiagnostics
-from leapnbv_common.node_params import NodeParams, run_node
+from leapnbv_common.managed_node import ManagedNode
+from leapnbv_common.node_params import run_node
 from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Stage
@@ -49,19 +48,15 @@ from leapnbv_geometry.target_geometry import compute_target_geometry, place_mesh
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry
 
 
-class RasterNode(Node):
+class RasterNode(ManagedNode):
     def __init__(self) -> None:
-        super().__init__("raster_node")
-        self.params = NodeParams(self, RasterParams, self.on_params_change)
-        self.diagnostics = StageDiagnostics(self)
-        self.configure_stage()
-        self.activate_stage()
+        super().__init__("raster_node", RasterParams)
 
     def configure_stage(self) -> None:
         p = self.params.value
-        self.target_pub = self.create_publisher(TargetGeometry, TARGET_GEOMETRY, stage_output_qos())
-        self.mask_pub = self.create_publisher(Image, PERSON_MASK, stage_output_qos())
-        self.mesh_pub = self.create_publisher(HumanMesh, HUMAN_MESH_METRIC, stage_output_qos())
+        self.target_pub = self.create_lifecycle_publisher(TargetGeometry, TARGET_GEOMETRY, stage_output_qos())
+        self.mask_pub = self.create_lifecycle_publisher(Image, PERSON_MASK, stage_output_qos())
+        self.mesh_pub = self.create_lifecycle_publisher(HumanMesh, HUMAN_MESH_METRIC, stage_output_qos())
         warm_up()  # compile the rasterizer before subscribing: the graph is ready only after it
         # The mesh starts the work (the newest only). Depth frames and camera infos are pulled when a mesh
         # comes (they do not wake the node at 30 Hz) and depth frames stay serialized until one pairs; the
@@ -93,6 +88,9 @@ class RasterNode(Node):
     def activate_stage(self) -> None:
         self.stage.start()
         self.diagnostics.await_publishers(HUMAN_MESH, GROUND_PLANE)  # ready once the stages before are connected
+
+    def deactivate_stage(self) -> None:
+        self.stage.stop()
 
     def on_params_change(self, params: RasterParams, changed: Set[str]) -> None:
         """Everything is read per frame (the waits too, for the frames already waiting)."""

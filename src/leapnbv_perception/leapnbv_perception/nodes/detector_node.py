@@ -19,7 +19,6 @@ import time
 from typing import Optional, Sequence, Set, Tuple
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
@@ -36,8 +35,9 @@ from leapnbv_common.conversions import (
     serialized_header_stamp_ns,
     stamp_to_ns,
 )
-from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
-from leapnbv_common.node_params import NodeParams, run_node
+from leapnbv_common.diagnostics import rejects_bad_input
+from leapnbv_common.managed_node import ManagedNode
+from leapnbv_common.node_params import run_node
 from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
@@ -48,34 +48,32 @@ from leapnbv_msgs.msg import HumanMesh, InputStamp, PersonDetections, ViewCandid
 from leapnbv_perception.admission import Admission
 from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, ground_truth_boxes, truth_companion
 from leapnbv_perception.box_tracking import DetectionSchedule, camera_motion, carry_box
-from leapnbv_perception.nodes.engine_loading import RetryingLoader, create_engine_backend
+from leapnbv_perception.nodes.engine_loading import create_engine_backend, load_in_configure
 from leapnbv_perception.params import DetectorParams
 
 WAITING_CHECK_PERIOD_S = 0.05  # how often a waiting frame checks whether an in-flight frame timed out
 CARRY_POSE_CACHE = 90  # camera poses remembered for carrying boxes (3 s at 30 FPS)
 
 
-class DetectorNode(Node):
+class DetectorNode(ManagedNode):
     def __init__(self) -> None:
-        super().__init__("detector_node")
-        self.params = NodeParams(self, DetectorParams, self.on_params_change)
-        self.diagnostics = StageDiagnostics(self, hardware_id=self.params.value.backend)
-        self.configure_stage()
-        self.activate_stage()
+        super().__init__("detector_node", DetectorParams)
 
     def configure_stage(self) -> None:
+        """The detector engine is loaded here: a missing or broken model fails the configure with its path and the
+        node stays unconfigured (retried: leapnbv_common.managed_node)."""
         p = self.params.value
-        self.publisher = self.create_publisher(PersonDetections, DETECTIONS, stage_output_qos())
+        self.diagnostics.hardware_id = p.backend
         self.admission = Admission(self.diagnostics.drop)
         self.ground_truth = p.backend == GROUND_TRUTH_BACKEND
         self.detector = None
         if not self.ground_truth:
-            self.detector = RetryingLoader(self, self.diagnostics, "detector model " + repr(p.model_file_path),
-                                           self.load_detector, p.model_retry_period_s)
+            self.detector = load_in_configure(self, "detector model " + repr(p.model_file_path),
+                                                             self.load_detector)
         elif p.timing_stand_in:  # a benchmark: the real network's cost, the truth's boxes
-            self.detector = RetryingLoader(self, self.diagnostics, "timing stand-in detector model "
-                                           + repr(p.model_file_path), self.load_timing_detector,
-                                           p.model_retry_period_s)
+            self.detector = load_in_configure(
+                self, "timing stand-in detector model " + repr(p.model_file_path), self.load_timing_detector)
+        self.publisher = self.create_lifecycle_publisher(PersonDetections, DETECTIONS, stage_output_qos())
         # Detect less often: the target's box carried by its mesh's image motion between detections.
         self.schedule = DetectionSchedule(p.detect_every_n_frames, p.carry_min_confidence)
         self.carrying = p.detect_every_n_frames > 1
@@ -107,6 +105,13 @@ class DetectorNode(Node):
         self.waiting_timer = self.create_timer(WAITING_CHECK_PERIOD_S, self.admit_waiting)
         self.waiting_timer.cancel()
 
+    def deactivate_stage(self) -> None:
+        self.stage.stop()
+        self.admission.reset()
+
+    def cleanup_stage(self) -> None:
+        self.detector = None  # the engine's memory goes with it
+
     def load_detector(self):
         from leapnbv_perception.detector import PersonDetector
 
@@ -126,7 +131,7 @@ class DetectorNode(Node):
         """The thresholds, the carrying limits and the admission settings apply from the next frame (the
         rest is read-only)."""
         self.schedule.min_confidence = params.carry_min_confidence
-        detector = self.detector.value if self.detector is not None else None
+        detector = self.detector
         if detector is not None:
             detector.score_threshold = params.score_threshold
             detector.iou_threshold = params.iou_threshold
@@ -216,9 +221,6 @@ class DetectorNode(Node):
             if refused(self.diagnostics, "bad_ground_truth", check_same_frame, "image", image.header.frame_id,
                        "ground truth", truth.frame_id):
                 return
-        elif self.detector.value is None:
-            self.diagnostics.reject("engine_not_ready", self.diagnostics.engine_state)
-            return
         p = self.params.value
         if self.admission.offer(frame.stamp_ns, lambda: self.guarded_detect(frame), time.monotonic(),
                                 p.max_frames_in_flight, p.in_flight_timeout_s):
@@ -239,14 +241,11 @@ class DetectorNode(Node):
         if carried is not None:
             self.publish(image.header, image.width, image.height, carried[0], started, carried[1])
             return
-        if self.detector is not None and self.detector.value is None:  # the timing stand-in's engine
-            self.diagnostics.reject("engine_not_ready", self.diagnostics.engine_state)
-            return
         if not self.ground_truth:
-            boxes = self.detector.value.detect(image_to_rgb(image))
+            boxes = self.detector.detect(image_to_rgb(image))
         else:
             if self.detector is not None:  # timing stand-in: pay the network's cost, keep the truth's boxes
-                self.detector.value.detect(image_to_rgb(image))
+                self.detector.detect(image_to_rgb(image))
             # The truth gives the box: the image's pixels are not read (only checked on arrival).
             try:
                 boxes = ground_truth_boxes(frame["ground_truth"], (image.width, image.height))

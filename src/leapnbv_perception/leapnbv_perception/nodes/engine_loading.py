@@ -1,62 +1,29 @@
-"""Loading an engine inside a node: never fatal, retried, reported in diagnostics."""
+"""Loading an engine inside a managed node's configure: never fatal, the reason reported, retried by the lifecycle."""
 from __future__ import annotations
 
-from typing import Any, Callable, Optional
+from typing import Any, Callable
 
 from leapnbv_perception.params import EngineParams
 
 
-class RetryingLoader:
-    """Calls `load()` now and again every `retry_period_s` until it succeeds.
+def load_in_configure(node, what: str, load: Callable[[], Any]) -> Any:
+    """Load an engine or model in a managed node's ``configure_stage``: the value, or the configure fails.
 
-    A missing model file or a model that breaks its contract is logged with the error (which
-    names the path), reported as an ERROR in diagnostics, and the node keeps serving: it
-    rejects frames as "engine_not_ready" until a later retry loads the model.
+    The lifecycle retries the whole configure (``configure_retry_period_s``, leapnbv_common.managed_node), so
+    nothing is retried here: a missing model file leaves the node unconfigured with the reason (which names the
+    path) on /diagnostics, and a later configure loads it once the file is there.
+
+    Raises:
+        StageNotReadyError: "<what> not loaded: <error type>: <error>" (the node stays unconfigured with it).
     """
+    from leapnbv_common.managed_node import StageNotReadyError
 
-    def __init__(self, node, diagnostics, what: str, load: Callable[[], Any], retry_period_s: float) -> None:
-        self._node = node
-        self._diagnostics = diagnostics
-        self._what = what
-        self._load = load
-        self.value: Optional[Any] = None
-        self._timer = None
-        if not self.try_load() and retry_period_s > 0:
-            self._timer = node.create_timer(retry_period_s, self._retry)
-
-    def try_load(self) -> bool:
-        try:
-            self.value = self._load()
-        except Exception as exc:  # noqa: BLE001 - any load failure is reported, never fatal
-            message = f"{self._what} not loaded: {type(exc).__name__}: {exc}"
-            self._node.get_logger().error(message, throttle_duration_sec=30.0)
-            self._diagnostics.set_engine_state(message, ok=False)
-            return False
-        self._node.get_logger().info(f"{self._what} loaded")
-        self._diagnostics.set_engine_state("ready", ok=True)
-        return True
-
-    def _retry(self) -> None:
-        if self.try_load() and self._timer is not None:
-            self._timer.cancel()
-
-    @staticmethod
-    def load_in_configure(node, what: str, load: Callable[[], Any]) -> Any:
-        """Load in a managed node's ``configure_stage``: the value, or the failure with the same text as above.
-
-        The lifecycle retries the whole configure (leapnbv_common.managed_node), so nothing is retried here.
-
-        Raises:
-            StageNotReadyError: "<what> not loaded: <error type>: <error>" (the node stays unconfigured with it).
-        """
-        from leapnbv_common.managed_node import StageNotReadyError
-
-        try:
-            value = load()
-        except Exception as exc:  # noqa: BLE001 - any load failure is the configure's reason
-            raise StageNotReadyError(f"{what} not loaded: {type(exc).__name__}: {exc}") from exc
-        node.get_logger().info(f"{what} loaded")
-        return value
+    try:
+        value = load()
+    except Exception as exc:  # noqa: BLE001 - any load failure is the configure's reason
+        raise StageNotReadyError(f"{what} not loaded: {type(exc).__name__}: {exc}") from exc
+    node.get_logger().info(f"{what} loaded")
+    return value
 
 
 def create_engine_backend(params: EngineParams):

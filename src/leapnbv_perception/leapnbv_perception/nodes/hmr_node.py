@@ -21,7 +21,6 @@ import time
 from typing import Optional, Set
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import Image
 
 from leapnbv_common.contracts import check_same_frame, check_same_size, refused
@@ -33,15 +32,15 @@ from leapnbv_common.conversions import (
     image_size,
     image_to_rgb,
 )
-from leapnbv_common.diagnostics import StageDiagnostics
-from leapnbv_common.node_params import NodeParams, run_node
+from leapnbv_common.managed_node import ManagedNode
+from leapnbv_common.node_params import run_node
 from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import REJECT, Companion, Frame, KeyInput, Stage
 from leapnbv_common.topics import DETECTIONS, HUMAN_MESH
 from leapnbv_msgs.msg import HumanMesh, PersonDetections
 from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, GroundTruthMeshBackend
-from leapnbv_perception.nodes.engine_loading import RetryingLoader, create_engine_backend
+from leapnbv_perception.nodes.engine_loading import create_engine_backend, load_in_configure
 from leapnbv_perception.params import HmrParams
 from leapnbv_perception.target_selection import select_target
 
@@ -50,21 +49,20 @@ from leapnbv_perception.target_selection import select_target
 IMAGE_WAIT_S = 0.2
 
 
-class HmrNode(Node):
+class HmrNode(ManagedNode):
     def __init__(self) -> None:
-        super().__init__("hmr_node")
-        self.params = NodeParams(self, HmrParams, self.on_params_change)
-        self.diagnostics = StageDiagnostics(self, hardware_id=self.params.value.backend)
-        self.configure_stage()
-        self.activate_stage()
+        super().__init__("hmr_node", HmrParams)
 
     def configure_stage(self) -> None:
+        """The engine (or the body model, for the ground-truth backend) is loaded here: a missing or broken file
+        fails the configure with its path and the node stays unconfigured (retried: leapnbv_common.managed_node)."""
         p = self.params.value
-        self.publisher = self.create_publisher(HumanMesh, HUMAN_MESH, stage_output_qos())
+        self.diagnostics.hardware_id = p.backend
         self.ground_truth = p.backend == GROUND_TRUTH_BACKEND
         self.previous_box: Optional[np.ndarray] = None
-        self.engine = RetryingLoader(self, self.diagnostics, f"HMR engine {p.model_file_path!r} with body "
-                                     f"model {p.body_model_path!r}", self.load_engine, p.model_retry_period_s)
+        self.engine = load_in_configure(self, f"HMR engine {p.model_file_path!r} with body model "
+                                                       f"{p.body_model_path!r}", self.load_engine)
+        self.publisher = self.create_lifecycle_publisher(HumanMesh, HUMAN_MESH, stage_output_qos())
         if self.ground_truth:
             companions = GroundTruthMeshBackend.companions(p.cache_size)
         else:
@@ -84,6 +82,12 @@ class HmrNode(Node):
     def activate_stage(self) -> None:
         self.stage.start()
         self.diagnostics.await_publishers(DETECTIONS)  # ready once the detector is connected
+
+    def deactivate_stage(self) -> None:
+        self.stage.stop()
+
+    def cleanup_stage(self) -> None:
+        self.engine = None  # the engine's memory goes with it
 
     def load_engine(self):
         from leapnbv_perception.smplx_layer import SMPLXModel
@@ -109,15 +113,12 @@ class HmrNode(Node):
     def on_params_change(self, params: HmrParams, changed: Set[str]) -> None:
         """The crop scale and the hand un-mirroring apply from the next frame; the tracking settings
         are read per frame."""
-        if self.engine.value is not None and not self.ground_truth:
-            self.engine.value.box_scale = params.box_scale
-            self.engine.value.unmirror_left_hand = params.unmirror_left_hand
+        if self.engine is not None and not self.ground_truth:
+            self.engine.box_scale = params.box_scale
+            self.engine.unmirror_left_hand = params.unmirror_left_hand
 
     def estimate(self, frame: Frame) -> None:
         started = time.perf_counter()
-        if self.engine.value is None:
-            self.diagnostics.reject("engine_not_ready", self.diagnostics.engine_state)
-            return
         detections: PersonDetections = frame.key.message
         # The frame's other input (its colour image, or the camera_info the ground truth is placed with)
         # names the same frame and has the size the detections were found in.
@@ -136,7 +137,7 @@ class HmrNode(Node):
             return
         box = boxes[index]
         if self.ground_truth:
-            mesh = GroundTruthMeshBackend.mesh(self.engine.value, frame, box, p.box_scale)
+            mesh = GroundTruthMeshBackend.mesh(self.engine, frame, box, p.box_scale)
         else:
             mesh = self.engine_mesh(box, frame["image"])
         self.previous_box = box[:4]
@@ -147,7 +148,7 @@ class HmrNode(Node):
 
     def engine_mesh(self, box: np.ndarray, image: SerializedImage) -> HumanMeshArrays:
         rgb = image_to_rgb(image)
-        est = self.engine.value.estimate(rgb, box[:4])
+        est = self.engine.estimate(rgb, box[:4])
         return HumanMeshArrays(
             vertices=est.vertices, faces=est.faces, virtual_intrinsics=(est.fx, est.fy, est.cx, est.cy),
             image_size=(rgb.shape[1], rgb.shape[0]), detection=box, processed_box=est.processed_box,

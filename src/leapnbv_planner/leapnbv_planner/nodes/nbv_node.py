@@ -41,7 +41,6 @@ from typing import List, Optional, Set, Tuple
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
@@ -57,11 +56,13 @@ from leapnbv_common.conversions import (
     obstacle_map_to_points,
     path_msg,
     pose_msg,
+    set_stamp,
     stamp_to_ns,
     target_geometry_to_arrays,
 )
-from leapnbv_common.diagnostics import StageDiagnostics, rejects_bad_input
-from leapnbv_common.node_params import NodeParams, run_node
+from leapnbv_common.diagnostics import rejects_bad_input
+from leapnbv_common.managed_node import ManagedNode
+from leapnbv_common.node_params import run_node
 from leapnbv_common.process_tuning import tune_node_process
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import latched_goal_qos, latched_map_qos, stage_input_qos, stage_output_qos
@@ -102,22 +103,21 @@ def carry_plane(normal: np.ndarray, offset: float, pose_from: StampedCameraPose,
     return n_to, d_to
 
 
-class NbvNode(Node):
+class NbvNode(ManagedNode):
     def __init__(self) -> None:
-        super().__init__("nbv_node")
-        self.diagnostics = StageDiagnostics(self)
-        self.params: NodeParams = NodeParams(self, nbv_params_class(), self.on_params_change)
-        self.configure_stage()
-        self.activate_stage()
+        super().__init__("nbv_node", nbv_params_class())
 
     def configure_stage(self) -> None:
         p = self.params.value
-        self.candidates_pub = self.create_publisher(ViewCandidates, topics.VIEW_CANDIDATES, stage_output_qos())
+        self.candidates_pub = self.create_lifecycle_publisher(ViewCandidates, topics.VIEW_CANDIDATES,
+                                                              stage_output_qos())
+        # The latched goal topics are plain publishers: activate says "no goal yet" on them and deactivate
+        # withdraws the goal, at the edges of the active state, where a lifecycle publisher drops what it gets.
         self.goal_pub = self.create_publisher(PoseStamped, topics.NEXT_BEST_VIEW, latched_goal_qos())
         self.base_goal_pub = self.create_publisher(PoseStamped, topics.BASE_GOAL, latched_goal_qos())
         self.status_pub = self.create_publisher(GoalStatus, topics.GOAL_STATUS, latched_goal_qos())
         self.base_path_pub = self.create_publisher(Path, topics.BASE_PATH, latched_goal_qos())
-        self.markers_pub = self.create_publisher(MarkerArray, topics.MARKERS, stage_output_qos())
+        self.markers_pub = self.create_lifecycle_publisher(MarkerArray, topics.MARKERS, stage_output_qos())
         self.goal_stamp: Optional[int] = None  # frame stamp of the last goal published
         self.goal_frame = ""
         self.goal_state = GoalStatus.STATE_NONE
@@ -161,6 +161,13 @@ class NbvNode(Node):
         self.age_timer = self.create_timer(GOAL_AGE_CHECK_PERIOD_S, self.check_goal_age)
         self.age_timer.cancel()  # runs only while a goal is current
         self.publish_status(GoalStatus.STATE_NONE, "no goal planned yet")
+
+    def deactivate_stage(self) -> None:
+        """No goal from a planner that stopped: a motion stack must not keep acting on the last one."""
+        self.stage.stop()
+        if self.goal_state == GoalStatus.STATE_CURRENT:
+            self.withdraw_goal()
+            self.publish_status(GoalStatus.STATE_NONE, "the planner was deactivated: the last goal was withdrawn")
 
     def on_params_change(self, new: PlannerParams, changed: Set[str]) -> None:
         """Rebuild what depends on changed parameters (everything else is read at each plan)."""
@@ -327,14 +334,17 @@ class NbvNode(Node):
         if age_s <= limit:
             return
         self.age_timer.cancel()
-        # Replace the latched goals: a motion stack connecting later must not receive the old one.
+        self.withdraw_goal()
+        self.diagnostics.drop("goal_withdrawn_stale")
+        self.publish_status(GoalStatus.STATE_STALE, f"no goal from a frame younger than {limit:g} s: the last one"
+                            f" is {age_s:.2f} s old and was withdrawn")
+
+    def withdraw_goal(self) -> None:
+        """Replace the latched goals by "no goal": a motion stack connecting later must not receive the old one."""
         cleared = Header(frame_id="", stamp=self.get_clock().now().to_msg())
         self.goal_pub.publish(PoseStamped(header=cleared))
         self.base_goal_pub.publish(PoseStamped(header=cleared))
         self.base_path_pub.publish(Path(header=cleared))  # an empty path: no way to a current goal
-        self.diagnostics.drop("goal_withdrawn_stale")
-        self.publish_status(GoalStatus.STATE_STALE, f"no goal from a frame younger than {limit:g} s: the last one"
-                            f" is {age_s:.2f} s old and was withdrawn")
 
     def publish_status(self, state: int, reason: str) -> None:
         now = self.now_ns()
@@ -342,7 +352,7 @@ class NbvNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.goal_frame if state == GoalStatus.STATE_CURRENT else ""
         if self.goal_stamp is not None:
-            msg.goal_stamp.sec, msg.goal_stamp.nanosec = divmod(self.goal_stamp, 1_000_000_000)
+            set_stamp(msg.goal_stamp, self.goal_stamp)
             msg.goal_age_s = float((now - self.goal_stamp) * 1e-9)
         self.goal_state = state
         self.status_pub.publish(msg)
