@@ -251,7 +251,7 @@ class Stage:
         self.capacity = max(1, int(capacity))
         self.stamps = stamp_guard or DuplicateStampGuard()
         drop = self.diagnostics.drop_callback()
-        self.caches: Dict[str, StampCache] = {
+        self.caches: Dict[str, StampCache[Received]] = {
             c.name: StampCache(c.capacity, c.name + "_evicted", drop) for c in self.companions if c.topic}
         self.latest: Dict[str, Received] = {}
         self.waiting: List[Frame] = []  # oldest first

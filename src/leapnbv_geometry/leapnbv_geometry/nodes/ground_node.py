@@ -59,6 +59,7 @@ from leapnbv_common.stamp_cache import StampCache
 from leapnbv_common.topics import DETECTIONS, GROUND_PLANE, PERSON_MASK
 from leapnbv_geometry.ground import (
     FLOOR_NONE,
+    GroundPlaneResult,
     box_exclusion_mask,
     expected_up,
     fit_ground_plane,
@@ -81,7 +82,7 @@ class FittedFrame(NamedTuple):
     compute_time_ms: float
     point_count: int  # the points RANSAC was fitted on
     inputs: list  # (name, stamp ns[, relation]) of what the fit used (GroundPlane.inputs)
-    ransac: object = None  # the GroundPlaneResult (fused with the pose's floor when it is published)
+    ransac: GroundPlaneResult  # RANSAC's result (fused with the pose's floor when it is published)
 
 
 class GroundDiagnostics(StageDiagnostics):
@@ -114,6 +115,7 @@ class GroundDiagnostics(StageDiagnostics):
 
 
 class GroundNode(ManagedNode):
+    diagnostics: GroundDiagnostics
     def __init__(self) -> None:
         super().__init__("ground_node", GroundParams, diagnostics_class=GroundDiagnostics)
 
@@ -146,7 +148,7 @@ class GroundNode(ManagedNode):
                          capacity=2, bad_reason="bad_person_mask")
         pose = Companion("camera_pose", lookup=self.pose_floor, needed=lambda f: self.poses_seen,
                          wait_s=lambda f: self.params.value.camera_pose_wait_s,
-                         expect=lambda f: self.camera_pose.expect(f.stamp_ns, self.depth_of(f).header.frame_id))
+                         expect=self.expect_pose)
         if p.fit_detected_frames_only:
             # The detections start the work (the newest only); depth frames wait for them in the reader / cache.
             key = KeyInput("detections", PersonDetections, DETECTIONS, detections_to_boxes, stage_input_qos(1),
@@ -176,6 +178,10 @@ class GroundNode(ManagedNode):
 
     def on_params_change(self, params: GroundParams, changed: Set[str]) -> None:
         """Everything is read per frame (the waits too, for the frames already waiting)."""
+
+    def expect_pose(self, frame: Frame) -> None:
+        if self.camera_pose is not None:
+            self.camera_pose.expect(frame.stamp_ns, self.depth_of(frame).header.frame_id)
 
     def depth_of(self, frame: Frame) -> SerializedImage:
         return frame.key.value if frame.key_name == "depth" else frame["depth"]
@@ -242,9 +248,9 @@ class GroundNode(ManagedNode):
         """The latest person mask, if recent and of the same size (the person is not floor), and its input
         entry; without one (the first frame of a scene), the frame's own person boxes."""
         latest = self.stage.latest.get("person_mask")
-        mask = None if latest is None else latest.value
-        if mask is None or (mask.height, mask.width) != shape:
+        if latest is None or (latest.value.height, latest.value.width) != shape:
             return self.detection_mask(shape, frame), None
+        mask = latest.value
         age_ns = stamp_to_ns(depth_msg.header.stamp) - latest.stamp_ns
         if abs(age_ns) > self.params.value.mask_max_age_s * 1e9:
             return self.detection_mask(shape, frame), None
@@ -264,9 +270,8 @@ class GroundNode(ManagedNode):
         msg = self.depth_of(frame)
         stamp = stamp_to_ns(msg.header.stamp)
         self.previous_fit_stamp = stamp
-        info = frame.received("depth/camera_info")
-        camera_info, info_input = info.value, frame.inputs[[name for name, _, _ in frame.inputs].index(
-            "depth/camera_info")]
+        camera_info = frame["depth/camera_info"]  # always there: the frame is refused without one
+        info_input = next(entry for entry in frame.inputs if entry[0] == "depth/camera_info")
         p = self.params.value
         # A camera_info of another stamp (calibration) is checked here; the frame's own was checked on arrival.
         if info_input[2] == InputStamp.STATIC or not p.fit_detected_frames_only:
@@ -309,10 +314,11 @@ class GroundNode(ManagedNode):
         """
         p = self.params.value
         inputs = list(frame.inputs)
-        matching = pose_floor is not None and pose_floor[0] == stamp_to_ns(frame.header.stamp)
-        if matching:
+        if pose_floor is not None and pose_floor[0] != stamp_to_ns(frame.header.stamp):
+            pose_floor = None  # another frame's pose never checks this one
+        if pose_floor is not None:
             inputs.append(("camera_pose", pose_floor[0]))
-        floor = fuse_floor(frame.ransac, (pose_floor[1], pose_floor[2]) if matching else None,
+        floor = fuse_floor(frame.ransac, (pose_floor[1], pose_floor[2]) if pose_floor is not None else None,
                            max_angle_deg=p.pose_max_angle_deg, max_height_m=p.pose_max_height_m,
                            full_support_ratio=p.quality_full_support)
         plane = dataclasses.replace(frame.plane, quality=floor.quality)

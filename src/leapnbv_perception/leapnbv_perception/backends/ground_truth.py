@@ -11,7 +11,7 @@ model, the crop box) is in the ROS-free cores.
 """
 from __future__ import annotations
 
-from typing import List, Tuple
+from typing import Any, List, Tuple
 
 import numpy as np
 from sensor_msgs.msg import CameraInfo
@@ -78,7 +78,7 @@ class GroundTruthMeshBackend:
         ]
 
     @staticmethod
-    def reference(frame: Frame) -> Tuple[str, object]:
+    def reference(frame: Frame) -> Tuple[str, Any]:
         """The input the detections must agree with (frame_id, image size): the camera_info."""
         return "camera_info", frame["camera_info"]
 

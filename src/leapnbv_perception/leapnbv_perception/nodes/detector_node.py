@@ -173,7 +173,7 @@ class DetectorNode(ManagedNode):
                 motion = camera_motion((pose_a.rotation, pose_a.position), (pose_b.rotation, pose_b.position))
                 carried = carry_box(mesh.detection[:4], mesh.vertices, K, K, (image.width, image.height), motion)
                 refused_because = "mesh_not_in_view" if carried is None else "low_confidence"
-        if self.schedule.should_detect(carried):
+        if carried is None or self.schedule.should_detect(carried):
             if not self.schedule.due():  # a frame that could have been carried: say why it was not
                 self.diagnostics.count("detected_instead." + refused_because)
             self.schedule.record(True)
@@ -217,9 +217,9 @@ class DetectorNode(ManagedNode):
         started = time.perf_counter()
         image: SerializedImage = frame["image"]
         if self.ground_truth:
-            truth = frame.received("ground_truth")
-            if refused(self.diagnostics, "bad_ground_truth", check_same_frame, "image", image.header.frame_id,
-                       "ground truth", truth.frame_id):
+            truth = frame.received("ground_truth")  # always there: a frame without its truth is dropped
+            if truth is None or refused(self.diagnostics, "bad_ground_truth", check_same_frame, "image",
+                                        image.header.frame_id, "ground truth", truth.frame_id):
                 return
         p = self.params.value
         if self.admission.offer(frame.stamp_ns, lambda: self.guarded_detect(frame), time.monotonic(),
@@ -241,11 +241,9 @@ class DetectorNode(ManagedNode):
         if carried is not None:
             self.publish(image.header, image.width, image.height, carried[0], started, carried[1])
             return
-        if not self.ground_truth:
+        if self.detector is not None:  # the engine's boxes (a timing stand-in: its cost, the truth's boxes)
             boxes = self.detector.detect(image_to_rgb(image))
-        else:
-            if self.detector is not None:  # timing stand-in: pay the network's cost, keep the truth's boxes
-                self.detector.detect(image_to_rgb(image))
+        if self.ground_truth:
             # The truth gives the box: the image's pixels are not read (only checked on arrival).
             try:
                 boxes = ground_truth_boxes(frame["ground_truth"], (image.width, image.height))

@@ -70,7 +70,7 @@ from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
 from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, InputStamp, TargetGeometry, ViewCandidates
 from leapnbv_planner.inputs import PlanInputs
 from leapnbv_planner.nodes.markers import candidate_markers
-from leapnbv_planner.obstacle_map import voxel_map_from_centres, warm_up_obstacle_map
+from leapnbv_planner.obstacle_map import VoxelObstacleMap, voxel_map_from_centres, warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
 from leapnbv_planner.plan import plan_views
 from leapnbv_planner.requirements import BODY_MESH, Requirement
@@ -125,7 +125,7 @@ class NbvNode(ManagedNode):
         warm_up_obstacle_map()
         # Optional: the robot's map of static obstacles (voxel centres, latched) and the camera's
         # pose in that map per frame. Without them the planner sees only what the frame shows.
-        self.obstacle_map = None
+        self.obstacle_map: Optional[VoxelObstacleMap] = None
         self.obstacle_map_points: Optional[np.ndarray] = None
         self.obstacle_map_frame = ""
         self.obstacle_map_stamp = 0
@@ -302,12 +302,13 @@ class NbvNode(ManagedNode):
         compute_time_ms = (time.perf_counter() - started) * 1e3
         # The goal first (what the motion stack waits for), then the candidates, the path and the markers.
         goal_published = False
-        if plan.chosen_index < 0:
+        chosen = plan.chosen_pose()
+        if chosen is None or plan.base_goal is None:
             self.diagnostics.reject("no_feasible_view", "every candidate is infeasible: no goal published")
         elif self.too_old(stamp):
             self.diagnostics.drop("goal_too_old")  # planning took it past the limit: no goal of it
         else:
-            self.goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.chosen_pose())))
+            self.goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*chosen)))
             self.base_goal_pub.publish(PoseStamped(header=target.header, pose=pose_msg(*plan.base_goal)))
             self.goal_stamp, self.goal_frame = stamp, target.header.frame_id
             goal_published = True
