@@ -46,6 +46,7 @@ NOT_IN_IMAGE = {
     "mcap": "leapnbv_bags' MCAP writer (same as rosbags)",
     "python3-rosbags": "as rosbags", "python3-mcap": "as mcap",
     "leapnbv_stand_ins": "leapnbv_bringup's regression tool uses the stand-in body model: a workstation tool",
+    "_typeshed": "the type checker's own module, imported only under TYPE_CHECKING (never at run time)",
 }
 
 

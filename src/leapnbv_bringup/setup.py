@@ -22,6 +22,7 @@ setup(
         "console_scripts": [
             "power_node = leapnbv_bringup.nodes.power_node:main",
             "graph_monitor = leapnbv_bringup.graph_monitor:main",
+            "lifecycle_manager = leapnbv_bringup.lifecycle_manager:main",
         ],
     },
 )
