@@ -316,8 +316,9 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
     not onto, the next inner ring's radius; the innermost ring down to min_free_radius; never outward), bearing
     within half the angle between two candidates of their own. Probes one grid cell apart (radially, and along
     the arc); a foot point must be free on the floor grid, reached by a path of at most max_path_length, within
-    max_travel, and pass the exact footprint test. ``reach.path_lengths`` and ``reach.reachable`` are updated
-    for the moved candidates."""
+    max_travel, and pass the exact footprint test. Of two probes equally near (one the other's mirror image
+    across the candidate's bearing), the one with the shorter path is taken, then the clockwise one (seen
+    from above). ``reach.path_lengths`` and ``reach.reachable`` are updated for the moved candidates."""
     reasons = np.asarray(feasibility.reasons)
     movable = (reasons == int(FeasibilityReason.OBSTACLE)) | (reasons == int(FeasibilityReason.UNREACHABLE))
     first_ring = 1 if params.include_current else 0
@@ -355,15 +356,22 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
                   + (length * np.sin(angle))[None, :, None] * side[:, None, :])  # (members, probes, 3)
         owners.append(np.repeat(members, len(angle)))
         probes.append(points.reshape(-1, 3))
-        shifts.append(np.linalg.norm(points - feet[:, None, :], axis=2).reshape(-1))
+        # The distance from the foot point from (radius, |angle|): a probe and its mirror image across the
+        # bearing are equally near to the last bit (from the points, the CPU's rounding ordered the pair).
+        # |p - f|^2 = (length - r0)^2 + 4 length r0 sin^2(angle / 2), without the cancellation of the cosine form.
+        own_radius = np.linalg.norm(feet - candidates.ring_center, axis=1)[:, None]
+        half_chord = np.sin(np.abs(angle) / 2.0)[None, :]
+        shifts.append(np.sqrt((length[None, :] - own_radius) ** 2
+                              + 4.0 * length[None, :] * own_radius * half_chord * half_chord).reshape(-1))
     if not probes:
         return candidates, feasibility
     owners_array, feet, shift = np.concatenate(owners), np.concatenate(probes), np.concatenate(shifts)
     lengths = reach.path_lengths_at(feet)
     ok = (shift > 1e-9) & np.isfinite(lengths) & (lengths <= float(params.max_path_length)) \
         & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel))
-    # Per candidate, its few nearest probes that pass on the grid go to the exact footprint test (one call).
-    order = np.lexsort((shift, owners_array))
+    # Per candidate, its few nearest probes that pass on the grid go to the exact footprint test (one call);
+    # of two equally near (mirror images), the one with the shorter path first, then the clockwise one.
+    order = np.lexsort((np.arange(len(shift)), np.where(ok, lengths, np.inf), shift, owners_array))
     order = order[ok[order]]
     tested = np.concatenate([group[:_EXACT_TESTS_PER_CANDIDATE] for group in
                              np.split(order, np.flatnonzero(np.diff(owners_array[order])) + 1)]) if order.size \

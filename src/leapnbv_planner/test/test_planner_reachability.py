@@ -204,6 +204,40 @@ def test_candidates_in_the_walls_move_to_free_reachable_floor_within_their_patch
     assert shift < 1.0
 
 
+def test_a_moved_candidate_takes_the_nearer_of_mirror_probes_by_its_path_not_by_the_last_bit():
+    # A thin pillar on the foot point of the candidate beside the person (bearing +x): the nearest free probes
+    # of its patch come in pairs mirrored across the bearing (z = 3 -+ 0.2), equally far from where it stood.
+    # Of the pair the one with the shorter path is taken (toward the robot), whatever the floor plane's last
+    # bits (1e-12 changes of it ordered the two by rounding before).
+    rng = np.random.default_rng(0)
+    person = np.column_stack([rng.uniform(-0.2, 0.2, 800), rng.uniform(-0.5, 1.1, 800), rng.uniform(2.9, 3.1, 800)])
+    params = default_nbv_params()
+    centroid = np.array([0.0, 0.3, 3.0])
+    open_floor = plan_views(PlanTarget(centroid=centroid, target_points=person.astype(np.float32),
+                                       background_points=np.zeros((0, 3), dtype=np.float32), k=K, width=640,
+                                       height=480),
+                            PlanFloor(normal=UP, offset=HEIGHT), dataclasses.replace(params, fit_to_free_space=False))
+    index = int(np.argmax(open_floor.candidates.foot_points[:, 0]))
+    stood = open_floor.candidates.foot_points[index]
+    np.testing.assert_allclose(stood, foot(2.5, 3.0), atol=1e-12)
+    around = np.arange(16) * np.pi / 8  # symmetric across the bearing
+    pillar = np.array([[stood[0] + 0.05 * np.cos(a), HEIGHT - h, stood[2] + 0.05 * np.sin(a)]
+                       for a in around for h in np.arange(0.1, 1.0, 0.1)])
+    target = PlanTarget(centroid=centroid, target_points=person.astype(np.float32),
+                        background_points=pillar.astype(np.float32), k=K, width=640, height=480)
+    chosen = []
+    for eps in (0.0, 1e-12, -1e-12, 2e-12, -2e-12, 5e-12, -5e-12):
+        plan = plan_views(target, PlanFloor(normal=UP + np.array([eps, 0.0, eps]), offset=HEIGHT + eps), params)
+        assert plan.feasibility.feasible[index]
+        chosen.append(plan.candidates.foot_points[index])
+        moved = chosen[-1]
+        mirror = np.array([moved[0], moved[1], 2.0 * stood[2] - moved[2]])
+        assert abs(moved[2] - stood[2]) > 0.1  # off the bearing: one of a mirrored pair
+        assert plan.path_lengths[index] < plan.reach.path_lengths_at(mirror[None])[0]
+        assert moved[2] < stood[2]  # the side toward the robot
+    np.testing.assert_allclose(chosen, chosen[0][None].repeat(len(chosen), axis=0), atol=1e-9)
+
+
 def test_grid_cell_edges_stay_off_the_robot_and_the_candidates():
     # Cell edges lie at odd multiples of half a cell in plane coordinates: the robot's foot point (plane coordinates
     # 0, 0) is a cell centre, and the outermost foot point, which sets the grid's extent with a whole number of
