@@ -34,24 +34,42 @@ def runner_cli(log_dir, *args: str) -> subprocess.Popen:
 
 
 def read_until(proc: subprocess.Popen, pattern: str, timeout_s: float) -> Tuple[bool, str]:
-    """Lines of the runner's output until one matches (or it exits, or the time is up)."""
+    """Lines of the runner's output until one matches (or it exits, or the time is up).
+
+    Reads the pipe's file descriptor a byte at a time: the text wrapper's readline would pull several
+    lines into its own buffer, where select() no longer sees them, and a match among them would wait
+    for the next line the runner prints (none, when it waits for a model file). Nothing is read past
+    the matching line, so a later communicate() gets the rest.
+    """
     import selectors
 
-    out = []
+    fd = proc.stdout.fileno()
+    out: List[str] = []
+    line = bytearray()
     selector = selectors.DefaultSelector()
-    selector.register(proc.stdout, selectors.EVENT_READ)
+    selector.register(fd, selectors.EVENT_READ)
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if not selector.select(timeout=0.2):
-            if proc.poll() is not None:
+    try:
+        while time.monotonic() < deadline:
+            if not selector.select(timeout=0.2):
+                if proc.poll() is not None:
+                    break
+                continue
+            byte = os.read(fd, 1)
+            if not byte:
                 break
-            continue
-        line = proc.stdout.readline()
-        if not line:
-            break
-        out.append(line)
-        if re.search(pattern, line):
-            return True, "".join(out)
+            line += byte
+            if byte != b"\n":
+                continue
+            text = line.decode("utf-8", errors="replace")
+            line.clear()
+            out.append(text)
+            if re.search(pattern, text):
+                return True, "".join(out)
+    finally:
+        selector.close()
+    if line:
+        out.append(line.decode("utf-8", errors="replace"))
     return False, "".join(out)
 
 
