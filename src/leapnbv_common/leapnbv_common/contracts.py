@@ -35,7 +35,7 @@ from typing import OrderedDict as TypingOrderedDict  # collections.OrderedDict[.
 
 import numpy as np
 
-from leapnbv_common.array_types import Float32Array, FloatArray
+from leapnbv_common.array_types import Float32Array, FloatArray, FloatingArray
 
 #: | |q| - 1 | of an accepted orientation.
 QUATERNION_TOLERANCE = 1e-3
@@ -172,7 +172,7 @@ def check_intrinsics(k: FloatArray, width: int, height: int, what: str = "camera
                             f"{int(width)}x{int(height)} image", reason)
 
 
-def check_boxes(boxes: FloatArray, image_size: Tuple[int, int], what: str = "detection",
+def check_boxes(boxes: FloatingArray, image_size: Tuple[int, int], what: str = "detection",
                 reason: Optional[str] = None) -> Float32Array:
     """(N, 5) [x0, y0, x1, y1, score] rows: finite, x1 > x0, y1 > y0, score in [0, 1], overlapping the image.
 

@@ -21,10 +21,11 @@ weights. Their outputs depend on the pixels (a wrong crop or letterbox changes t
 
 from __future__ import annotations
 
-from typing import Dict, List, Tuple
+from typing import TYPE_CHECKING, Dict, List, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import Float32Array
 from leapnbv_common.atomic_files import write_file_atomically
 from leapnbv_perception.model_contracts import (
     HMR_INPUT_NAME,
@@ -34,6 +35,9 @@ from leapnbv_perception.model_contracts import (
     YOLO_NUM_CLASSES,
     YOLO_OUTPUT_NAME,
 )
+
+if TYPE_CHECKING:  # onnx is imported where a model is written (the stand-ins load without it)
+    from onnx import ModelProto, ValueInfoProto
 
 # Opset 13: accepted by onnxruntime 1.20 and by TensorRT 8.5's ONNX parser.
 OPSET = 13
@@ -49,7 +53,7 @@ _IDENTITY_6D = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0], dtype=np.float32)
 _FLIP_X_6D = np.array([1.0, 0.0, 0.0, -1.0, 0.0, 0.0], dtype=np.float32)  # diag(1, -1, -1)
 
 
-def _save_atomically(model: object, path: str) -> None:
+def _save_atomically(model: ModelProto, path: str) -> None:
     """Check the model and write it via a temporary file in the same folder."""
     import onnx
 
@@ -57,7 +61,7 @@ def _save_atomically(model: object, path: str) -> None:
     write_file_atomically(path, lambda temporary: onnx.save(model, temporary))
 
 
-def _yolo_anchor_constants() -> Tuple[np.ndarray, np.ndarray]:
+def _yolo_anchor_constants() -> Tuple[Float32Array, Float32Array]:
     """Anchor centres (1, 2, 8400) and strides (1, 1, 8400) in letterbox pixels."""
     centres = []
     strides = []
@@ -72,7 +76,7 @@ def _yolo_anchor_constants() -> Tuple[np.ndarray, np.ndarray]:
     )
 
 
-def build_contract_detector() -> object:
+def build_contract_detector() -> ModelProto:
     """The contract YOLOv8 model: `images` (1,3,640,640) -> `output0` (1,84,8400).
 
     Returns:
@@ -206,9 +210,9 @@ def build_contract_detector() -> object:
     return onnx.shape_inference.infer_shapes(model)
 
 
-def _hmr_head_layout() -> Dict[str, Tuple[float, np.ndarray]]:
+def _hmr_head_layout() -> Dict[str, Tuple[float, Float32Array]]:
     """Per output: (tanh scale, offset vector) around which it varies."""
-    layout: Dict[str, Tuple[float, np.ndarray]] = {}
+    layout: Dict[str, Tuple[float, Float32Array]] = {}
     for name, size in HMR_OUTPUT_SIZES.items():
         if name == "root_pose":
             layout[name] = (0.3, _FLIP_X_6D)
@@ -223,7 +227,7 @@ def _hmr_head_layout() -> Dict[str, Tuple[float, np.ndarray]]:
     return layout
 
 
-def build_contract_hmr(input_hw: Tuple[int, int] = (512, 384)) -> object:
+def build_contract_hmr(input_hw: Tuple[int, int] = (512, 384)) -> ModelProto:
     """The contract SMPLer-X encoder + heads: `img` (1,3,H,W) -> the eight named heads.
 
     Args:
@@ -267,7 +271,7 @@ def build_contract_hmr(input_hw: Tuple[int, int] = (512, 384)) -> object:
         helper.make_node("Add", ["hidden_linear", "hidden_bias"], ["hidden_raw"]),
         helper.make_node("Tanh", ["hidden_raw"], ["hidden"]),
     ]
-    outputs: List[object] = []
+    outputs: List[ValueInfoProto] = []
     for name, (scale, offset) in _hmr_head_layout().items():
         size = HMR_OUTPUT_SIZES[name]
         weight = rng.normal(0.0, 1.0 / np.sqrt(HMR_HIDDEN), size=(HMR_HIDDEN, size)).astype(np.float32)

@@ -59,9 +59,10 @@ def ensure_contract_models(folder: Optional[Path] = None, force: bool = False,
 
     folder = Path(folder or stand_in_dir())
     folder.mkdir(parents=True, exist_ok=True)
-    detector, hmr = folder / CONTRACT_DETECTOR_FILE, folder / CONTRACT_HMR_FILES[tuple(hmr_input)]
+    size = (int(hmr_input[0]), int(hmr_input[1]))
+    detector, hmr = folder / CONTRACT_DETECTOR_FILE, folder / CONTRACT_HMR_FILES[size]
     if force or not detector.exists():
         write_contract_detector(str(detector))
     if force or not hmr.exists():
-        write_contract_hmr(str(hmr), tuple(hmr_input))
+        write_contract_hmr(str(hmr), size)
     return str(detector), str(hmr)

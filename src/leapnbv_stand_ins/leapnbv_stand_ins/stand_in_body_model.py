@@ -37,11 +37,16 @@ Other arrays:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from numpy.typing import NDArray
 
+from leapnbv_common.array_types import BoolArray, FloatArray, GenericArray, Int64Array, IntArray
 from leapnbv_common.atomic_files import write_file_atomically
+
+# Per-vertex part names ("torso", "arm", ...): numpy object arrays of str.
+ObjectArray = NDArray[np.object_]
 
 NUM_JOINTS = 55
 SMPLX_PARENTS = (
@@ -103,13 +108,14 @@ _SMALL = _Resolution(3, 16, 4, 16, 20, 8, 5, 8, 4, 24, 22, 20, 14)
 _FULL_BASE = _Resolution(4, 30, 8, 32, 45, 10, 10, 12, 6, 48, 50, 48, 44)
 
 
-def _smoothstep(values: np.ndarray) -> np.ndarray:
+def _smoothstep(values: FloatArray) -> FloatArray:
     clipped = np.clip(values, 0.0, 1.0)
     return clipped * clipped * (3.0 - 2.0 * clipped)
 
 
-def _normalize(vector: np.ndarray) -> np.ndarray:
-    return vector / np.linalg.norm(vector, axis=-1, keepdims=True)
+def _normalize(vector: FloatArray) -> FloatArray:
+    unit: FloatArray = vector / np.linalg.norm(vector, axis=-1, keepdims=True)
+    return unit
 
 
 @dataclass
@@ -124,12 +130,12 @@ class _Chain:
         blend: half-width (m) of the weight blend across a point where the owner changes.
     """
 
-    points: np.ndarray
+    points: FloatArray
     owners: Sequence[int]
-    radii: np.ndarray
-    up: np.ndarray
+    radii: FloatArray
+    up: FloatArray
     blend: float = 0.03
-    arc: np.ndarray = field(init=False)
+    arc: FloatArray = field(init=False)
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64)
@@ -141,7 +147,7 @@ class _Chain:
     def length(self) -> float:
         return float(self.arc[-1])
 
-    def _blend_fractions(self, s: np.ndarray) -> np.ndarray:
+    def _blend_fractions(self, s: FloatArray) -> FloatArray:
         """(N, P-1) share of each segment at arc lengths s (smooth across interior points)."""
         segments = len(self.points) - 1
         lengths = np.diff(self.arc)
@@ -153,7 +159,7 @@ class _Chain:
             sigma[:, k] = _smoothstep((s - self.arc[k] + half) / (2.0 * half))
         return sigma[:, :-1] - sigma[:, 1:]
 
-    def centre_and_tangent(self, s: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    def centre_and_tangent(self, s: FloatArray) -> Tuple[FloatArray, FloatArray]:
         """Centres (N, 3) on the polyline and smoothed tangents (N, 3) at arc lengths s."""
         s = np.clip(s, 0.0, self.length)
         centres = np.stack([np.interp(s, self.arc, self.points[:, axis]) for axis in range(3)], axis=1)
@@ -161,15 +167,15 @@ class _Chain:
         tangents = _normalize(self._blend_fractions(s) @ directions)
         return centres, tangents
 
-    def half_widths(self, s: np.ndarray) -> np.ndarray:
+    def half_widths(self, s: FloatArray) -> FloatArray:
         return np.stack([np.interp(s, self.arc, self.radii[:, axis]) for axis in range(2)], axis=1)
 
-    def frames(self, tangents: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    def frames(self, tangents: FloatArray) -> Tuple[FloatArray, FloatArray]:
         e1 = _normalize(self.up[None] - (tangents @ self.up)[:, None] * tangents)
         e2 = np.cross(tangents, e1)
         return e1, e2
 
-    def weights(self, s: np.ndarray) -> np.ndarray:
+    def weights(self, s: FloatArray) -> FloatArray:
         """(N, 55) skinning weights at arc lengths s."""
         fractions = self._blend_fractions(np.clip(s, 0.0, self.length))
         result = np.zeros((s.shape[0], NUM_JOINTS))
@@ -182,15 +188,15 @@ class _MeshBuilder:
     """Accumulates vertices, faces, weights and per-vertex bookkeeping of all parts."""
 
     def __init__(self) -> None:
-        self.vertices: List[np.ndarray] = []
-        self.faces: List[np.ndarray] = []
-        self.weights: List[np.ndarray] = []
-        self.axis_points: List[np.ndarray] = []
-        self.parts: List[np.ndarray] = []
+        self.vertices: List[FloatArray] = []
+        self.faces: List[Int64Array] = []
+        self.weights: List[FloatArray] = []
+        self.axis_points: List[FloatArray] = []
+        self.parts: List[ObjectArray] = []
         self.count = 0
         self.component_faces: List[Tuple[int, int]] = []
 
-    def add_vertices(self, vertices: np.ndarray, weights: np.ndarray, axis_points: np.ndarray, part: str) -> np.ndarray:
+    def add_vertices(self, vertices: FloatArray, weights: FloatArray, axis_points: FloatArray, part: str) -> Int64Array:
         indices = np.arange(self.count, self.count + len(vertices))
         self.vertices.append(vertices)
         self.weights.append(weights)
@@ -199,10 +205,10 @@ class _MeshBuilder:
         self.count += len(vertices)
         return indices
 
-    def add_faces(self, faces: np.ndarray) -> None:
+    def add_faces(self, faces: IntArray) -> None:
         self.faces.append(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
 
-    def arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def arrays(self) -> Tuple[FloatArray, Int64Array, FloatArray, FloatArray, ObjectArray]:
         return (
             np.concatenate(self.vertices),
             np.concatenate(self.faces),
@@ -212,7 +218,7 @@ class _MeshBuilder:
         )
 
 
-def _strip(ring_a: np.ndarray, ring_b: np.ndarray) -> np.ndarray:
+def _strip(ring_a: Int64Array, ring_b: Int64Array) -> Int64Array:
     """Two triangles per quad between two rings of equal size (a -> b along the tube)."""
     a0 = ring_a
     a1 = np.roll(ring_a, -1)
@@ -221,7 +227,7 @@ def _strip(ring_a: np.ndarray, ring_b: np.ndarray) -> np.ndarray:
     return np.concatenate([np.stack([a0, a1, b1], axis=1), np.stack([a0, b1, b0], axis=1)])
 
 
-def _fan(ring: np.ndarray, pole: int, at_start: bool) -> np.ndarray:
+def _fan(ring: Int64Array, pole: int, at_start: bool) -> Int64Array:
     """Triangles closing a ring with a pole (outward for a CCW ring)."""
     nxt = np.roll(ring, -1)
     poles = np.full_like(ring, pole)
@@ -230,11 +236,11 @@ def _fan(ring: np.ndarray, pole: int, at_start: bool) -> np.ndarray:
     return np.stack([ring, nxt, poles], axis=1)
 
 
-def _ring_angles(segments: int) -> np.ndarray:
+def _ring_angles(segments: int) -> FloatArray:
     return (np.arange(segments) + 0.5) * 2.0 * np.pi / segments
 
 
-def _cap_taper(s: np.ndarray, length: float, cap_start: float, cap_end: float) -> np.ndarray:
+def _cap_taper(s: FloatArray, length: float, cap_start: float, cap_end: float) -> FloatArray:
     """Radius factor rounding the ends into hemispheres of the given lengths."""
     factor = np.ones_like(s)
     if cap_start > 0.0:
@@ -279,11 +285,11 @@ def _add_closed_tube(
 
 def _add_ellipsoid(
     builder: _MeshBuilder,
-    centre: np.ndarray,
-    radii: np.ndarray,
+    centre: FloatArray,
+    radii: FloatArray,
     segments: int,
     rings: int,
-    weight_fn: Callable[[np.ndarray], np.ndarray],
+    weight_fn: Callable[[FloatArray], FloatArray],
     part: str,
 ) -> None:
     """A UV ellipsoid (poles on the y axis), skinned by weight_fn(points) -> (N, 55)."""
@@ -314,17 +320,17 @@ def _add_ellipsoid(
     builder.add_faces(np.concatenate(faces))
 
 
-def _mirror(point: Sequence[float]) -> np.ndarray:
+def _mirror(point: Union[Sequence[float], FloatArray]) -> FloatArray:
     return np.array([-point[0], point[1], point[2]], dtype=np.float64)
 
 
-def _side(point: Sequence[float], left: bool) -> np.ndarray:
+def _side(point: Sequence[float], left: bool) -> FloatArray:
     array = np.asarray(point, dtype=np.float64)
     return array if left else _mirror(array)
 
 
 def _add_arm_with_hand(
-    builder: _MeshBuilder, joints: np.ndarray, left: bool, resolution: _Resolution, part_suffix: str
+    builder: _MeshBuilder, joints: FloatArray, left: bool, resolution: _Resolution, part_suffix: str
 ) -> None:
     """Arm tube (cap in the chest) flattening into a palm whose end splits into 4 fingers.
 
@@ -410,8 +416,8 @@ def _add_arm_with_hand(
 def _add_finger(
     builder: _MeshBuilder,
     chain: _Chain,
-    loop_ids: np.ndarray,
-    loop_points: np.ndarray,
+    loop_ids: Int64Array,
+    loop_points: FloatArray,
     rings: int,
     part: str,
 ) -> None:
@@ -439,7 +445,7 @@ def _add_finger(
     builder.add_faces(np.concatenate(faces))
 
 
-def _rest_joints() -> np.ndarray:
+def _rest_joints() -> FloatArray:
     """Rest joint locations of the body joints (fingers are set from the palm geometry)."""
     joints = np.zeros((NUM_JOINTS, 3))
     body = {
@@ -478,7 +484,7 @@ HEAD_CENTRE = np.array([0.0, 0.665, 0.015])
 HEAD_RADII = np.array([0.078, 0.1, 0.095])
 
 
-def _build_surfaces(resolution: _Resolution) -> Tuple[_MeshBuilder, np.ndarray]:
+def _build_surfaces(resolution: _Resolution) -> Tuple[_MeshBuilder, FloatArray]:
     joints = _rest_joints()
     builder = _MeshBuilder()
 
@@ -496,7 +502,7 @@ def _build_surfaces(resolution: _Resolution) -> Tuple[_MeshBuilder, np.ndarray]:
     )
     _add_closed_tube(builder, torso, resolution.torso_segments, resolution.torso_rings, "torso", cap_fraction=0.5)
 
-    def head_weights(points: np.ndarray) -> np.ndarray:
+    def head_weights(points: FloatArray) -> FloatArray:
         weights = np.zeros((len(points), NUM_JOINTS))
         jaw = _smoothstep((0.64 - points[:, 1]) / 0.04) * _smoothstep((points[:, 2] - 0.0) / 0.04)
         weights[:, 22] = jaw
@@ -507,7 +513,7 @@ def _build_surfaces(resolution: _Resolution) -> Tuple[_MeshBuilder, np.ndarray]:
         builder, HEAD_CENTRE, HEAD_RADII, resolution.head_segments, resolution.head_rings, head_weights, "head"
     )
     for eye in (23, 24):
-        def eye_weights(points: np.ndarray, joint: int = eye) -> np.ndarray:
+        def eye_weights(points: FloatArray, joint: int = eye) -> FloatArray:
             weights = np.zeros((len(points), NUM_JOINTS))
             weights[:, joint] = 1.0
             return weights
@@ -583,7 +589,7 @@ def _full_resolution() -> _Resolution:
     return replace(base, torso_rings=best[1], head_segments=head_segments, head_rings=head_rings)
 
 
-def _joint_regressor(vertices: np.ndarray, weights: np.ndarray, joints: np.ndarray, usable: np.ndarray) -> np.ndarray:
+def _joint_regressor(vertices: FloatArray, weights: FloatArray, joints: FloatArray, usable: BoolArray) -> FloatArray:
     """(55, V): rows sum to 1 and reproduce the rest joints from nearby vertices."""
     regressor = np.zeros((NUM_JOINTS, len(vertices)))
     for joint in range(NUM_JOINTS):
@@ -594,7 +600,7 @@ def _joint_regressor(vertices: np.ndarray, weights: np.ndarray, joints: np.ndarr
         candidates = np.nonzero(related & usable)[0]
         distances = np.linalg.norm(vertices[candidates] - joints[joint], axis=1)
         order = candidates[np.argsort(distances)]
-        best_row: Optional[np.ndarray] = None
+        best_row: Optional[FloatArray] = None
         best_nearest = order[:0]
         # Grow the neighbourhood until the joint sits inside it (no strongly negative weight).
         for count in (48, 96, 192, 384, 768, 1536):
@@ -615,7 +621,7 @@ def _joint_regressor(vertices: np.ndarray, weights: np.ndarray, joints: np.ndarr
     return regressor
 
 
-def _shape_directions(vertices: np.ndarray, axis_points: np.ndarray, parts: np.ndarray) -> np.ndarray:
+def _shape_directions(vertices: FloatArray, axis_points: FloatArray, parts: ObjectArray) -> FloatArray:
     """(V, 3, 20): 10 shape then 10 expression directions (metres per unit coefficient)."""
     x, y, z = vertices[:, 0], vertices[:, 1], vertices[:, 2]
     radial = vertices - axis_points
@@ -664,7 +670,7 @@ def _shape_directions(vertices: np.ndarray, axis_points: np.ndarray, parts: np.n
     return dirs
 
 
-def _pose_directions(weights: np.ndarray, radial: np.ndarray) -> np.ndarray:
+def _pose_directions(weights: FloatArray, radial: FloatArray) -> FloatArray:
     """(V, 3, 486) small corrective bulge driven by the diagonal of (R_k - I)."""
     posedirs = np.zeros((len(weights), 3, (NUM_JOINTS - 1) * 9))
     for joint in range(1, NUM_JOINTS):
@@ -679,7 +685,7 @@ def _pose_directions(weights: np.ndarray, radial: np.ndarray) -> np.ndarray:
     return posedirs
 
 
-def _hand_means() -> Tuple[np.ndarray, np.ndarray]:
+def _hand_means() -> Tuple[FloatArray, FloatArray]:
     """Gentle finger curl (left hand; the right is its mirror: axis-angle (x, -y, -z))."""
     left = np.zeros((15, 3))
     for finger_start in (0, 3, 6, 9):  # index, middle, pinky, ring (relative to joint 25)
@@ -689,7 +695,7 @@ def _hand_means() -> Tuple[np.ndarray, np.ndarray]:
     return left.reshape(-1), right.reshape(-1)
 
 
-def build_stand_in_body_model(resolution: str = "small") -> Dict[str, np.ndarray]:
+def build_stand_in_body_model(resolution: str = "small") -> Dict[str, GenericArray]:
     """Build the STAND-IN body model arrays in the SMPL-X .npz layout.
 
     Args:
@@ -708,7 +714,7 @@ def build_stand_in_body_model(resolution: str = "small") -> Dict[str, np.ndarray
     return _build(resolution)[0]
 
 
-def _build(resolution: str) -> Tuple[Dict[str, np.ndarray], np.ndarray, np.ndarray]:
+def _build(resolution: str) -> Tuple[Dict[str, GenericArray], FloatArray, ObjectArray]:
     """The arrays of `build_stand_in_body_model`, plus per vertex its bone-axis point (V, 3)
     and part name (V,), which the dense SMPL-X stand-in builds on."""
     if resolution == "small":

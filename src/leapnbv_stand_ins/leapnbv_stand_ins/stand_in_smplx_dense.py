@@ -26,12 +26,13 @@ follow `smplx/body_models.py` (SMPL, SMPLH and SMPLX constructors) and the real 
 
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Tuple
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray, GenericArray, Int64Array
 from leapnbv_common.atomic_files import write_file_atomically
-from leapnbv_stand_ins.stand_in_body_model import HEAD_CENTRE, NUM_JOINTS, _build
+from leapnbv_stand_ins.stand_in_body_model import HEAD_CENTRE, NUM_JOINTS, ObjectArray, _build
 
 NUM_SHAPE_COLUMNS = 400  # 300 shape + 100 expression, as SMPLX_NEUTRAL.npz
 EXPRESSION_OFFSET = 300
@@ -42,7 +43,7 @@ POSE_CORRECTIVE_GAIN = 0.1
 STAND_IN_MARKER = "stand-in body model (procedural humanoid) in the SMPL-X npz layout, not SMPL-X; no accuracy claim"
 
 
-def _bump_columns(vertices: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+def _bump_columns(vertices: FloatArray, count: int, rng: np.random.Generator) -> FloatArray:
     """(V, 3, count): each column a Gaussian bump (sigma 4 cm, peak 4 mm) at a random vertex."""
     columns = np.zeros((len(vertices), 3, count))
     centres = rng.integers(0, len(vertices) - 1, size=count)
@@ -56,7 +57,7 @@ def _bump_columns(vertices: np.ndarray, count: int, rng: np.random.Generator) ->
     return columns
 
 
-def _dense_pose_directions(weights: np.ndarray, radial: np.ndarray) -> np.ndarray:
+def _dense_pose_directions(weights: FloatArray, radial: FloatArray) -> FloatArray:
     """(V, 3, 486): offset_v = gain * sum_k w_vk (R_k - I) r_v, all nine entries per joint.
 
     The pose feature is vec(R_k - I) row-major: entry 9 (k - 1) + 3 i + j is (R_k - I)[i, j],
@@ -71,14 +72,15 @@ def _dense_pose_directions(weights: np.ndarray, radial: np.ndarray) -> np.ndarra
     return posedirs
 
 
-def _nearest_faces(face_centres: np.ndarray, candidates: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _nearest_faces(face_centres: FloatArray, candidates: Int64Array, points: FloatArray) -> Int64Array:
     distances = np.linalg.norm(face_centres[candidates][None] - points[:, None], axis=2)
-    return candidates[np.argmin(distances, axis=1)]
+    nearest: Int64Array = candidates[np.argmin(distances, axis=1)]
+    return nearest
 
 
 def _landmarks(
-    vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, rng: np.random.Generator
-) -> Dict[str, np.ndarray]:
+    vertices: FloatArray, faces: Int64Array, parts: ObjectArray, rng: np.random.Generator
+) -> Dict[str, GenericArray]:
     """Static and dynamic (per yaw bin) face landmarks on faces of the head."""
     face_centres = vertices[faces].mean(axis=1)
     on_head = np.nonzero(np.all(parts[faces] == "head", axis=1))[0]
@@ -98,9 +100,10 @@ def _landmarks(
                         HEAD_CENTRE[2] + 0.09 * np.cos(turned)], axis=1)
         dynamic[row] = _nearest_faces(face_centres, lower, arc)
 
-    def barycentric(shape: tuple) -> np.ndarray:
+    def barycentric(shape: Tuple[int, ...]) -> FloatArray:
         raw = rng.uniform(0.1, 1.0, size=shape + (3,))
-        return raw / raw.sum(axis=-1, keepdims=True)
+        coords: FloatArray = raw / raw.sum(axis=-1, keepdims=True)
+        return coords
 
     return {
         "lmk_faces_idx": static.astype(np.int64),
@@ -110,7 +113,7 @@ def _landmarks(
     }
 
 
-def build_stand_in_smplx_dense() -> Dict[str, np.ndarray]:
+def build_stand_in_smplx_dense() -> Dict[str, GenericArray]:
     """The "stand_in_smplx_dense" arrays (deterministic): every key of SMPLX_NEUTRAL.npz that
     `smplx.create` reads, in its shapes (see the module docstring).
 
@@ -123,7 +126,7 @@ def build_stand_in_smplx_dense() -> Dict[str, np.ndarray]:
     """
     arrays, axis_points, parts = _build("full")
     rng = np.random.default_rng(20908)
-    vertices = arrays["v_template"]
+    vertices = np.asarray(arrays["v_template"], dtype=np.float64)
     usable = (parts != "interior")[:, None]
     radial = (vertices - axis_points) * usable
     small = arrays["shapedirs"]  # (V, 3, 20): 10 shape, 10 expression
@@ -133,7 +136,8 @@ def build_stand_in_smplx_dense() -> Dict[str, np.ndarray]:
     dense = dict(arrays)
     # float32 like the loaders use them (half the file; the real file's float64 adds nothing here).
     dense["shapedirs"] = shapedirs.astype(np.float32)
-    dense["posedirs"] = _dense_pose_directions(arrays["weights"], radial).astype(np.float32)
+    weights = np.asarray(arrays["weights"], dtype=np.float64)
+    dense["posedirs"] = _dense_pose_directions(weights, radial).astype(np.float32)
     dense.update(_landmarks(vertices, arrays["f"].astype(np.int64), parts, rng))
     dense["stand_in"] = np.array(STAND_IN_MARKER)
     return dense
