@@ -9,7 +9,12 @@ from typing import Dict, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatingArray
+
 Dim = Union[int, str, None]
+#: A model's input or output tensor: floating point, as the model contracts declare every tensor
+#: (leapnbv_perception.model_contracts; the width is the TensorSpec's dtype).
+Tensor = FloatingArray
 
 
 class ModelFileNotFoundError(FileNotFoundError):
@@ -66,7 +71,7 @@ class EngineBackend(abc.ABC):
         return self._precision
 
     @abc.abstractmethod
-    def run(self, inputs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    def run(self, inputs: Mapping[str, Tensor]) -> Dict[str, Tensor]:
         """Run the model once.
 
         Args:
@@ -80,7 +85,7 @@ class EngineBackend(abc.ABC):
         """
 
 
-def require_model_file(model_path: Union[str, os.PathLike]) -> str:
+def require_model_file(model_path: Union[str, os.PathLike[str]]) -> str:
     """Return the path as a string if the file exists.
 
     Raises:
@@ -94,7 +99,7 @@ def require_model_file(model_path: Union[str, os.PathLike]) -> str:
     return path
 
 
-def check_inputs(inputs: Mapping[str, np.ndarray], specs: Mapping[str, TensorSpec], model_path: str) -> None:
+def check_inputs(inputs: Mapping[str, Tensor], specs: Mapping[str, TensorSpec], model_path: str) -> None:
     """Check that every declared input is given with a compatible shape.
 
     Raises:

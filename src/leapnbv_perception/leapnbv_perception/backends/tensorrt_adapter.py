@@ -46,7 +46,9 @@ class TensorRTAdapter:
     def __init__(self, trt: Any = None) -> None:
         if trt is None:
             try:
-                import tensorrt as trt
+                import tensorrt
+
+                trt = tensorrt
             except ImportError as error:
                 raise BackendError(
                     "backend 'tensorrt' needs the TensorRT Python package (JetPack ships it as "

@@ -23,13 +23,14 @@ TensorRT backend is actually created, so this module imports on machines without
 from __future__ import annotations
 
 import logging
-from typing import Any, Dict, Mapping, Optional
+from typing import Any, Dict, Mapping, Optional, Tuple
 
 import numpy as np
 
 from leapnbv_perception.backends.base import (
     BackendError,
     EngineBackend,
+    Tensor,
     check_inputs,
     normalize_precision,
     require_model_file,
@@ -156,12 +157,12 @@ class CudaPythonMemory:
         self._allocations[pointer] = pointer
         return pointer
 
-    def copy_to_device(self, pointer: int, host: np.ndarray) -> None:
+    def copy_to_device(self, pointer: int, host: Tensor) -> None:
         host = np.ascontiguousarray(host)
         kind = self._cudart.cudaMemcpyKind.cudaMemcpyHostToDevice
         self._check(self._cudart.cudaMemcpy(pointer, host.ctypes.data, host.nbytes, kind), "cudaMemcpy")
 
-    def copy_to_host(self, host: np.ndarray, pointer: int) -> None:
+    def copy_to_host(self, host: Tensor, pointer: int) -> None:
         kind = self._cudart.cudaMemcpyKind.cudaMemcpyDeviceToHost
         self._check(self._cudart.cudaMemcpy(host.ctypes.data, pointer, host.nbytes, kind), "cudaMemcpy")
 
@@ -216,10 +217,10 @@ class PyCudaMemory:
         self._allocations[int(allocation)] = allocation
         return int(allocation)
 
-    def copy_to_device(self, pointer: int, host: np.ndarray) -> None:
+    def copy_to_device(self, pointer: int, host: Tensor) -> None:
         self._driver.memcpy_htod(self._allocations[pointer], np.ascontiguousarray(host))
 
-    def copy_to_host(self, host: np.ndarray, pointer: int) -> None:
+    def copy_to_host(self, host: Tensor, pointer: int) -> None:
         self._driver.memcpy_dtoh(host, self._allocations[pointer])
 
     def synchronize(self) -> None:
@@ -310,18 +311,21 @@ class TensorRTBackend(EngineBackend):
         self._inputs, self._outputs = self._adapter.describe(self._engine)
         self._context = self._adapter.create_context(self._engine)
         self._tensor_api = self._adapter.uses_tensor_api(self._engine)
-        self._host_outputs: Dict[str, np.ndarray] = {}
+        self._host_outputs: Dict[str, Tensor] = {}
         self._device: Dict[str, int] = {}
+        shapes: Dict[str, Tuple[int, ...]] = {}
         for name, spec in list(self._inputs.items()) + list(self._outputs.items()):
-            if any(not isinstance(dim, int) or dim < 0 for dim in spec.shape):
+            shape = tuple(dim for dim in spec.shape if isinstance(dim, int) and dim >= 0)
+            if len(shape) != len(spec.shape):
                 raise BackendError(
                     "engine from '%s' has a dynamic shape for '%s' %s; export with static shapes"
                     % (self.model_path, name, spec.shape)
                 )
-            nbytes = int(np.prod(spec.shape)) * np.dtype(spec.dtype).itemsize
+            shapes[name] = shape
+            nbytes = int(np.prod(shape)) * np.dtype(spec.dtype).itemsize
             self._device[name] = self._memory.allocate(nbytes)
         for name, spec in self._outputs.items():
-            self._host_outputs[name] = np.empty(spec.shape, dtype=spec.dtype)
+            self._host_outputs[name] = np.empty(shapes[name], dtype=spec.dtype)
         if not self._tensor_api:
             self._bindings = [self._device[name] for name in self._adapter.binding_order(self._engine)]
 
@@ -330,7 +334,7 @@ class TensorRTBackend(EngineBackend):
         """True when the engine runs through the TensorRT 10 tensor API."""
         return self._tensor_api
 
-    def run(self, inputs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    def run(self, inputs: Mapping[str, Tensor]) -> Dict[str, Tensor]:
         check_inputs(inputs, self._inputs, self.model_path)
         for name, spec in self._inputs.items():
             self._memory.copy_to_device(self._device[name], np.ascontiguousarray(inputs[name], dtype=spec.dtype))
