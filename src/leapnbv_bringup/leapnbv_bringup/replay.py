@@ -19,7 +19,7 @@ import struct
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Iterator, List, Optional, Set, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Set, Tuple, cast
 
 from leapnbv_bags.bag_io import EXIT_OK, EXIT_UNREADABLE_BAG, BagError, check_bag
 from leapnbv_bringup.graph import CAMERA_TOPICS, FINAL_OUTPUT_TOPIC, OUTPUT_TOPICS
@@ -59,8 +59,8 @@ def read_bag_messages(path: str, topics: Optional[Set[str]] = None) -> Iterator[
     """Every message of a bag in log-time order, as raw CDR bytes."""
     from leapnbv_bags.bag_io import read_bag
 
-    for topic, msgtype, log_time, cdr in read_bag(path, topics=topics, raw=True):
-        yield BagMessage(topic, msgtype, log_time, bytes(cdr))
+    for topic, msgtype, log_time, cdr in read_bag(path, topics=None if topics is None else sorted(topics), raw=True):
+        yield BagMessage(topic, msgtype, log_time, bytes(cast(bytes, cdr)))  # raw=True: the CDR buffer
 
 
 def load_camera_frames(bag_path: str) -> List[CameraFrame]:
@@ -131,7 +131,7 @@ class BagReplayer:
         self.frame_timeout_s = frame_timeout_s
         self.resent: List[int] = []  # stamps of frames sent a second time (keep-up mode)
         self.frames = frames if frames is not None else load_camera_frames(bag_path)
-        self.publishers = {}
+        self.publishers: Dict[str, Any] = {}
         for frame in self.frames:
             for m in frame.messages:
                 if m.topic not in self.publishers:
