@@ -13,7 +13,9 @@ from leapnbv_common.params import param
 from leapnbv_perception.backends.onnxruntime_backend import GRAPH_OPTIMIZATIONS
 from leapnbv_perception.detector_families import DEFAULT_DETECTOR_FAMILY, detector_family_names
 
-ENGINE_BACKENDS = ("onnxruntime", "tensorrt", "ground_truth")
+# onnxruntime_last_bit_nudged: tests only, onnxruntime with every output moved by one ulp (the regression's
+# numeric-configuration test; leapnbv_perception.backends.LAST_BIT_NUDGED_BACKEND).
+ENGINE_BACKENDS = ("onnxruntime", "tensorrt", "ground_truth", "onnxruntime_last_bit_nudged")
 PRECISIONS = ("fp16", "fp32")
 THREADS_MAX = 256
 GRAPH_OPTIMIZATION_LEVELS = tuple(GRAPH_OPTIMIZATIONS)

@@ -23,6 +23,9 @@ from leapnbv_perception.backends.base import (
 
 # The built-in backends (ENGINE_BACKENDS.names() also lists registered ones).
 BACKEND_NAMES = ("onnxruntime", "tensorrt")
+# Tests only: onnxruntime with every output moved by one ulp (LastBitNudgedOnnxRuntimeBackend); the regression's
+# numeric-configuration test selects it, nothing else does.
+LAST_BIT_NUDGED_BACKEND = "onnxruntime_last_bit_nudged"
 
 
 @dataclass(frozen=True)
@@ -43,10 +46,11 @@ class BackendSettings:
 BackendFactory = Callable[[str, str, BackendSettings], EngineBackend]
 
 
-def _onnxruntime(model_path: str, precision: str, settings: BackendSettings) -> EngineBackend:
-    from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
+def _onnxruntime(model_path: str, precision: str, settings: BackendSettings, last_bit_nudged: bool = False
+                 ) -> EngineBackend:
+    from leapnbv_perception.backends.onnxruntime_backend import LastBitNudgedOnnxRuntimeBackend, OnnxRuntimeBackend
 
-    return OnnxRuntimeBackend(
+    return (LastBitNudgedOnnxRuntimeBackend if last_bit_nudged else OnnxRuntimeBackend)(
         model_path, providers=None if settings.providers is None else list(settings.providers),
         intra_op_threads=settings.intra_op_threads, precision=precision,
         graph_optimization=settings.graph_optimization, parallel_execution=settings.parallel_execution,
@@ -69,6 +73,8 @@ def _check_factory(factory: object) -> None:
 ENGINE_BACKENDS: Registry[BackendFactory] = Registry("engine backend", check=_check_factory)
 ENGINE_BACKENDS.register("onnxruntime", _onnxruntime)
 ENGINE_BACKENDS.register("tensorrt", _tensorrt)
+ENGINE_BACKENDS.register(LAST_BIT_NUDGED_BACKEND,
+                         lambda model_path, precision, settings: _onnxruntime(model_path, precision, settings, True))
 
 
 def register_backend(name: str, factory: BackendFactory) -> None:
@@ -124,6 +130,7 @@ def create_backend(
 __all__ = [
     "BACKEND_NAMES",
     "ENGINE_BACKENDS",
+    "LAST_BIT_NUDGED_BACKEND",
     "BackendError",
     "BackendFactory",
     "BackendSettings",
