@@ -430,6 +430,15 @@ def format_report(findings: List[Finding], input_stamps: List[int]) -> Tuple[str
     return "\n".join(lines), failures
 
 
+# The engine settings of a bag run (detector_node and hmr_node; --set after them still wins): one thread per
+# operator and one operator at a time, so no reduction is split differently by the core count or the scheduler,
+# and the graph optimizations the goldens were made with. What stays CPU-dependent: onnxruntime's MLAS kernels
+# pick their code by instruction set (AVX2, AVX-512, AMX; NEON) and sum in that code's order, and numpy's
+# OpenBLAS does the same; the outputs then differ in their last bits, which TOLERANCES and TIE_TOLERANCE absorb.
+REPLAY_ENGINE_SETTINGS: Dict[str, str] = {"intra_op_threads": "1", "inter_op_threads": "1",
+                                          "parallel_execution": "false", "graph_optimization": "all"}
+
+
 def default_body_model() -> str:
     """The stand-in body model the sample bags were made with (written on first use)."""
     from leapnbv_stand_ins.files import ensure_stand_in_body_model
@@ -441,7 +450,8 @@ def overrides_for_bag_run(args: argparse.Namespace):
     """(perception, parameter overrides) for a bag run from the shared graph arguments.
 
     Ground-truth perception with the stand-in body the sample bags were made with, unless real
-    models are given (then onnxruntime, or the backend named by --perception).
+    models are given (then onnxruntime, or the backend named by --perception); the engines run with
+    REPLAY_ENGINE_SETTINGS unless --set says otherwise.
     """
     from leapnbv_bringup.graph_runner import merge_overrides, parse_set_arguments, perception_overrides
 
@@ -451,7 +461,9 @@ def overrides_for_bag_run(args: argparse.Namespace):
     if perception != "ground_truth" and not body:
         raise ValueError("real models need --body-model SMPLX_NEUTRAL.npz")
     overrides = merge_overrides(perception_overrides(perception, args.detector_model, args.hmr_model, body),
-                                {"nbv_node": {"max_goal_age_s": "0.0"}},  # recorded stamps, not the clock's
+                                {"nbv_node": {"max_goal_age_s": "0.0"},  # recorded stamps, not the clock's
+                                 "detector_node": dict(REPLAY_ENGINE_SETTINGS),
+                                 "hmr_node": dict(REPLAY_ENGINE_SETTINGS)},
                                 parse_set_arguments(args.set))
     return perception, overrides
 
