@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from leapnbv_common.power_monitor import power_node_wanted
 from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch file and tools
@@ -44,7 +44,7 @@ class NodeSpec:
         return self.name
 
 
-def graph_nodes(camera_topics: Dict[str, str] = None) -> List[NodeSpec]:
+def graph_nodes(camera_topics: Optional[Dict[str, str]] = None) -> List[NodeSpec]:
     """The five nodes, inputs remapped to the topics given (keys of INPUT_TOPICS; RealSense names by default)."""
     cam = dict(INPUT_TOPICS)
     cam.update(camera_topics or {})

@@ -49,7 +49,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Deque, Dict, List, Optional, Sequence, Tuple
+from typing import IO, TYPE_CHECKING, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 from leapnbv_bringup.graph import NAMESPACE, NodeSpec, default_params_file, fastdds_profile_file, graph_nodes
 from leapnbv_bringup.readiness import (
@@ -78,6 +78,9 @@ from leapnbv_bringup.supervision import (  # noqa: F401 - re-exported
     describe_exit,
     die_with_parent,
 )
+
+if TYPE_CHECKING:  # imported where the manager starts (it brings lifecycle_msgs)
+    from leapnbv_bringup.lifecycle_manager import LifecycleManager
 from leapnbv_common.exit_codes import GraphRunnerExit
 
 RUNNER_STATUS_NAME = f"{NAMESPACE}/graph_runner"
@@ -94,14 +97,14 @@ class _NodeState:
     """The runner's record of one node."""
 
     spec: NodeSpec
-    process: Optional[subprocess.Popen] = None
+    process: Optional[subprocess.Popen[bytes]] = None
     started_at: float = 0.0
     restarts: int = 0
     deaths: Deque[float] = field(default_factory=lambda: collections.deque(maxlen=1000))
     last_exit: Optional[int] = None
     restart_at: Optional[float] = None  # a restart is pending
     failed: Optional[str] = None  # gave up: why
-    spare: Optional[subprocess.Popen] = None
+    spare: Optional[subprocess.Popen[bytes]] = None
     spare_ready_fd: Optional[int] = None  # read end of the spare's "warmed up" pipe, until it said so
     spare_warm: bool = False
     spare_due: Optional[float] = None
@@ -153,12 +156,12 @@ class GraphRunner:
         self.env["PYTHONUNBUFFERED"] = "1"
         self.restart = restart
         self.on_event = on_event or (lambda line: None)
-        self.processes: Dict[str, subprocess.Popen] = {}
+        self.processes: Dict[str, subprocess.Popen[bytes]] = {}
         self.events: List[str] = []
         self.health: Dict[str, NodeHealth] = {}
         self.stop_report: Dict[str, str] = {}
         self._states: Dict[str, _NodeState] = {spec.name: _NodeState(spec) for spec in self.nodes}
-        self._logs: Dict[str, object] = {}
+        self._logs: Dict[str, IO[str]] = {}
         self._lock = threading.RLock()
         self._stopping = threading.Event()
         self._thread_exit = threading.Event()
@@ -171,7 +174,7 @@ class GraphRunner:
         self.configure_retry_s = float(configure_retry_s)
         self.transition_timeout_s = float(transition_timeout_s)
         #: The lifecycle manager on the caller's ROS node (made by watch_diagnostics / wait_ready).
-        self.lifecycle = None
+        self.lifecycle: Optional[LifecycleManager] = None
         names = [spec.name for spec in self.nodes]
         partial = names != all_names
         #: The runner's status name on /diagnostics (one host's share of the graph names its nodes).
@@ -196,7 +199,8 @@ class GraphRunner:
         self.events.append(stamped)
         self.on_event(stamped)
 
-    def _popen(self, name: str, cmd: List[str], stdin=None, pass_fds=()) -> subprocess.Popen:
+    def _popen(self, name: str, cmd: List[str], stdin: Optional[int] = None,
+               pass_fds: Sequence[int] = ()) -> subprocess.Popen[bytes]:
         out = self._logs.get(name)
         return subprocess.Popen(
             cmd, env=self.env, stdin=stdin, stdout=out, stderr=subprocess.STDOUT if out else None,
@@ -211,8 +215,9 @@ class GraphRunner:
             os.makedirs(self.log_dir, exist_ok=True)
         with self._lock:
             for spec in self.nodes:
-                if self.log_dir:
-                    self._logs[spec.name] = open(self.log_path(spec.name), "w")  # noqa: SIM115 - closed in stop()
+                log = self.log_path(spec.name)
+                if log is not None:
+                    self._logs[spec.name] = open(log, "w")  # noqa: SIM115 - closed in stop()
                 self._launch(self._states[spec.name])
         if self.restart is not None:
             # Spawned from this thread, the children's PR_SET_PDEATHSIG follows its life: it ends after stop().
@@ -225,7 +230,7 @@ class GraphRunner:
         proc = None
         spare, state.spare = state.spare, None
         self._drop_spare_pipe(state)
-        if spare is not None and spare.poll() is None:
+        if spare is not None and spare.poll() is None and spare.stdin is not None:
             try:
                 spare.stdin.write(b"go\n")
                 spare.stdin.flush()
@@ -308,8 +313,9 @@ class GraphRunner:
                 self._append_log(name, f"restart {state.restarts} of {name}")
                 self._launch(state)
                 state.restarted_at = time.monotonic()
-                how = "warm spare" if state.process.args and "--spare" in state.process.args else "cold start"
-                self._event(f"{name} restarted ({how}, pid {state.process.pid}), restart {state.restarts}")
+                proc = self.processes[name]  # the one _launch started
+                how = "warm spare" if isinstance(proc.args, list) and "--spare" in proc.args else "cold start"
+                self._event(f"{name} restarted ({how}, pid {proc.pid}), restart {state.restarts}")
             return
         if state.spare_due is not None and now >= state.spare_due:
             self._start_spare(state)
@@ -320,19 +326,22 @@ class GraphRunner:
         state.last_exit = code
         state.died_at = now
         state.deaths.append(now)
-        recent = self.restart.recent(state.deaths, now)
+        policy = self.restart
+        if policy is None:
+            return  # not supervised: check_alive reports the death
+        recent = policy.recent(state.deaths, now)
         log = self.log_path(name) or "stderr"
-        if self.restart.gives_up(recent):
-            window = f"within {self.restart.window_s:.0f} s" if self.restart.window_s > 0 else "in total"
+        if policy.gives_up(recent):
+            window = f"within {policy.window_s:.0f} s" if policy.window_s > 0 else "in total"
             state.failed = (f"{name} died {recent} times {window} (last: {describe_exit(code)}), more than "
-                            f"--max-restarts {self.restart.max_restarts}; giving up; see {log}")
+                            f"--max-restarts {policy.max_restarts}; giving up; see {log}")
             self._failure = self._failure or state.failed
             self._event(state.failed)
             return
-        delay = self.restart.delay_s(recent)
+        delay = policy.delay_s(recent)
         state.restart_at = now + delay
         self._event(f"{name} died ({describe_exit(code)}); restarting in {delay:.2f} s "
-                    f"({recent} of {self.restart.max_restarts} restarts used); see {log}")
+                    f"({recent} of {policy.max_restarts} restarts used); see {log}")
 
     def _append_log(self, name: str, line: str) -> None:
         handle = self._logs.get(name)
@@ -607,12 +616,12 @@ class GraphRunner:
                 self._drop_spare_pipe(state)
         for spare, warm in spares:  # a waiting spare exits 0 at the end of its stdin
             try:
-                spare.stdin.close()
+                if spare.stdin is not None:
+                    spare.stdin.close()
             except OSError:
                 pass
             if not warm and spare.poll() is None:
                 spare.terminate()  # still importing: SIGTERM ends it quietly (default action)
-        spares = [spare for spare, _ in spares]
         procs = dict(self.processes)
         for proc in procs.values():
             if proc.poll() is None:
@@ -631,7 +640,7 @@ class GraphRunner:
                 escalated[name] = (f"after {sig.name} (no exit {timeout_s:.0f} s after SIGINT; "
                                    f"its stacks are in its log)")
             self._wait_all(left, grace)
-        for spare in spares:
+        for spare, _ in spares:
             try:
                 spare.wait(timeout=2.0)
             except subprocess.TimeoutExpired:

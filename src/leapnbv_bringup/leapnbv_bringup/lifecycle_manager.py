@@ -30,6 +30,8 @@ from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.client import Client
+from rclpy.task import Future
 
 from leapnbv_common.managed_node import ACTIVE, FINALIZED, INACTIVE, STATE_LABELS, UNCONFIGURED
 
@@ -73,8 +75,8 @@ class NodeLifecycle:
 @dataclass
 class _Call:
     what: str  # "get_state" or a transition name
-    future: object
-    client: object
+    future: Future
+    client: Client
     sent: float
     deadline: float
 

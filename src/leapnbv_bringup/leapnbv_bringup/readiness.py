@@ -17,9 +17,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import TYPE_CHECKING, Optional, Tuple
 
 from leapnbv_common.managed_node import ACTIVE, UNCONFIGURED
+
+if TYPE_CHECKING:  # the manager imports this module
+    from leapnbv_bringup.lifecycle_manager import NodeLifecycle
 
 ERROR_LEVEL = 2
 NOT_HEARD = "no diagnostics yet"
@@ -69,7 +72,8 @@ def health_from_status(status, received: Optional[float] = None) -> NodeHealth:
                       awaiting=values.get("awaiting_publishers", ""), error=_level(status) == ERROR_LEVEL)
 
 
-def judge(health: Optional[NodeHealth], lifecycle, describe: str, heard_after: float) -> Tuple[str, bool]:
+def judge(health: Optional[NodeHealth], lifecycle: Optional[NodeLifecycle], describe: str,
+          heard_after: float) -> Tuple[str, bool]:
     """Why a running node is not serving ("" when it is), and whether that is a failure it may stay in.
 
     Args:
@@ -83,21 +87,23 @@ def judge(health: Optional[NodeHealth], lifecycle, describe: str, heard_after: f
     Returns:
         (reason, failed): ("", False) when serving.
     """
-    fresh = health is not None and health.received >= heard_after
-    managed = (lifecycle is not None and lifecycle.managed) or (fresh and health.lifecycle_state is not None)
+    fresh = health if health is not None and health.received >= heard_after else None
+    managed = (lifecycle is not None and lifecycle.managed) or (fresh is not None and fresh.lifecycle_state is not None)
     if managed:
-        state = lifecycle.state if lifecycle is not None else health.lifecycle_state
-        if state == ACTIVE and fresh and health.lifecycle_state == ACTIVE:
-            if health.awaiting:
-                return f"{AWAITING_PUBLISHER}{health.awaiting}", False
+        # Without a manager's record, a managed node is one whose fresh status says so.
+        state = lifecycle.state if lifecycle is not None else fresh.lifecycle_state if fresh is not None else None
+        if state == ACTIVE and fresh is not None and fresh.lifecycle_state == ACTIVE:
+            if fresh.awaiting:
+                return f"{AWAITING_PUBLISHER}{fresh.awaiting}", False
             return "", False
         failed = bool(lifecycle is not None and lifecycle.failed and not lifecycle.reason_pending) or (
-            lifecycle is None and fresh and health.lifecycle_state == UNCONFIGURED and bool(health.lifecycle_reason))
+            lifecycle is None and fresh is not None and fresh.lifecycle_state == UNCONFIGURED
+            and bool(fresh.lifecycle_reason))
         if state == ACTIVE:
             return "active, its status not received yet", False
         return describe or (health.lifecycle_reason if health is not None else "") or str(state), failed
-    if not fresh:
+    if fresh is None:
         return NOT_HEARD, False
-    if not health.engine_ok:
-        return health.reason, health.error
+    if not fresh.engine_ok:
+        return fresh.reason, fresh.error
     return "", False
