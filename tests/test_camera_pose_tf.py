@@ -235,3 +235,57 @@ def test_a_camera_below_the_floor_breaks_the_pose_contract(wire):
     publish(wire, links)
     assert user.source.pose_at(17 * S, CAMERA) is None
     assert user.node.diagnostics.rejected["bad_camera_pose"] >= 1
+
+
+def _tf_subscriptions(node) -> List[str]:
+    return sorted(s.topic_name for s in node.subscriptions if s.topic_name in (TF_TOPIC, TF_STATIC_TOPIC))
+
+
+def test_destroy_releases_the_sources_tf_subscriptions_and_its_timer():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("tf_pose_destroyed", context=context)
+        node.diagnostics = StageDiagnostics(node)
+        timers_before = len(list(node.timers))
+        source = create_camera_pose_source("tf", node, 5)
+        assert _tf_subscriptions(node) == [TF_TOPIC, TF_STATIC_TOPIC]
+        assert len(list(node.timers)) == timers_before + 1
+        source.expect(3 * S, CAMERA)  # a frame waiting: the wait timer runs
+        source.destroy()
+        assert _tf_subscriptions(node) == [] and len(list(node.timers)) == timers_before
+        source.destroy()  # safe twice
+        source.expect(4 * S, CAMERA)  # and a late expect neither fails nor restarts anything
+        assert source.pose_at(4 * S, CAMERA) is None
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+
+
+def test_a_cleanup_then_configure_cycle_leaves_one_set_of_tf_subscriptions():
+    """ground_node on the TF source, through configure -> cleanup -> configure -> activate -> deactivate ->
+    cleanup: each configure makes the source's /tf and /tf_static subscriptions once, each cleanup ends them."""
+    from leapnbv_geometry.nodes.ground_node import GroundNode
+
+    rclpy.init(args=["--ros-args", "-p", "camera_pose_source:=tf", "-p", "autostart:=false"])
+    try:
+        node = GroundNode()
+        assert _tf_subscriptions(node) == []
+        for _ in range(2):
+            node.trigger_configure()
+            assert node.lifecycle_state == "inactive"
+            assert _tf_subscriptions(node) == [TF_TOPIC, TF_STATIC_TOPIC]
+            source = node.pose_floors.source
+            node.trigger_cleanup()
+            assert node.lifecycle_state == "unconfigured"
+            assert _tf_subscriptions(node) == [] and source.listener.subscriptions == []
+        node.trigger_configure()
+        node.trigger_activate()
+        assert _tf_subscriptions(node) == [TF_TOPIC, TF_STATIC_TOPIC]
+        node.trigger_deactivate()
+        node.trigger_cleanup()
+        assert _tf_subscriptions(node) == []
+        node.shut_down()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()

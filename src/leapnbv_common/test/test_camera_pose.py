@@ -56,6 +56,10 @@ def test_topic_source_remembers_by_stamp_and_counts_bad_poses():
         with pytest.raises(ValueError, match="unknown camera pose source 'gps'; known: tf, topic"):
             create_camera_pose_source("gps", node, capacity=2)
         assert CAMERA_POSE_SOURCES.names() == ["tf", "topic"]
+        assert node.count_subscribers("camera_pose") == 1
+        source.destroy()
+        source.destroy()  # safe twice
+        assert node.count_subscribers("camera_pose") == 0 and list(node.subscriptions) == []
         node.destroy_node()
     finally:
         rclpy.shutdown()
@@ -80,6 +84,9 @@ def test_another_source_is_one_class_registered_from_its_own_file():
             if self.on_pose is not None:
                 self.on_pose(self.pose_at(stamp_ns, camera_frame))
 
+        def destroy(self):
+            self.on_pose = None  # nothing made on the node
+
     rclpy.init()
     try:
         node = rclpy.create_node("camera_pose_plugin_test")
@@ -91,7 +98,7 @@ def test_another_source_is_one_class_registered_from_its_own_file():
         source.expect(8)
         assert [p.stamp_ns for p in arrived] == [8]
         assert "fixed_for_test" in CAMERA_POSE_SOURCES.names()
-        with pytest.raises(TypeError, match="lacks pose_at, expect"):
+        with pytest.raises(TypeError, match="lacks pose_at, expect, destroy"):
             camera_pose_source("not_a_source")(object())
         node.destroy_node()
     finally:

@@ -12,9 +12,11 @@ The pose is the camera's optical frame in a fixed, floor-aligned frame (z up, fl
   interpolated; through ``tf2_ros.Buffer`` where tf2_ros is installed, else the project's own
   buffer (:mod:`leapnbv_common.tf_buffer`).
 
-A source has two methods: ``pose_at(stamp_ns, camera_frame)`` answers for a frame now (None when it
-cannot), and ``expect(stamp_ns, camera_frame)`` says that a frame is waiting for its pose, which the
-source hands to its ``on_pose`` callback when it has it. Every pose passes one contract
+A source has three methods: ``pose_at(stamp_ns, camera_frame)`` answers for a frame now (None when it
+cannot), ``expect(stamp_ns, camera_frame)`` says that a frame is waiting for its pose, which the
+source hands to its ``on_pose`` callback when it has it, and ``destroy()`` releases what the source
+made on its node (subscriptions, timers: a node's cleanup calls it, so that the next configure's
+source does not sit beside the old one). Every pose passes one contract
 (:func:`check_camera_pose`: unit quaternion, finite, camera above the floor) whatever its source.
 Another source is one more module that registers its class with :func:`camera_pose_source`
 (e.g. ``camera_pose/<name>.py``, named in :data:`CAMERA_POSE_SOURCES`'s built-in modules).
@@ -74,6 +76,9 @@ class CameraPoseSource(Protocol):
     def expect(self, stamp_ns: int, camera_frame: str = "") -> None:
         """A frame of this stamp waits for its pose: hand it to on_pose once the source has it."""
 
+    def destroy(self) -> None:
+        """Release the subscriptions and timers the source made on its node (safe twice)."""
+
 
 def checked_camera_pose(stamp_ns: int, frame_id: str, xyzw, position) -> StampedCameraPose:
     """A StampedCameraPose from a quaternion and a position that pass the camera-pose contract.
@@ -110,9 +115,9 @@ def camera_pose_from_msg(msg: PoseStamped) -> StampedCameraPose:
 
 
 def _check_source_class(entry: object) -> None:
-    missing = [name for name in ("pose_at", "expect") if not callable(getattr(entry, name, None))]
+    missing = [name for name in ("pose_at", "expect", "destroy") if not callable(getattr(entry, name, None))]
     if not callable(entry) or missing:
-        raise TypeError(f"a camera pose source is a class with pose_at and expect; {entry!r} lacks "
+        raise TypeError(f"a camera pose source is a class with pose_at, expect and destroy; {entry!r} lacks "
                         f"{', '.join(missing) or 'a constructor'}")
 
 
@@ -125,7 +130,8 @@ def camera_pose_source(name: str) -> Callable[[type], type]:
     """Class decorator: make a CameraPoseSource selectable as ``camera_pose_source: <name>``."""
 
     def register(cls: type) -> type:
-        return CAMERA_POSE_SOURCES.register(name, cls)
+        CAMERA_POSE_SOURCES.register(name, cls)
+        return cls
 
     return register
 
@@ -143,14 +149,16 @@ class TopicCameraPoseSource:
         topic: The relative topic name (remapped by the launch file / runner).
     """
 
-    def __init__(self, node, capacity: int, on_pose: Optional[PoseCallback] = None,
+    def __init__(self, node: Any, capacity: int, on_pose: Optional[PoseCallback] = None,
                  topic: str = CAMERA_POSE) -> None:
+        self.node = node
         self.diagnostics = node.diagnostics
         self.get_logger = node.get_logger  # rejects_bad_input logs through it
         self.poses: StampCache = StampCache(max(1, int(capacity)))
         self.on_pose = on_pose
         self.stamps = DuplicateStampGuard()
-        node.create_subscription(PoseStamped, topic, self._on_message, stage_input_qos(max(10, int(capacity))))
+        self.subscription: Any = node.create_subscription(PoseStamped, topic, self._on_message,
+                                                          stage_input_qos(max(10, int(capacity))))
 
     @rejects_bad_input("bad_camera_pose")
     def _on_message(self, msg: PoseStamped) -> None:
@@ -168,8 +176,14 @@ class TopicCameraPoseSource:
     def expect(self, stamp_ns: int, camera_frame: str = "") -> None:
         """A frame of this stamp waits for its pose: topic poses are handed to on_pose as they arrive anyway."""
 
+    def destroy(self) -> None:
+        """Destroy the subscription (safe twice; the node may have destroyed it already)."""
+        if self.subscription is not None:
+            self.node.destroy_subscription(self.subscription)
+            self.subscription = None
 
-def create_camera_pose_source(kind: str, node, capacity: int,
+
+def create_camera_pose_source(kind: str, node: Any, capacity: int,
                               on_pose: Optional[PoseCallback] = None) -> CameraPoseSource:
     """The camera-pose source named ``kind`` (a name of CAMERA_POSE_SOURCES).
 

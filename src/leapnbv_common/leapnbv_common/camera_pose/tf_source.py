@@ -29,7 +29,8 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional, Set, Tuple
+from typing import Any, Callable, Dict, List, Optional, Set, Tuple
+from typing import OrderedDict as OrderedDictType
 
 from rclpy.duration import Duration
 from rclpy.time import Time
@@ -153,15 +154,23 @@ class TfListener:
         on_links: Called after each message with the child frames it updated.
     """
 
-    def __init__(self, node, store, on_links: Callable[[List[str]], None]) -> None:
+    def __init__(self, node: Any, store: Any, on_links: Callable[[List[str]], None]) -> None:
+        self.node = node
         self.diagnostics = node.diagnostics
         self.get_logger = node.get_logger  # rejects_bad_input logs through it
         self.store = store
         self.on_links = on_links
         self.parents: Dict[str, str] = {}  # child -> its newest parent
         self.messages = 0
-        node.create_subscription(TFMessage, TF_TOPIC, self._on_tf, tf_qos())
-        node.create_subscription(TFMessage, TF_STATIC_TOPIC, self._on_tf_static, tf_static_qos())
+        self.subscriptions: List[Any] = [
+            node.create_subscription(TFMessage, TF_TOPIC, self._on_tf, tf_qos()),
+            node.create_subscription(TFMessage, TF_STATIC_TOPIC, self._on_tf_static, tf_static_qos())]
+
+    def destroy(self) -> None:
+        """Destroy the /tf and /tf_static subscriptions (safe twice)."""
+        subscriptions, self.subscriptions = self.subscriptions, []
+        for subscription in subscriptions:
+            self.node.destroy_subscription(subscription)
 
     @rejects_bad_input("bad_transform")
     def _on_tf(self, msg: TFMessage) -> None:
@@ -228,18 +237,28 @@ class TfCameraPoseSource:
         if use_tf2 and not tf2_available():
             raise ValueError("use_tf2: tf2_ros is not installed here")
         self.store = _Tf2Store(cache_ns) if use_tf2 else _OwnStore(cache_ns)
-        self.poses: Dict[Tuple[str, int], Optional[StampedCameraPose]] = OrderedDict()  # None: refused pose
-        self.waiting: Dict[Tuple[str, int], int] = OrderedDict()  # (frame, stamp) -> since (node clock ns)
-        self.handed: Dict[Tuple[str, int], None] = OrderedDict()  # given to on_pose already
+        self.poses: OrderedDictType[Tuple[str, int], Optional[StampedCameraPose]] = OrderedDict()  # None: refused pose
+        self.waiting: OrderedDictType[Tuple[str, int], int] = OrderedDict()  # (frame, stamp) -> since (node clock ns)
+        self.handed: OrderedDictType[Tuple[str, int], None] = OrderedDict()  # given to on_pose already
         self.frames: Set[str] = {self.camera_frame} if self.camera_frame else set()
         self.announced: Dict[str, int] = {}  # frame -> newest stamp handed on as the tree advanced
         self.last_error: Optional[TransformError] = None
         self.logged: Dict[Tuple[str, str], int] = {}  # (error kind, camera frame) -> when last logged
         self.listener = TfListener(node, self.store, self._on_links)
-        self.timer = node.create_timer(WAIT_CHECK_PERIOD_S, self._check_waiting)
+        self.node = node
+        self.timer: Any = node.create_timer(WAIT_CHECK_PERIOD_S, self._check_waiting)
         self.timer.cancel()  # runs only while a frame waits
         node.get_logger().info(f"camera pose from TF: {self.fixed_frame!r} -> the image's optical frame, "
                                f"through {self.store.kind}")
+
+    def destroy(self) -> None:
+        """Destroy the /tf and /tf_static subscriptions and the wait timer; the frames waiting get no pose
+        (safe twice)."""
+        self.listener.destroy()
+        self.waiting.clear()
+        if self.timer is not None:
+            self.node.destroy_timer(self.timer)
+            self.timer = None
 
     # ------------------------------------------------------------------ lookups
 
@@ -310,7 +329,7 @@ class TfCameraPoseSource:
         self.waiting[key] = self.clock.now().nanoseconds
         while len(self.waiting) > self.capacity:
             self.waiting.popitem(last=False)
-        if self.timer.is_canceled():
+        if self.timer is not None and self.timer.is_canceled():  # (None: destroyed)
             self.timer.reset()
 
     def _hand(self, key: Tuple[str, int], pose: StampedCameraPose) -> None:
@@ -338,7 +357,7 @@ class TfCameraPoseSource:
                 del self.waiting[key]  # refused by the contract (counted), or it will not come
                 if error is not None:
                     self._note(error, key)
-        if not self.waiting:
+        if not self.waiting and self.timer is not None:
             self.timer.cancel()
 
     def _on_links(self, children: List[str]) -> None:
