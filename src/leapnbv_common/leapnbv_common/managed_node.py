@@ -45,11 +45,12 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.lifecycle.publisher import LifecyclePublisher
 
 from leapnbv_common.diagnostics import StageDiagnostics
-from leapnbv_common.node_params import NodeParams
+from leapnbv_common.node_params import NodeParams, run_node
 from leapnbv_common.params import ParamsError, param
+from leapnbv_common.process_tuning import tune_node_process
 
 __all__ = ["ManagedNode", "LifecycleParams", "StageNotReadyError", "UNCONFIGURED", "INACTIVE", "ACTIVE", "FINALIZED",
-           "STATE_LABELS"]
+           "STATE_LABELS", "run_managed_node"]
 
 UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED = "unconfigured", "inactive", "active", "finalized"
 #: lifecycle_msgs/State ids -> labels (the primary states and the transition states).
@@ -315,3 +316,13 @@ class ManagedNode(LifecycleNode):
             if self.autostart and self.lifecycle_state == UNCONFIGURED and params.configure_retry_period_s > 0 \
                     and self.configure_attempts and not self.bad_parameters:
                 self._retry_timer = self.create_timer(params.configure_retry_period_s, self._retry_configure)
+
+
+def run_managed_node(node_class: Callable[[], ManagedNode], args: Optional[List[str]] = None) -> None:
+    """A stage node's main(): the process tuned for a node, then :func:`leapnbv_common.node_params.run_node`.
+
+    The tuning (:func:`leapnbv_common.process_tuning.tune_node_process`): one BLAS thread, image buffers
+    kept in the heap.
+    """
+    tune_node_process()
+    run_node(node_class, args)

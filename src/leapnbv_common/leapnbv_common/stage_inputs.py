@@ -11,9 +11,9 @@ from typing import Sequence
 
 from sensor_msgs.msg import CameraInfo
 
-from leapnbv_common.conversions import SerializedImage, camera_info_to_k, check_image
+from leapnbv_common.conversions import COLOUR_ENCODINGS, DEPTH_ENCODINGS, SerializedImage, camera_info_to_k, check_image
 
-__all__ = ["checked_serialized_image", "checked_camera_info"]
+__all__ = ["checked_serialized_image", "checked_depth_image", "checked_colour_image", "checked_camera_info"]
 
 
 def checked_serialized_image(cdr: bytes, encodings: Sequence[str], what: str) -> SerializedImage:
@@ -25,6 +25,24 @@ def checked_serialized_image(cdr: bytes, encodings: Sequence[str], what: str) ->
     image = SerializedImage(cdr)
     check_image(image, encodings, what)
     return image
+
+
+def checked_depth_image(cdr: bytes) -> SerializedImage:
+    """A serialized depth Image (one of DEPTH_ENCODINGS) read in place and checked.
+
+    Raises:
+        ConversionError: as checked_serialized_image.
+    """
+    return checked_serialized_image(cdr, DEPTH_ENCODINGS, "depth")
+
+
+def checked_colour_image(cdr: bytes) -> SerializedImage:
+    """A serialized colour Image (one of COLOUR_ENCODINGS) read in place and checked.
+
+    Raises:
+        ConversionError: as checked_serialized_image.
+    """
+    return checked_serialized_image(cdr, COLOUR_ENCODINGS, "colour")
 
 
 def checked_camera_info(msg: CameraInfo) -> CameraInfo:

@@ -24,7 +24,6 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from leapnbv_common.contracts import check_same_frame, check_same_size, refused
 from leapnbv_common.conversions import (
-    DEPTH_ENCODINGS,
     TargetGeometryArrays,
     arrays_to_human_mesh,
     arrays_to_target_geometry,
@@ -35,12 +34,10 @@ from leapnbv_common.conversions import (
     image_size,
     numpy_to_image,
 )
-from leapnbv_common.managed_node import ManagedNode
-from leapnbv_common.node_params import run_node
-from leapnbv_common.process_tuning import tune_node_process
+from leapnbv_common.managed_node import ManagedNode, run_managed_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Stage
-from leapnbv_common.stage_inputs import checked_camera_info, checked_serialized_image
+from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image
 from leapnbv_common.topics import GROUND_PLANE, HUMAN_MESH, HUMAN_MESH_METRIC, PERSON_MASK, TARGET_GEOMETRY
 from leapnbv_geometry.params import RasterParams
 from leapnbv_geometry.raster import warm_up
@@ -63,8 +60,8 @@ class RasterNode(ManagedNode):
         # frame's plane (ground_node stamps it with the frame's, the mesh's, stamp) is waited for briefly.
         self.stage = Stage(self, KeyInput("human_mesh", HumanMesh, HUMAN_MESH, human_mesh_to_arrays,
                                           stage_input_qos(1)), [
-            Companion("depth", Image, "depth", lambda cdr: checked_serialized_image(cdr, DEPTH_ENCODINGS, "depth"),
-                      camera_input_qos(p.depth_cache_size), match=NEAREST, slop_s=lambda f: self.params.value.slop_s,
+            Companion("depth", Image, "depth", checked_depth_image, camera_input_qos(p.depth_cache_size),
+                      match=NEAREST, slop_s=lambda f: self.params.value.slop_s,
                       wait_s=lambda f: self.params.value.depth_wait_s, when_missing=REJECT,
                       missing_reason="no_matching_depth",
                       missing_detail=lambda f: f"no depth frame within the slop of stamp {f.stamp_ns} ns",
@@ -146,8 +143,7 @@ class RasterNode(ManagedNode):
 
 
 def main(args=None) -> None:
-    tune_node_process()  # one BLAS thread, image buffers reused (leapnbv_common.process_tuning)
-    run_node(RasterNode, args)
+    run_managed_node(RasterNode, args)
 
 
 if __name__ == "__main__":

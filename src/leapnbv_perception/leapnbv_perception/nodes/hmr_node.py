@@ -32,9 +32,7 @@ from leapnbv_common.conversions import (
     image_size,
     image_to_rgb,
 )
-from leapnbv_common.managed_node import ManagedNode
-from leapnbv_common.node_params import run_node
-from leapnbv_common.process_tuning import tune_node_process
+from leapnbv_common.managed_node import ManagedNode, run_managed_node
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import REJECT, Companion, Frame, KeyInput, Stage
 from leapnbv_common.topics import DETECTIONS, HUMAN_MESH
@@ -159,8 +157,7 @@ class HmrNode(ManagedNode):
 
 
 def main(args=None) -> None:
-    tune_node_process()  # one BLAS thread, image buffers reused (leapnbv_common.process_tuning)
-    run_node(HmrNode, args)
+    run_managed_node(HmrNode, args)
 
 
 if __name__ == "__main__":
