@@ -238,7 +238,7 @@ def test_an_older_plane_is_carried_by_the_camera_pose_delta_and_recorded_as_carr
 
 
 def test_carry_plane_moves_a_floor_between_camera_poses():
-    from leapnbv_planner.nodes.nbv_node import carry_plane
+    from leapnbv_planner.floor_carry import carry_plane
 
     rotation_a, position_a = camera_in_map(1.2, 10.0)
     rotation_b, position_b = camera_in_map(1.5, 20.0)

@@ -1,0 +1,21 @@
+"""When nbv_node's goal is too old to act on: the no-stale-goal rules, ROS-free (docs/ARCHITECTURE.md, "Timing").
+
+A frame older than ``max_goal_age_s`` by the node clock is not planned, its goal not published, and a
+latched goal that ages past it is withdrawn; a limit of 0 turns the rules off.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+__all__ = ["too_old", "expired_age_s"]
+
+
+def too_old(now_ns: int, stamp_ns: int, max_age_s: float) -> bool:
+    """Whether a frame of this stamp is older than ``max_age_s`` at ``now_ns`` (never with a limit of 0)."""
+    return max_age_s > 0 and now_ns - stamp_ns > max_age_s * 1e9
+
+
+def expired_age_s(now_ns: int, goal_stamp_ns: int, max_age_s: float) -> Optional[float]:
+    """The age in seconds of a goal past its limit (to be withdrawn), or None while it may be acted on."""
+    age_s = (now_ns - goal_stamp_ns) * 1e-9
+    return age_s if max_age_s > 0 and age_s > max_age_s else None

@@ -1,0 +1,120 @@
+"""nbv_node's latched goal: next_best_view, base_goal, base_path and goal_status, and the goal's age.
+
+No stale goal (docs/ARCHITECTURE.md, "Timing"): a goal goes out only from a frame younger than
+``max_goal_age_s``; ``goal_status`` says whether the latched goal may be acted on (CURRENT); a timer,
+running only while a goal is current, replaces a goal that ages out by an explicit "no goal" (STALE,
+and next_best_view / base_goal / base_path re-published with an empty frame_id), as deactivating the
+node does (NONE). The rules themselves: :mod:`leapnbv_planner.goal_age`.
+"""
+from __future__ import annotations
+
+from typing import Any, Optional, Tuple
+
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from std_msgs.msg import Header
+
+from leapnbv_common import topics
+from leapnbv_common.conversions import path_msg, pose_msg, set_stamp
+from leapnbv_common.qos import latched_goal_qos
+from leapnbv_msgs.msg import GoalStatus
+from leapnbv_planner.goal_age import expired_age_s, too_old
+
+__all__ = ["LatchedGoal", "GOAL_AGE_CHECK_PERIOD_S"]
+
+GOAL_AGE_CHECK_PERIOD_S = 0.1  # how often the latched goal's age is checked (only while a goal is current)
+
+
+class LatchedGoal:
+    """The goal topics of a planner node and the state of the goal they latch.
+
+    The publishers are plain ones, made with the object (in configure): ``start`` (activate) says "no goal
+    yet" on them and ``stop`` (deactivate) withdraws the goal, at the edges of the active state, where a
+    lifecycle publisher drops what it gets.
+
+    Args:
+        node: The node (its clock, ``params.value.max_goal_age_s``, ``diagnostics``).
+    """
+
+    def __init__(self, node: Any) -> None:
+        self.node = node
+        self.goal_pub = node.create_publisher(PoseStamped, topics.NEXT_BEST_VIEW, latched_goal_qos())
+        self.base_goal_pub = node.create_publisher(PoseStamped, topics.BASE_GOAL, latched_goal_qos())
+        self.status_pub = node.create_publisher(GoalStatus, topics.GOAL_STATUS, latched_goal_qos())
+        self.base_path_pub = node.create_publisher(Path, topics.BASE_PATH, latched_goal_qos())
+        self.stamp: Optional[int] = None  # frame stamp of the last goal published
+        self.frame = ""
+        self.state = GoalStatus.STATE_NONE
+        self.age_timer: Any = None
+
+    def now_ns(self) -> int:
+        now: int = self.node.get_clock().now().nanoseconds
+        return now
+
+    def too_old(self, stamp_ns: int) -> bool:
+        """Whether a frame of this stamp is older than max_goal_age_s now (never with a limit of 0)."""
+        return too_old(self.now_ns(), stamp_ns, self.node.params.value.max_goal_age_s)
+
+    def start(self) -> None:
+        """Activate: the age timer (made here, runs only while a goal is current) and "no goal planned yet"."""
+        self.age_timer = self.node.create_timer(GOAL_AGE_CHECK_PERIOD_S, self.check_age)
+        self.age_timer.cancel()
+        self.publish_status(GoalStatus.STATE_NONE, "no goal planned yet")
+
+    def stop(self) -> None:
+        """Deactivate: no goal from a planner that stopped (a motion stack must not keep acting on the last one)."""
+        if self.state == GoalStatus.STATE_CURRENT:
+            self.withdraw()
+            self.publish_status(GoalStatus.STATE_NONE, "the planner was deactivated: the last goal was withdrawn")
+
+    def limit_changed(self, max_goal_age_s: float) -> None:
+        """A new max_goal_age_s: the next check applies it to the latched goal."""
+        if self.state == GoalStatus.STATE_CURRENT and max_goal_age_s > 0 and self.age_timer is not None:
+            self.age_timer.reset()
+
+    def publish(self, header: Header, stamp_ns: int, chosen: Tuple[Any, Any], base_goal: Tuple[Any, Any]) -> None:
+        """Latch the goal of a frame: the camera's view and the base's goal, in the frame's header."""
+        self.goal_pub.publish(PoseStamped(header=header, pose=pose_msg(*chosen)))
+        self.base_goal_pub.publish(PoseStamped(header=header, pose=pose_msg(*base_goal)))
+        self.stamp, self.frame = stamp_ns, header.frame_id
+        self.publish_status(GoalStatus.STATE_CURRENT, "goal published")
+        if self.node.params.value.max_goal_age_s > 0 and self.age_timer.is_canceled():
+            self.age_timer.reset()
+
+    def publish_path(self, path: Optional[Tuple[Any, Any]], header: Header) -> None:
+        """The base's path to the goal just published (a plan's ``base_path_frames()``), when it has one."""
+        if path is not None:
+            self.base_path_pub.publish(path_msg(path[0], path[1], header))
+
+    def check_age(self) -> None:
+        """The timer: a current goal whose frame is now older than max_goal_age_s is withdrawn."""
+        limit = self.node.params.value.max_goal_age_s
+        if self.state != GoalStatus.STATE_CURRENT or self.stamp is None or limit <= 0:
+            self.age_timer.cancel()
+            return
+        age_s = expired_age_s(self.now_ns(), self.stamp, limit)
+        if age_s is None:
+            return
+        self.age_timer.cancel()
+        self.withdraw()
+        self.node.diagnostics.drop("goal_withdrawn_stale")
+        self.publish_status(GoalStatus.STATE_STALE, f"no goal from a frame younger than {limit:g} s: the last one"
+                            f" is {age_s:.2f} s old and was withdrawn")
+
+    def withdraw(self) -> None:
+        """Replace the latched goals by "no goal": a motion stack connecting later must not receive the old one."""
+        cleared = Header(frame_id="", stamp=self.node.get_clock().now().to_msg())
+        self.goal_pub.publish(PoseStamped(header=cleared))
+        self.base_goal_pub.publish(PoseStamped(header=cleared))
+        self.base_path_pub.publish(Path(header=cleared))  # an empty path: no way to a current goal
+
+    def publish_status(self, state: int, reason: str) -> None:
+        now = self.now_ns()
+        msg = GoalStatus(state=state, reason=reason, max_goal_age_s=float(self.node.params.value.max_goal_age_s))
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.header.frame_id = self.frame if state == GoalStatus.STATE_CURRENT else ""
+        if self.stamp is not None:
+            set_stamp(msg.goal_stamp, self.stamp)
+            msg.goal_age_s = float((now - self.stamp) * 1e-9)
+        self.state = state
+        self.status_pub.publish(msg)
