@@ -33,7 +33,8 @@ from leapnbv_evaluation.benchmark_set import (
     room_seeds,
 )
 from leapnbv_evaluation.episode import EvaluationError
-from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
+from leapnbv_evaluation.harness import ClosedLoopEvaluator
+from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, own_domain, run_in_workers
 from leapnbv_evaluation.results import EvaluationRun
 from leapnbv_evaluation.task_report import task_table_markdown, write_evaluation_outputs
