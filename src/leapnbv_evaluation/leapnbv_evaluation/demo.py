@@ -14,7 +14,7 @@ import argparse
 import os
 import sys
 import time
-from typing import Dict, List, Optional
+from typing import Any, Dict, List, Mapping, Optional
 
 import numpy as np
 from sensor_msgs.msg import Image
@@ -48,9 +48,9 @@ from leapnbv_evaluation.metrics import latency_summary
 STAGE_OUTPUTS = (DETECTIONS, HUMAN_MESH, TARGET_GEOMETRY, GROUND_PLANE, VIEW_CANDIDATES)
 
 
-def _frames_for_report(run: Dict[str, object], bag: str) -> List[DemoFrame]:
-    """Join the bag's colour frames with the graph's outputs of the same stamp."""
-    outputs: Dict[str, Dict[int, object]] = {}
+def _frames_for_report(run: Mapping[str, Any], bag: str) -> List[DemoFrame]:
+    """Join the bag's colour frames with the graph's outputs of the same stamp (``run``: run_graph_on_bag's)."""
+    outputs: Dict[str, Dict[int, Any]] = {}  # rclpy messages
     received: Dict[int, int] = {}
     for topic, when, msg in run["decoded"]:
         name = short_topic(topic)
@@ -61,9 +61,10 @@ def _frames_for_report(run: Dict[str, object], bag: str) -> List[DemoFrame]:
         if name == VIEW_CANDIDATES:
             received[stamp] = when
     published = run["replayer"].published_at
-    rgb_by_stamp = {}
-    for _, _, _, msg in read_bag(bag, topics=[CAMERA_TOPICS["image"]]):
-        rgb_by_stamp[stamp_to_ns(msg.header.stamp)] = msg
+    rgb_by_stamp: Dict[int, Any] = {}
+    colour_msg: Any  # the bag's own message class (rosbags), read by field
+    for _, _, _, colour_msg in read_bag(bag, topics=[CAMERA_TOPICS["image"]]):
+        rgb_by_stamp[stamp_to_ns(colour_msg.header.stamp)] = colour_msg
     frames = []
     for index, stamp in enumerate(run["input_stamps"]):
         colour = rgb_by_stamp[stamp]
@@ -93,7 +94,7 @@ def _frames_for_report(run: Dict[str, object], bag: str) -> List[DemoFrame]:
     return frames
 
 
-def stage_latency_summary(run: Dict[str, object]) -> Dict[str, str]:
+def stage_latency_summary(run: Mapping[str, Any]) -> Dict[str, str]:
     """p50 / p95 of each stage's compute time and of the end-to-end latency, as report rows."""
     per_stage: Dict[str, List[float]] = {}
     for topic, _, msg in run["decoded"]:

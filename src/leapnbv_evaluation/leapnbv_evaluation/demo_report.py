@@ -8,11 +8,12 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 
+from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray, UInt8Array
 from leapnbv_common.conversions import GroundPlaneArrays, ViewCandidatesArrays
 from leapnbv_evaluation.report_files import (
     ReportError,
@@ -28,6 +29,8 @@ FLOOR_CLEARANCE_M = 0.05
 # Most background / target points drawn in one map; more only slow the PNG down.
 MAX_PLOTTED_POINTS = 20000
 
+#: A plane normal: three numbers, as a list or an array.
+PlaneNormal = Union[Sequence[float], FloatArray]
 MASK_TINT_RGB = (0, 200, 0)
 MASK_TINT_ALPHA = 0.45
 BOX_COLOUR_RGB = (255, 64, 0)
@@ -42,9 +45,9 @@ class GroundFrame(NamedTuple):
         e2: (3,) unit, e1 x n: the camera's right on the plane (map +x).
     """
 
-    origin: np.ndarray
-    e1: np.ndarray
-    e2: np.ndarray
+    origin: FloatArray
+    e1: FloatArray
+    e2: FloatArray
 
 
 # ---------------------------------------------------------------------------------------------
@@ -53,11 +56,11 @@ class GroundFrame(NamedTuple):
 
 
 def overlay_person(
-    rgb: np.ndarray,
+    rgb: UInt8Array,
     box_xyxy: Optional[Sequence[float]],
-    mask: Optional[np.ndarray],
+    mask: Optional[BoolArray],
     label: str = "",
-) -> np.ndarray:
+) -> UInt8Array:
     """The colour frame with the person mask tinted and the detection box drawn.
 
     Mask pixels become (1 - a) rgb + a tint; the box is a 2 px rectangle with `label`
@@ -101,7 +104,7 @@ def overlay_person(
     return out
 
 
-def _draw_label(image: np.ndarray, label: str, x0: int, y0: int, y1: int) -> None:
+def _draw_label(image: UInt8Array, label: str, x0: int, y0: int, y1: int) -> None:
     """Draw `label` on a filled strip at the box's top-left corner (in place)."""
     font = cv2.FONT_HERSHEY_SIMPLEX
     scale = max(0.4, min(1.0, image.shape[0] / 900.0))
@@ -118,7 +121,7 @@ def _draw_label(image: np.ndarray, label: str, x0: int, y0: int, y1: int) -> Non
 # ---------------------------------------------------------------------------------------------
 
 
-def _unit_plane(normal: Sequence[float], offset: float) -> Tuple[np.ndarray, float]:
+def _unit_plane(normal: PlaneNormal, offset: float) -> Tuple[FloatArray, float]:
     """Normalise n.x + d = 0 so that |n| = 1 (d scales with it)."""
     n = np.asarray(normal, dtype=np.float64).reshape(-1)
     if n.shape != (3,):
@@ -129,7 +132,7 @@ def _unit_plane(normal: Sequence[float], offset: float) -> Tuple[np.ndarray, flo
     return n / length, float(offset) / length
 
 
-def ground_frame(normal: Sequence[float], offset: float) -> GroundFrame:
+def ground_frame(normal: PlaneNormal, offset: float) -> GroundFrame:
     """A 2D map basis on the ground plane n.x + d = 0, seen from the camera at the origin.
 
     origin = -d n is the camera's foot point; e1 = the optical axis z projected on the plane
@@ -159,7 +162,7 @@ def ground_frame(normal: Sequence[float], offset: float) -> GroundFrame:
     return GroundFrame(origin=origin, e1=e1, e2=e2 / np.linalg.norm(e2))
 
 
-def to_ground_2d(points: np.ndarray, frame: GroundFrame) -> np.ndarray:
+def to_ground_2d(points: FloatingArray, frame: GroundFrame) -> FloatArray:
     """Map coordinates of points (their orthogonal projection on the plane).
 
     Args:
@@ -181,7 +184,7 @@ def to_ground_2d(points: np.ndarray, frame: GroundFrame) -> np.ndarray:
     return np.stack([relative @ frame.e2, relative @ frame.e1], axis=1)
 
 
-def _points_array(points: Optional[np.ndarray], name: str) -> np.ndarray:
+def _points_array(points: Optional[FloatingArray], name: str) -> FloatArray:
     if points is None:
         return np.zeros((0, 3))
     array = np.asarray(points, dtype=np.float64)
@@ -189,10 +192,11 @@ def _points_array(points: Optional[np.ndarray], name: str) -> np.ndarray:
         return np.zeros((0, 3))
     if array.ndim != 2 or array.shape[1] != 3:
         raise ReportError(f"{name} must be (N,3), got {array.shape}")
-    return array[np.all(np.isfinite(array), axis=1)]
+    finite: FloatArray = array[np.all(np.isfinite(array), axis=1)]
+    return finite
 
 
-def _subsample(points: np.ndarray, limit: int) -> np.ndarray:
+def _subsample(points: FloatArray, limit: int) -> FloatArray:
     """At most `limit` rows, chosen with a fixed seed so the same input draws the same map."""
     if len(points) <= limit:
         return points
@@ -207,17 +211,17 @@ def _subsample(points: np.ndarray, limit: int) -> np.ndarray:
 
 def plot_ring_top_down(
     path: str,
-    candidate_positions: np.ndarray,
-    scores: np.ndarray,
-    feasible: np.ndarray,
+    candidate_positions: FloatArray,
+    scores: FloatArray,
+    feasible: BoolArray,
     chosen_index: int,
-    ring_center: np.ndarray,
-    target_points: Optional[np.ndarray],
-    background_points: Optional[np.ndarray],
-    plane_normal: Sequence[float],
+    ring_center: FloatArray,
+    target_points: Optional[FloatingArray],
+    background_points: Optional[FloatingArray],
+    plane_normal: PlaneNormal,
     plane_offset: float,
     title: str = "",
-    candidate_rotations: Optional[np.ndarray] = None,
+    candidate_rotations: Optional[FloatArray] = None,
 ) -> str:
     """Write a top-down PNG map of the candidate ring in ground coordinates (atomically).
 
@@ -419,13 +423,13 @@ class DemoFrame:
 
     index: int
     stamp_ns: int
-    rgb: np.ndarray
+    rgb: UInt8Array
     box: Optional[Sequence[float]] = None
-    mask: Optional[np.ndarray] = None
+    mask: Optional[BoolArray] = None
     candidates: Optional[ViewCandidatesArrays] = None
     ground: Optional[GroundPlaneArrays] = None
-    target_points: Optional[np.ndarray] = None
-    background_points: Optional[np.ndarray] = None
+    target_points: Optional[FloatingArray] = None
+    background_points: Optional[FloatingArray] = None
     latency_ms: Optional[float] = None
     label: str = "person"
 

@@ -35,10 +35,11 @@ import signal
 import subprocess
 import sys
 import time
-from typing import IO, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import IO, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from leapnbv_evaluation.episode import EvaluationError
-from leapnbv_evaluation.harness import ClosedLoopEvaluator, EvaluationOptions
+from leapnbv_evaluation.harness import ClosedLoopEvaluator
+from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import EvaluationRun, ResultsError, SceneResult
 
 DOMAIN_BASE_ENV = "LEAPNBV_EVAL_DOMAIN_BASE"
@@ -63,7 +64,7 @@ def shares(seeds: Sequence[int], workers: int) -> List[Tuple[int, List[int]]]:
     return out
 
 
-def explicit_domain_base(explicit: Optional[int] = None, environ: Optional[Dict[str, str]] = None) -> Optional[int]:
+def explicit_domain_base(explicit: Optional[int] = None, environ: Optional[Mapping[str, str]] = None) -> Optional[int]:
     """The workers' first ROS domain when one is given: ``explicit``, else $LEAPNBV_EVAL_DOMAIN_BASE, else None.
 
     Raises:
@@ -81,13 +82,13 @@ def explicit_domain_base(explicit: Optional[int] = None, environ: Optional[Dict[
         raise EvaluationError(f"${DOMAIN_BASE_ENV} must be an integer, got {value!r}") from error
 
 
-def lock_folder(environ: Optional[Dict[str, str]] = None) -> pathlib.Path:
+def lock_folder(environ: Optional[Mapping[str, str]] = None) -> pathlib.Path:
     """Where domain locks live (shared with the test suite's conftest)."""
     environ = os.environ if environ is None else environ
     return pathlib.Path(environ.get("TMPDIR", "/tmp")) / "leapnbv-ros-domains"
 
 
-def claim_domains(count: int, environ: Optional[Dict[str, str]] = None) -> Tuple[List[int], List[IO[str]]]:
+def claim_domains(count: int, environ: Optional[Mapping[str, str]] = None) -> Tuple[List[int], List[IO[str]]]:
     """``count`` free ROS domains, locked for as long as the returned handles stay open.
 
     Raises:
@@ -194,7 +195,7 @@ def run_in_workers(seeds: Sequence[int], out_dir: str, options: EvaluationOption
         if first < 0 or domains[-1] > MAX_DOMAIN_ID:
             raise EvaluationError(f"ROS domains {first}..{domains[-1]} for {len(parts)} workers are outside "
                                   f"0..{MAX_DOMAIN_ID}")
-    processes: List[Tuple[int, subprocess.Popen]] = []
+    processes: List[Tuple[int, subprocess.Popen[bytes]]] = []
     try:
         for index, (first_index, share) in enumerate(parts):
             folder = worker_dir(out_dir, index)
@@ -234,7 +235,7 @@ def run_in_workers(seeds: Sequence[int], out_dir: str, options: EvaluationOption
         raise EvaluationError(f"the workers' results cannot be merged: {error}") from error
 
 
-def _stop(processes) -> None:
+def _stop(processes: Iterable[subprocess.Popen[bytes]]) -> None:
     """SIGINT to every running worker (it stops its graph), then SIGKILL after the grace time."""
     waiting = [process for process in processes if process.poll() is None]
     for process in waiting:

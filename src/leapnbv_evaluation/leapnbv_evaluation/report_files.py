@@ -11,6 +11,7 @@ from typing import Any, Mapping, Tuple
 import cv2
 import numpy as np
 
+from leapnbv_common.array_types import UInt8Array
 from leapnbv_common.atomic_files import write_file_atomically
 
 
@@ -35,7 +36,7 @@ def write_json_atomically(path: str, payload: Any) -> str:
     return write_text_atomically(path, json.dumps(to_plain(payload), indent=2, allow_nan=False) + "\n")
 
 
-def write_rgb_png_atomically(path: str, rgb: np.ndarray) -> str:
+def write_rgb_png_atomically(path: str, rgb: UInt8Array) -> str:
     bgr = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR)
 
     def write(temporary: str) -> None:

@@ -9,10 +9,11 @@ from __future__ import annotations
 import json
 import math
 import os
-from typing import Any, Dict, List, Mapping, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Sequence, Tuple, Union
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
 from leapnbv_evaluation.metrics import SUCCESS_MIN_COVERAGE, SUCCESS_MIN_GAIN, latency_summary
 from leapnbv_evaluation.report_files import (
     ReportError,
@@ -239,7 +240,7 @@ def write_task_table(out_dir: str, run: EvaluationRun) -> str:
     return write_text_atomically(os.path.join(out_dir, "results.md"), "\n".join(lines))
 
 
-def _rounded(values: Sequence[float], digits: int = 6) -> List[float]:
+def _rounded(values: Union[Sequence[float], FloatArray], digits: int = 6) -> List[float]:
     return [round(float(v), digits) for v in values]
 
 
@@ -291,9 +292,9 @@ def evaluation_summary_markdown(run: EvaluationRun) -> str:
     """evaluation.md: what ran, the raw-coverage table, the graph's own areas, failures, wall time."""
     failures = [(scene.seed, scene.graph_failure) for scene in run.scenes if scene.graph_failure]
     graph_before = [scene.graph_area_before_px for scene in run.scenes if scene.graph_area_before_px is not None]
-    graph_after = [scene.per_method[run.default_method].graph_area_after for scene in run.scenes
-                   if run.default_method in scene.per_method
-                   and scene.per_method[run.default_method].graph_area_after is not None]
+    areas_after = [scene.per_method[run.default_method].graph_area_after for scene in run.scenes
+                   if run.default_method in scene.per_method]
+    graph_after = [area for area in areas_after if area is not None]
     ready = _number(run.ready_s, 1) if run.ready_s is not None else "n/a"
     workers = f"; {run.workers} worker processes (one graph each)" if run.workers > 1 else ""
     lines = [

@@ -12,15 +12,17 @@ from typing import Sequence
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
 from leapnbv_planner.reachability import build_occupancy_grid, reachability
+from leapnbv_sim.scene import Scene
 
 ROBOT_RADIUS_M = 0.3  # the planner's default robot_radius
 GRID_CELL_M = 0.1
 FLOOR_CLEARANCE_M = 0.05
 
 
-def true_path_lengths(scene, start_xy: Sequence[float], goals_xy: np.ndarray,
-                      robot_radius: float = ROBOT_RADIUS_M, cell: float = GRID_CELL_M) -> np.ndarray:
+def true_path_lengths(scene: Scene, start_xy: Sequence[float], goals_xy: FloatArray,
+                      robot_radius: float = ROBOT_RADIUS_M, cell: float = GRID_CELL_M) -> FloatArray:
     """Shortest free path (m) from the start to each goal on the floor (inf: none; 0 for the start itself).
 
     Args:
@@ -35,6 +37,6 @@ def true_path_lengths(scene, start_xy: Sequence[float], goals_xy: np.ndarray,
     up = np.array([0.0, 0.0, 1.0])
     grid = build_occupancy_grid(scene.obstacle_voxel_centres(cell), scene.body_vertices_world, up, 0.0,
                                 np.concatenate([start[None], goals]), cell, robot_radius, FLOOR_CLEARANCE_M)
-    lengths = np.asarray(reachability(grid, start, goals, 1e6, robot_radius).path_lengths, np.float64)
+    lengths: FloatArray = np.asarray(reachability(grid, start, goals, 1e6, robot_radius).path_lengths, np.float64)
     lengths[np.linalg.norm(goals[:, :2] - start[:2], axis=1) < 1e-6] = 0.0
     return lengths
