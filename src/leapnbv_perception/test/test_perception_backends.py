@@ -115,7 +115,8 @@ def test_missing_model_file_names_path(tmp_path: Path) -> None:
 
 
 def test_unknown_backend_and_precision(models: Dict[str, str]) -> None:
-    with pytest.raises(ValueError, match="unknown engine backend 'openvino'; known: onnxruntime, onnxruntime_last_bit_nudged, tensorrt"):
+    with pytest.raises(ValueError, match="unknown engine backend 'openvino'; known: onnxruntime, "
+                                         "onnxruntime_last_bit_nudged, tensorrt"):
         create_backend("openvino", models["detector"])
     with pytest.raises(ValueError, match="int8"):
         create_backend("onnxruntime", models["detector"], precision="int8")
