@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from types import SimpleNamespace
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -20,10 +21,15 @@ from leapnbv_evaluation.closed_loop import (
     stay_where_the_graph_failed,
     stop_reason,
 )
-from leapnbv_evaluation.episode import EvaluationError
+from leapnbv_evaluation.episode import EvaluationError, candidate_world_pose, frame_stamp_ns
 from leapnbv_evaluation.frame_outputs import END_TO_END, FrameOutputs, expected_outputs
 from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import MethodResult, PoseRecord, ViewMetrics
+from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_planner.candidates import CandidateRingParams, generate_candidates
+from leapnbv_sim.generation import SceneConfig, generate_scene
+from leapnbv_sim.poses import CameraPose
+from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 
 def _candidates(score, chosen, includes_current_view=True, terms=("visibility", "area")) -> ViewCandidatesArrays:
@@ -99,3 +105,119 @@ def test_frame_outputs_early_failure_completeness_and_latency() -> None:
     assert frame.complete(real_models=False)
     assert not frame.complete(real_models=True)  # the metric mesh is missing
     assert expected_outputs(True) - expected_outputs(False) == {"human_mesh_metric"}
+
+
+# --------------------------------------------------------------------------- an episode through a fake session
+
+@pytest.fixture(scope="module")
+def scene():
+    model = SMPLXModel.load(ensure_stand_in_body_model("small"))
+    return generate_scene(dataclasses.replace(SceneConfig(), seed=3), model)
+
+
+def _ring(scene, camera, chosen, score) -> ViewCandidatesArrays:
+    """The candidate ring around the person as seen from ``camera`` (index 0: the current view)."""
+    normal = camera.rotation.T @ np.array([0.0, 0.0, 1.0])
+    centroid = camera.world_to_camera(scene.body_centre_world[None])[0]
+    ring = generate_candidates(centroid, normal, float(camera.position[2]), CandidateRingParams(
+        num_candidates=8, radius=2.0, num_rings=1))
+    candidates = _candidates(score, chosen)
+    return dataclasses.replace(candidates, rotations=ring.rotations, positions=ring.positions)
+
+
+@dataclasses.dataclass
+class _ScriptedFrame(FrameOutputs):
+    """A frame whose candidates are given (the graph's answer without its messages)."""
+
+    planned: Optional[ViewCandidatesArrays] = None
+
+    @property
+    def view_candidates(self):
+        return None if self.planned is None else SimpleNamespace(chosen_index=self.planned.chosen_index)
+
+    def candidates(self) -> Optional[ViewCandidatesArrays]:
+        return self.planned
+
+
+class _FakeSession:
+    """The simulator and a graph that answers frame k with plans[k]; goals are followed at once."""
+
+    def __init__(self, plans) -> None:
+        self.plans = list(plans)  # callables (scene, camera) -> candidates or None
+        self.power = None
+        self.stamps: List[int] = []
+        self.waited: List[int] = []
+        self.moved_directly: List[CameraPose] = []
+        self._frames: Dict[int, Tuple[CameraPose, Optional[ViewCandidatesArrays]]] = {}
+
+    def set_scene(self, scene) -> None:
+        self.scene, self.camera = scene, scene.start_camera.copy()
+
+    def run_frame(self, stamp_ns):
+        plan = self.plans[len(self.stamps)](self.scene, self.camera)
+        self.stamps.append(stamp_ns)
+        self._frames[stamp_ns] = (self.camera.copy(), plan)
+        return self.scene.render(self.camera, frame_index=1), _ScriptedFrame(stamp_ns=stamp_ns, published_ns=0,
+                                                                             planned=plan)
+
+    def wait_goal(self, stamp_ns) -> bool:
+        self.waited.append(stamp_ns)
+        pose, plan = self._frames[stamp_ns]
+        if plan is not None and plan.chosen_index >= 0:
+            self.camera = candidate_world_pose(pose, plan, plan.chosen_index)
+        return True
+
+    def move_to(self, pose) -> None:
+        self.moved_directly.append(pose)
+        self.camera = pose.copy()
+
+    def camera_pose(self):
+        return self.camera
+
+    def camera_pose_at(self, stamp_ns):
+        return self._frames[stamp_ns][0].copy() if stamp_ns in self._frames else None
+
+
+def _plan(chosen, score):
+    return lambda scene, camera: _ring(scene, camera, chosen, score)
+
+
+def test_an_episode_moves_while_the_predicted_gain_holds_then_stops(scene) -> None:
+    nine = np.linspace(0.1, 0.5, 9)
+    session = _FakeSession([_plan(2, nine), _plan(5, np.r_[0.3, np.full(8, 0.1)] + np.eye(9)[5] * 0.25),
+                            _plan(4, np.r_[0.4, np.full(8, 0.41)])])
+    options = EvaluationOptions(score_all_candidates=False, max_moves=4, min_gain=0.02)
+    episodes = ClosedLoopEpisodes(session, options)
+    result = episodes.run(scene, seed=3, scene_index=2, stamp_base=1_000_000_000_000)
+    stamps = [frame_stamp_ns(1_000_000_000_000, 2, frame) for frame in range(3)]
+    assert session.stamps == stamps and session.waited == stamps  # every planned frame's goal is consumed
+    assert result.graph_failure is None and result.stamp_ns == stamps[0]
+    leap = result.per_method["leap_nbv"]
+    assert leap.chosen_index == 2
+    loop = leap.closed_loop
+    assert loop.goal_received and loop.goal_position_error_m == pytest.approx(0.0, abs=1e-9)
+    assert loop.after_stamp_ns == stamps[1] and loop.after_graph_chosen_index == 5
+    # Move 2 (gain 0.35 - 0.3 = 0.05 >= 0.02) was made; the view it reached predicts 0.01: stop.
+    assert [step.move for step in loop.steps] == [2]
+    step = loop.steps[0]
+    assert step.planned_from_stamp_ns == stamps[1] and step.stamp_ns == stamps[2] and step.chosen_index == 5
+    assert step.predicted_gain == pytest.approx(0.05)
+    after_move_1 = candidate_world_pose(scene.start_camera, _ring(scene, scene.start_camera, 2, nine), 2)
+    travel = np.linalg.norm(session.camera_pose_at(stamps[2]).position[:2] - after_move_1.position[:2])
+    assert step.travel_m == pytest.approx(travel, abs=1e-4) and step.travel_m > 0.5
+    assert loop.stop_reason == STOP_LOW_GAIN
+    assert session.moved_directly == []
+    assert episodes.term_names == ["visibility", "area"]
+
+
+def test_an_episode_stops_when_the_graph_plans_nothing_and_a_one_move_episode_has_no_rule(scene) -> None:
+    session = _FakeSession([_plan(3, np.linspace(0.1, 0.5, 9)), lambda scene, camera: None])
+    result = ClosedLoopEpisodes(session, EvaluationOptions(score_all_candidates=False, max_moves=3)).run(
+        scene, seed=3, scene_index=0, stamp_base=0)
+    loop = result.per_method["leap_nbv"].closed_loop
+    assert loop.steps == [] and loop.stop_reason == STOP_NO_PLAN and loop.after_graph_chosen_index is None
+    assert len(session.stamps) == 2 and session.waited == session.stamps[:1]  # no goal for the unplanned frame
+    session = _FakeSession([_plan(3, np.linspace(0.1, 0.5, 9)), _plan(4, np.linspace(0.1, 0.9, 9))])
+    loop = ClosedLoopEpisodes(session, EvaluationOptions(score_all_candidates=False, max_moves=1)).run(
+        scene, seed=3, scene_index=0, stamp_base=0).per_method["leap_nbv"].closed_loop
+    assert loop.steps == [] and loop.stop_reason == "" and len(session.stamps) == 2
