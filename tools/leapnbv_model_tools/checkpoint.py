@@ -12,6 +12,8 @@ tensor's shape must match: otherwise one error lists what is missing, unexpected
 from __future__ import annotations
 
 import json
+import os
+import re
 from pathlib import Path
 from typing import Dict, List, Tuple
 
@@ -25,7 +27,16 @@ _RENAMES = (("backbone.", "encoder."), ("body_rotation_net.", "body_regressor.")
 
 
 class CheckpointError(ValueError):
-    """A checkpoint that does not fit the network (keys or shapes), naming every difference."""
+    """A checkpoint that cannot be used: unreadable, not a SMPLer-X checkpoint, or one that does not fit the
+    network (keys or shapes, naming every difference). The first line of the message names the file."""
+
+    def __init__(self, message: str, line: str = "") -> None:
+        super().__init__(message)
+        self.line = line or message.splitlines()[0]
+
+    def one_line(self) -> str:
+        """The message as one line (the CLI contract)."""
+        return self.line
 
 
 def checkpoint_file_name(variant: str) -> str:
@@ -42,12 +53,60 @@ def normalize_key(key: str) -> str:
     return key
 
 
-def state_dict_of(checkpoint: Dict) -> Dict[str, torch.Tensor]:
+def state_dict_of(checkpoint: Dict, source: str = "<checkpoint>") -> Dict[str, torch.Tensor]:
     """The network weights of an official checkpoint dict ('network'), keys normalized, smplx_layer dropped."""
     if not isinstance(checkpoint, dict) or "network" not in checkpoint:
-        found = sorted(checkpoint)[:10] if isinstance(checkpoint, dict) else type(checkpoint).__name__
-        raise CheckpointError(f"not a SMPLer-X checkpoint: no 'network' entry (found {found})")
-    return {normalize_key(k): v for k, v in checkpoint["network"].items() if "smplx_layer" not in k}
+        found = sorted(map(str, checkpoint))[:10] if isinstance(checkpoint, dict) else type(checkpoint).__name__
+        raise CheckpointError(f"{source} is not a SMPLer-X checkpoint: no 'network' entry (found {found})")
+    network = checkpoint["network"]
+    if not isinstance(network, dict):
+        raise CheckpointError(f"{source} is not a SMPLer-X checkpoint: its 'network' is a {type(network).__name__}, "
+                              "not a dict of tensors")
+    for key, value in network.items():
+        if not isinstance(key, str) or not isinstance(value, torch.Tensor):
+            raise CheckpointError(f"{source} is not a SMPLer-X checkpoint: 'network' entry {key!r} is a "
+                                  f"{type(value).__name__}, not a tensor")
+    return {normalize_key(k): v for k, v in network.items() if "smplx_layer" not in k}
+
+
+_ZIP_MAGIC = b"PK\x03\x04"
+
+
+def read_checkpoint(path: str) -> Dict:
+    """``torch.load(path, weights_only=True)``, every failure a CheckpointError of one line naming the file
+    (missing, a folder, unreadable, empty, truncated, not a PyTorch file, or holding more than tensors)."""
+    if not os.path.exists(path):
+        raise CheckpointError(f"checkpoint not found: '{path}'")
+    if os.path.isdir(path):
+        raise CheckpointError(f"checkpoint '{path}' is a folder, not a file")
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(8)
+        size = os.path.getsize(path)
+    except OSError as error:
+        raise CheckpointError(f"checkpoint '{path}' is unreadable: {error.strerror or error}") from error
+    if size == 0:
+        raise CheckpointError(f"checkpoint '{path}' is empty")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - torch.load raises many kinds (RuntimeError, UnpicklingError, ...)
+        text = str(error)
+        first = text.splitlines()[0] if text else type(error).__name__
+        unpickler = re.search(r"WeightsUnpickler error:\s*([^\n]+)", text)
+        detail = unpickler.group(1) if unpickler else first
+        # weights_only refuses a pickle that holds more than tensors (a class, a function); on bytes that are
+        # no pickle at all it says the same, so the header (zip archive, pickle protocol >= 2) tells them apart.
+        refused = "Weights only load failed" in text
+        if head[:1] == b"\x08" and head[2:3] == b"\x12" or path.endswith(".onnx"):  # ir_version, producer_name
+            reason = "not a PyTorch checkpoint (it looks like an ONNX model)"
+        elif refused and (head.startswith(_ZIP_MAGIC) or head[:1] == b"\x80"):
+            reason = f"not a plain-tensor checkpoint (torch.load with weights_only refuses it: {detail[:100]})"
+        elif head.startswith(_ZIP_MAGIC):
+            found = re.search(r"zip archive: ([^.]*)", first)
+            reason = f"truncated or damaged (torch.load: {found.group(1) if found else first[:100]})"
+        else:
+            reason = f"not a PyTorch checkpoint, or truncated (torch.load: {type(error).__name__}: {detail[:100]})"
+        raise CheckpointError(f"checkpoint '{path}' is {reason}") from error
 
 
 def check_state_dict(model: SMPLerX, weights: Dict[str, torch.Tensor], source: str = "<weights>") -> None:
@@ -64,19 +123,23 @@ def check_state_dict(model: SMPLerX, weights: Dict[str, torch.Tensor], source: s
         shapes = {k: tuple(v.shape) for k, v in weights.items()}
         fits = [v for v in VARIANTS if (MANIFEST_DIR / f"smpler_x_{v}.json").exists() and read_manifest(v) == shapes]
         hint = f" (its keys and shapes are those of {', '.join(fits)})" if fits else ""
+        first = (f"{source} does not fit SMPLer-X {model.variant.name} (embed {model.variant.embed_dim}, "
+                 f"depth {model.variant.depth}): {len(missing)} missing, {len(unexpected)} unexpected, "
+                 f"{len(misshaped)} of the wrong shape{hint}")
+        examples = [f"{title} {items[0]}" for title, items in (("missing", missing), ("unexpected", unexpected),
+                                                                ("wrong shape", misshaped)) if items]
         raise CheckpointError(
-            f"{source} does not fit SMPLer-X {model.variant.name} (embed {model.variant.embed_dim}, "
-            f"depth {model.variant.depth}): {len(missing)} missing, {len(unexpected)} unexpected, "
-            f"{len(misshaped)} of the wrong shape{hint}"
-            + listed("missing", missing) + listed("unexpected", unexpected) + listed("wrong shape", misshaped))
+            first + listed("missing", missing) + listed("unexpected", unexpected) + listed("wrong shape", misshaped),
+            line=f"{first}; first {'; first '.join(examples)}")
 
 
 def load_smplerx(path: str, variant: str) -> SMPLerX:
     """The network of `variant` with the checkpoint's weights, strictly, in eval mode."""
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    weights = state_dict_of(checkpoint)
+    if variant not in VARIANTS:
+        raise CheckpointError(f"unknown SMPLer-X variant {variant!r} for '{path}': known {sorted(VARIANTS)}")
+    weights = state_dict_of(read_checkpoint(path), f"checkpoint '{path}'")
     model = SMPLerX(variant)
-    check_state_dict(model, weights, path)
+    check_state_dict(model, weights, f"checkpoint '{path}'")
     model.load_state_dict(weights, strict=True)
     return model.eval()
 

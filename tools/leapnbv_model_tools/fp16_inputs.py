@@ -20,9 +20,13 @@ def load_model(path: str):
     if not os.path.isfile(path):
         raise Fp16CheckError(f"model not found: '{path}'")
     try:
-        return onnx.load(path)
+        model = onnx.load(path)
     except Exception as error:  # noqa: BLE001 - protobuf raises several kinds
         raise Fp16CheckError(f"model '{path}' is not a readable ONNX file: {error}") from error
+    # protobuf reads an empty file (and some other bytes) as an empty message: no graph is no model
+    if not model.graph.input or not model.graph.output or not model.graph.node:
+        raise Fp16CheckError(f"model '{path}' is not an ONNX model: no graph inputs, outputs or nodes")
+    return model
 
 
 def load_crops(path: str, input_shape: Sequence[int]) -> np.ndarray:

@@ -215,3 +215,30 @@ def test_projection_weight_needs_the_camera_and_trains_the_camera_head(setup, tm
                                       teacher="", epochs=1, projection_weight=1.0))
     # Same weights and batch: the step's loss is the vertex loss plus the projection term (> 0).
     assert with_projection["history"]["loss"][0][1] > plain["history"]["loss"][0][1] + 1e-3
+
+
+def test_unusable_checkpoints_and_resume_state_are_one_line(setup, tmp_path: Path, capsys) -> None:
+    """A truncated teacher, an ONNX file as the student checkpoint, a teacher of another variant and a damaged
+    resume state: DistillError (the CLI: exit 2) in one line naming the file, before any training."""
+    from leapnbv_model_tools.__main__ import main
+
+    root, teacher, _ = setup
+    truncated = tmp_path / "truncated.pth.tar"
+    truncated.write_bytes(Path(teacher).read_bytes()[:5000])
+    onnx_file = tmp_path / "student.onnx"
+    onnx.save(onnx.helper.make_model(onnx.helper.make_graph([], "g", [], [])), str(onnx_file))
+    cases = [(dict(teacher=str(truncated)), f"checkpoint '{truncated}' is truncated or damaged"),
+             (dict(student_checkpoint=str(onnx_file)), f"checkpoint '{onnx_file}' is not a PyTorch checkpoint"),
+             (dict(teacher_variant="t64"), f"checkpoint '{teacher}' does not fit SMPLer-X t64")]
+    for changes, message in cases:
+        with pytest.raises(DistillError) as raised:
+            distill(_config(setup, str(tmp_path / "run"), **changes))
+        assert str(raised.value).startswith(message) and "\n" not in str(raised.value), raised.value
+    (tmp_path / "damaged").mkdir()
+    (tmp_path / "damaged" / "checkpoint.pt").write_bytes(b"PK\x03\x04 not a whole archive")
+    with pytest.raises(DistillError, match=r"checkpoint\.pt' \(the run's resume state\) is unreadable"):
+        distill(_config(setup, str(tmp_path / "damaged")))
+    assert main(["distill", "--train", str(root / "train.jsonl"), "--teacher", str(truncated), "--teacher-variant",
+                 "t32", "--student-variant", "t32", "--body-model", setup[2], "--out", str(tmp_path / "cli")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"distill: checkpoint '{truncated}' is truncated") and err.count("\n") == 1, err

@@ -94,3 +94,23 @@ def test_cli_errors_are_one_line_with_exit_2(tmp_path: Path, capsys) -> None:
     assert "does not fit the model input (N, 3, 64, 48)" in err and err.strip().count("\n") == 0
     np.save(tmp_path / "crops.npy", np.random.default_rng(0).uniform(size=(2, 3, 64, 48)).astype(np.float32))
     assert main(["fp16-check", path, "--calib", str(tmp_path / "crops.npy"), "--out", str(tmp_path / "o")]) == 0
+
+
+def test_an_unusable_model_file_is_one_line_with_exit_2(tmp_path: Path, capsys) -> None:
+    """An empty file (protobuf reads it as an empty model), a checkpoint and a truncated ONNX as the model."""
+    from leapnbv_model_tools.__main__ import main
+    from leapnbv_model_tools.checkpoint import random_smplerx, save_official
+
+    path = export_overflow_vit(OverflowViT(64, depth=1), str(tmp_path / "vit.onnx"))
+    np.save(tmp_path / "crops.npy", np.zeros((2, 3, 64, 48), np.float32))
+    (tmp_path / "empty.onnx").write_bytes(b"")
+    (tmp_path / "truncated.onnx").write_bytes(Path(path).read_bytes()[:2000])
+    checkpoint = save_official(random_smplerx("t32"), str(tmp_path / "smpler_x_t32.pth.tar"))
+    for model, message in ((tmp_path / "empty.onnx", "is not an ONNX model: no graph inputs, outputs or nodes"),
+                           (tmp_path / "truncated.onnx", "is not a readable ONNX file"),
+                           (checkpoint, "is not a readable ONNX file")):
+        out = str(tmp_path / "o")
+        assert main(["fp16-check", str(model), "--calib", str(tmp_path / "crops.npy"), "--out", out]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"fp16-check: model '{model}' {message}") and err.count("\n") == 1, err
+        assert not (tmp_path / "o").exists()
