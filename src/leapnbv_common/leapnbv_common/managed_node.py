@@ -20,9 +20,10 @@ A failed configure leaves the node unconfigured with what it made released (``cl
 so it must accept a half-made state); a failed activate leaves it inactive. Entities a hook made and
 its counterpart did not destroy are destroyed by the base class: the subscriptions and timers of
 ``activate_stage`` on deactivate, the publishers, subscriptions and timers of ``configure_stage`` on
-cleanup. Publishers: made in ``configure_stage`` with ``create_lifecycle_publisher`` (they drop what is
-published while the node is not active), so that a downstream node's subscriptions find them as soon
-as it activates.
+cleanup; so are the resources a hook hands to :meth:`ManagedNode.owned` (a camera-pose source: its
+``destroy()`` releases what it made). Publishers: made in ``configure_stage`` with
+``create_lifecycle_publisher`` (they drop what is published while the node is not active), so that a
+downstream node's subscriptions find them as soon as it activates.
 
 ``autostart`` (default true): a node started alone configures and activates itself before it spins
 (``run_node``), and while it is unconfigured tries configure again every
@@ -38,7 +39,7 @@ import os
 import socket
 import traceback
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Set, Tuple, Type, Union
+from typing import Any, Callable, Dict, List, Optional, Set, Tuple, Type, TypeVar, Union
 
 from lifecycle_msgs.msg import State
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -50,7 +51,9 @@ from leapnbv_common.params import ParamsError, param
 from leapnbv_common.process_tuning import tune_node_process
 
 __all__ = ["ManagedNode", "LifecycleParams", "StageNotReadyError", "UNCONFIGURED", "INACTIVE", "ACTIVE", "FINALIZED",
-           "STATE_LABELS", "run_managed_node"]
+           "STATE_LABELS", "managed_node_main"]
+
+R = TypeVar("R")
 
 UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED = "unconfigured", "inactive", "active", "finalized"
 #: lifecycle_msgs/State ids -> labels (the primary states and the transition states).
@@ -122,6 +125,8 @@ class ManagedNode(LifecycleNode):
         self.configure_attempts = 0
         self.finalized = False
         self._made: Dict[str, List[Tuple[str, Any]]] = {"configure": [], "activate": []}
+        self._owned: Dict[str, List[Any]] = {"configure": [], "activate": []}
+        self._phase = "configure"  # the hook running: what owned() hands its resources to
         self._retry_timer: Any = None
         self._autostart_timer: Any = None
         self._report()
@@ -149,6 +154,15 @@ class ManagedNode(LifecycleNode):
         Rebuild what depends on it, or raise ValueError to refuse it. While unconfigured the values are
         only stored: the next configure reads them.
         """
+
+    def owned(self, resource: R) -> R:
+        """Release ``resource`` (anything with ``destroy()``) with the entities of the hook that makes it.
+
+        Made in ``configure_stage``: destroyed on cleanup (and after a configure that failed); in
+        ``activate_stage``: on deactivate. Returns the resource.
+        """
+        self._owned[self._phase].append(resource)
+        return resource
 
     # ------------------------------------------------------------------ state
 
@@ -244,6 +258,7 @@ class ManagedNode(LifecycleNode):
     def _tracked(self, phase: str, hook) -> None:
         """Run a hook and remember every entity it made (destroyed with its phase by _release)."""
         before = {kind: set(map(id, getattr(self, kind))) for kind, _ in _ENTITY_KINDS}
+        self._phase = phase
         try:
             hook()
         finally:
@@ -256,6 +271,12 @@ class ManagedNode(LifecycleNode):
             hook()
         except Exception:  # noqa: BLE001 - releasing goes on: the entities below are destroyed anyway
             self.get_logger().error(f"{hook.__name__} failed:\n{traceback.format_exc()}")
+        owned, self._owned[phase] = self._owned[phase], []
+        for resource in reversed(owned):
+            try:
+                resource.destroy()
+            except Exception:  # noqa: BLE001 - releasing goes on
+                self.get_logger().error(f"destroying {type(resource).__name__} failed:\n{traceback.format_exc()}")
         made, self._made[phase] = self._made[phase], []
         for destroy, entity in made:
             if isinstance(entity, LifecyclePublisher):
@@ -318,11 +339,16 @@ class ManagedNode(LifecycleNode):
                 self._retry_timer = self.create_timer(params.configure_retry_period_s, self._retry_configure)
 
 
-def run_managed_node(node_class: Callable[[], ManagedNode], args: Optional[List[str]] = None) -> None:
-    """A stage node's main(): the process tuned for a node, then :func:`leapnbv_common.node_params.run_node`.
+def managed_node_main(node_class: Callable[[], ManagedNode]) -> Callable[..., None]:
+    """A stage node's ``main(args=None)`` (its console script): the process tuned, then the node run.
 
     The tuning (:func:`leapnbv_common.process_tuning.tune_node_process`): one BLAS thread, image buffers
-    kept in the heap.
+    kept in the heap; the run: :func:`leapnbv_common.node_params.run_node`.
     """
-    tune_node_process()
-    run_node(node_class, args)
+
+    def main(args: Optional[List[str]] = None) -> None:
+        tune_node_process()
+        run_node(node_class, args)
+
+    main.__doc__ = f"Run {node_class.__name__} (a console script's entry point)."
+    return main

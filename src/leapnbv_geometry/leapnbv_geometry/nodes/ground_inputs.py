@@ -160,16 +160,13 @@ class CameraPoseFloors:
                          wait_s=lambda f: self.node.params.value.camera_pose_wait_s, expect=self.expect)
 
     def attach(self) -> None:
-        """Make the camera-pose source (after the stage: its poses wake frames waiting in it)."""
-        self.source = create_camera_pose_source(self.node.params.value.camera_pose_source, self.node, POSE_CACHE,
-                                                self.on_pose)
-        self.node.stage.add_pulled(PulledInput.adopt(self.node, self.source))  # None for a source without one
+        """Make the camera-pose source, after the stage (its poses wake frames waiting in it).
 
-    def destroy(self) -> None:
-        """Release the source's subscriptions and timers (a configure after this one makes a new source)."""
-        source, self.source = self.source, None
-        if source is not None:
-            source.destroy()
+        It is released with the configure's entities on cleanup (ManagedNode.owned).
+        """
+        self.source = self.node.owned(create_camera_pose_source(self.node.params.value.camera_pose_source,
+                                                                self.node, POSE_CACHE, self.on_pose))
+        self.node.stage.add_pulled(PulledInput.adopt(self.node, self.source))  # None for a source without one
 
     def on_pose(self, pose: StampedCameraPose) -> None:
         """Keep the floor of this pose by stamp; a frame waiting for it goes on now.

@@ -36,7 +36,7 @@ from leapnbv_common.conversions import (
     detections_to_boxes,
     stamp_to_ns,
 )
-from leapnbv_common.managed_node import ManagedNode, run_managed_node
+from leapnbv_common.managed_node import ManagedNode, managed_node_main
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import DROP, NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Received, Stage
 from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image
@@ -105,11 +105,6 @@ class GroundNode(ManagedNode):
 
     def deactivate_stage(self) -> None:
         self.stage.stop()
-
-    def cleanup_stage(self) -> None:
-        pose_floors = getattr(self, "pose_floors", None)  # (a configure that failed half-way made none)
-        if pose_floors is not None:
-            pose_floors.destroy()
 
     def on_params_change(self, params: GroundParams, changed: Set[str]) -> None:
         """Everything is read per frame (the waits too, for the frames already waiting)."""
@@ -192,8 +187,7 @@ class GroundNode(ManagedNode):
         self.diagnostics.frame_out(header.stamp, compute_time_ms)
 
 
-def main(args=None) -> None:
-    run_managed_node(GroundNode, args)
+main = managed_node_main(GroundNode)  # the console script (leapnbv_common.managed_node: the process tuned, then run)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from leapnbv_common.conversions import (
     image_size,
     numpy_to_image,
 )
-from leapnbv_common.managed_node import ManagedNode, run_managed_node
+from leapnbv_common.managed_node import ManagedNode, managed_node_main
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Stage
 from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image
@@ -142,8 +142,7 @@ class RasterNode(ManagedNode):
         self.diagnostics.frame_out(header.stamp, compute_time_ms)
 
 
-def main(args=None) -> None:
-    run_managed_node(RasterNode, args)
+main = managed_node_main(RasterNode)  # the console script (leapnbv_common.managed_node: the process tuned, then run)
 
 
 if __name__ == "__main__":

@@ -14,45 +14,36 @@ are set at start-up.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
-from typing import Optional, Sequence, Set, Tuple
+from typing import Optional, Sequence, Set
 
 import numpy as np
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from leapnbv_common.camera_pose import create_camera_pose_source
 from leapnbv_common.contracts import ContractError, check_same_frame, refused
 from leapnbv_common.conversions import (
-    COLOUR_ENCODINGS,
-    HumanMeshArrays,
     SerializedImage,
     box_to_detection,
-    human_mesh_to_arrays,
     image_to_rgb,
     input_stamp_msgs,
     serialized_header_stamp_ns,
     stamp_to_ns,
 )
 from leapnbv_common.diagnostics import rejects_bad_input
-from leapnbv_common.managed_node import ManagedNode
-from leapnbv_common.node_params import run_node
-from leapnbv_common.process_tuning import tune_node_process
-from leapnbv_common.pulled_input import PulledInput
+from leapnbv_common.managed_node import ManagedNode, managed_node_main
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import Frame, KeyInput, Stage
-from leapnbv_common.stage_inputs import checked_serialized_image
-from leapnbv_common.topics import CAMERA_POSE, DETECTIONS, HUMAN_MESH_METRIC, VIEW_CANDIDATES
-from leapnbv_msgs.msg import HumanMesh, InputStamp, PersonDetections, ViewCandidates
+from leapnbv_common.stage_inputs import checked_colour_image
+from leapnbv_common.topics import DETECTIONS, VIEW_CANDIDATES
+from leapnbv_msgs.msg import PersonDetections, ViewCandidates
 from leapnbv_perception.admission import Admission
 from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, ground_truth_boxes, truth_companion
-from leapnbv_perception.box_tracking import DetectionSchedule, camera_motion, carry_box
-from leapnbv_perception.nodes.engine_loading import create_engine_backend, load_in_configure
+from leapnbv_perception.nodes.box_carrying import BoxCarrier
+from leapnbv_perception.nodes.engine_loading import load_in_configure, load_person_detector
 from leapnbv_perception.params import DetectorParams
 
 WAITING_CHECK_PERIOD_S = 0.05  # how often a waiting frame checks whether an in-flight frame timed out
-CARRY_POSE_CACHE = 90  # camera poses remembered for carrying boxes (3 s at 30 FPS)
 
 
 class DetectorNode(ManagedNode):
@@ -69,34 +60,24 @@ class DetectorNode(ManagedNode):
         self.detector = None
         if not self.ground_truth:
             self.detector = load_in_configure(self, "detector model " + repr(p.model_file_path),
-                                                             self.load_detector)
-        elif p.timing_stand_in:  # a benchmark: the real network's cost, the truth's boxes
-            self.detector = load_in_configure(
-                self, "timing stand-in detector model " + repr(p.model_file_path), self.load_timing_detector)
+                                              lambda: load_person_detector(p))
+        elif p.timing_stand_in:  # a benchmark: the real network's cost (onnxruntime), the truth's boxes
+            self.detector = load_in_configure(self, "timing stand-in detector model " + repr(p.model_file_path),
+                                              lambda: load_person_detector(p, backend="onnxruntime"))
         self.publisher = self.create_lifecycle_publisher(PersonDetections, DETECTIONS, stage_output_qos())
         # Detect less often: the target's box carried by its mesh's image motion between detections.
-        self.schedule = DetectionSchedule(p.detect_every_n_frames, p.carry_min_confidence)
-        self.carrying = p.detect_every_n_frames > 1
-        self.last_mesh: Optional[Tuple[int, str, HumanMeshArrays]] = None  # (stamp, frame_id, arrays)
+        self.carrier = BoxCarrier(self) if p.detect_every_n_frames > 1 else None
         # The newest frame only (depth 1): frames that came while the node was busy are counted as not taken.
         # Read in place from its serialized bytes (SerializedImage): it is checked, never deserialized. With the
         # ground-truth backend, the simulator's truth of its stamp (pulled when the image comes).
-        self.stage = Stage(self, KeyInput("image", Image, "image",
-                                          lambda cdr: checked_serialized_image(cdr, COLOUR_ENCODINGS, "colour"),
-                                          camera_input_qos(1), raw=True),
+        self.stage = Stage(self, KeyInput("image", Image, "image", checked_colour_image, camera_input_qos(1), raw=True),
                            [truth_companion(10)] if self.ground_truth else [], self.on_frame,
                            frame_error_reason="bad_ground_truth" if self.ground_truth else "bad_image",
                            on_restart=self.admission.reset)
 
     def activate_stage(self) -> None:
-        p = self.params.value
-        if self.carrying:
-            # Both pulled when a frame is decided: they do not wake the node.
-            self.mesh_input = PulledInput.create(self, HumanMesh, HUMAN_MESH_METRIC, self.on_mesh, stage_input_qos(1))
-            self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, CARRY_POSE_CACHE)
-            self.pose_input = PulledInput.adopt(self, self.camera_poses)
-            self.get_logger().info(f"detecting one admitted frame in {p.detect_every_n_frames}; the target's box is "
-                                   f"carried into the others (meshes up to {p.carry_max_age_s:g} s old)")
+        if self.carrier is not None:
+            self.carrier.start()
         self.stage.start()
         # The planner's answers free the graph: the newest frame that waited for it goes in at once.
         self.create_subscription(ViewCandidates, VIEW_CANDIDATES, self.on_final_output, stage_input_qos(10), raw=True)
@@ -112,78 +93,16 @@ class DetectorNode(ManagedNode):
     def cleanup_stage(self) -> None:
         self.detector = None  # the engine's memory goes with it
 
-    def load_detector(self):
-        from leapnbv_perception.detector import PersonDetector
-
-        p = self.params.value
-        return PersonDetector(create_engine_backend(p), p.score_threshold, p.iou_threshold, p.max_detections,
-                              family=p.detector_family, multi_label=p.multi_label)
-
-    def load_timing_detector(self):
-        """The timing stand-in's engine: onnxruntime, whatever the (ground_truth) backend says."""
-        from leapnbv_perception.detector import PersonDetector
-
-        p = self.params.value
-        return PersonDetector(create_engine_backend(dataclasses.replace(p, backend="onnxruntime")), p.score_threshold,
-                              p.iou_threshold, p.max_detections, family=p.detector_family, multi_label=p.multi_label)
-
     def on_params_change(self, params: DetectorParams, changed: Set[str]) -> None:
         """The thresholds, the carrying limits and the admission settings apply from the next frame (the
         rest is read-only)."""
-        self.schedule.min_confidence = params.carry_min_confidence
+        if self.carrier is not None:
+            self.carrier.schedule.min_confidence = params.carry_min_confidence
         detector = self.detector
         if detector is not None:
             detector.score_threshold = params.score_threshold
             detector.iou_threshold = params.iou_threshold
             detector.max_detections = params.max_detections
-
-    @rejects_bad_input("bad_human_mesh")
-    def on_mesh(self, msg: HumanMesh, info) -> None:
-        """The newest metric mesh of the target (raster_node), kept to carry its box into later frames."""
-        self.diagnostics.input_seen("human_mesh_metric", info)
-        stamp = stamp_to_ns(msg.header.stamp)
-        if self.last_mesh is None or stamp > self.last_mesh[0]:
-            self.last_mesh = (stamp, msg.header.frame_id, human_mesh_to_arrays(msg))
-
-    def carried_box(self, image: SerializedImage) -> Optional[Tuple[np.ndarray, list]]:
-        """(boxes (1, 5), inputs) when this frame's target box is carried instead of detected; None: detect.
-
-        Carried from the newest metric mesh of a frame at most carry_max_age_s older, by its image motion
-        and the camera poses of both frames, while the schedule allows and the carried box is trusted."""
-        if not self.carrying:
-            return None
-        self.mesh_input.drain()
-        if self.pose_input is not None:
-            self.pose_input.drain()
-        stamp = stamp_to_ns(image.header.stamp)
-        carried, refused_because = None, "no_mesh"
-        if self.last_mesh is not None:
-            mesh_stamp, mesh_frame, mesh = self.last_mesh
-            pose_a = self.camera_poses.pose_at(mesh_stamp, mesh_frame)
-            pose_b = self.camera_poses.pose_at(stamp, image.header.frame_id)
-            if not 0 < stamp - mesh_stamp <= self.params.value.carry_max_age_s * 1e9:
-                refused_because = "mesh_too_old"
-            elif mesh_frame != image.header.frame_id or tuple(mesh.image_size) != (image.width, image.height):
-                refused_because = "mesh_of_another_camera"
-            elif pose_a is None or pose_b is None:
-                refused_because = "no_camera_pose"
-            else:
-                fx, fy, cx, cy = mesh.virtual_intrinsics  # the metric mesh carries the camera's intrinsics
-                K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-                motion = camera_motion((pose_a.rotation, pose_a.position), (pose_b.rotation, pose_b.position))
-                carried = carry_box(mesh.detection[:4], mesh.vertices, K, K, (image.width, image.height), motion)
-                refused_because = "mesh_not_in_view" if carried is None else "low_confidence"
-        if carried is None or self.schedule.should_detect(carried):
-            if not self.schedule.due():  # a frame that could have been carried: say why it was not
-                self.diagnostics.count("detected_instead." + refused_because)
-            self.schedule.record(True)
-            return None
-        self.schedule.record(False)
-        self.diagnostics.count("boxes_carried")
-        boxes = np.array([[*carried.box, mesh.detection[4]]], np.float32)
-        inputs = [(HUMAN_MESH_METRIC, mesh_stamp, InputStamp.CARRIED), (CAMERA_POSE, stamp, InputStamp.SAME_FRAME),
-                  (CAMERA_POSE, mesh_stamp, InputStamp.CARRIED)]
-        return boxes, inputs
 
     def publish(self, header: Header, width: int, height: int, boxes: np.ndarray, started: float,
                 inputs: Sequence[tuple] = ()) -> None:
@@ -237,7 +156,7 @@ class DetectorNode(ManagedNode):
         if started is None:
             started = time.perf_counter()
         image: SerializedImage = frame["image"]
-        carried = self.carried_box(image)
+        carried = None if self.carrier is None else self.carrier.carried_box(image)
         if carried is not None:
             self.publish(image.header, image.width, image.height, carried[0], started, carried[1])
             return
@@ -253,9 +172,7 @@ class DetectorNode(ManagedNode):
         self.publish(image.header, image.width, image.height, boxes, started)
 
 
-def main(args=None) -> None:
-    tune_node_process()  # one BLAS thread, image buffers reused (leapnbv_common.process_tuning)
-    run_node(DetectorNode, args)
+main = managed_node_main(DetectorNode)  # the console script (leapnbv_common.managed_node: the process tuned, then run)
 
 
 if __name__ == "__main__":

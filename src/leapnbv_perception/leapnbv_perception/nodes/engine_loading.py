@@ -1,6 +1,7 @@
 """Loading an engine inside a managed node's configure: never fatal, the reason reported, retried by the lifecycle."""
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Callable
 
 from leapnbv_perception.params import EngineParams
@@ -36,3 +37,18 @@ def create_engine_backend(params: EngineParams):
                           precision_plan_path=params.precision_plan_path or None,
                           graph_optimization=params.graph_optimization, parallel_execution=params.parallel_execution,
                           inter_op_threads=params.inter_op_threads, thread_spinning=params.thread_spinning)
+
+
+def load_person_detector(params: Any, backend: str = "") -> Any:
+    """A PersonDetector on the engine that DetectorParams name, loaded.
+
+    Args:
+        params: The node's DetectorParams.
+        backend: Another backend for the engine (the timing stand-in's onnxruntime, whatever the
+            ground_truth backend says); empty: the params' own.
+    """
+    from leapnbv_perception.detector import PersonDetector
+
+    engine_params = dataclasses.replace(params, backend=backend) if backend else params
+    return PersonDetector(create_engine_backend(engine_params), params.score_threshold, params.iou_threshold,
+                          params.max_detections, family=params.detector_family, multi_label=params.multi_label)

@@ -32,7 +32,7 @@ from leapnbv_common.conversions import (
     image_size,
     image_to_rgb,
 )
-from leapnbv_common.managed_node import ManagedNode, run_managed_node
+from leapnbv_common.managed_node import ManagedNode, managed_node_main
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import REJECT, Companion, Frame, KeyInput, Stage
 from leapnbv_common.topics import DETECTIONS, HUMAN_MESH
@@ -156,8 +156,7 @@ class HmrNode(ManagedNode):
             model_id=os.path.basename(self.params.value.model_file_path))
 
 
-def main(args=None) -> None:
-    run_managed_node(HmrNode, args)
+main = managed_node_main(HmrNode)  # the console script (leapnbv_common.managed_node: the process tuned, then run)
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ from visualization_msgs.msg import MarkerArray
 from leapnbv_common import topics
 from leapnbv_common.camera_pose import create_camera_pose_source
 from leapnbv_common.conversions import arrays_to_view_candidates, ground_plane_to_arrays, target_geometry_to_arrays
-from leapnbv_common.managed_node import ManagedNode, run_managed_node
+from leapnbv_common.managed_node import ManagedNode, managed_node_main
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import stage_input_qos, stage_output_qos
 from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
@@ -95,9 +95,10 @@ class NbvNode(ManagedNode):
                       " points", capacity=BODY_MESH_CACHE, bad_reason="bad_body_mesh"),
         ], self.plan, capacity=PLANE_CACHE)
         # The camera poses also carry an older ground plane into a frame whose own plane never came. They
-        # come at camera rate and are pulled when a frame needs one (leapnbv_common.pulled_input).
-        self.camera_poses = create_camera_pose_source(p.camera_pose_source, self, p.camera_pose_cache,
-                                                      lambda pose: self.stage.companion_arrived("camera_pose"))
+        # come at camera rate and are pulled when a frame needs one (leapnbv_common.pulled_input); the source is
+        # released on cleanup.
+        self.camera_poses = self.owned(create_camera_pose_source(
+            p.camera_pose_source, self, p.camera_pose_cache, lambda pose: self.stage.companion_arrived("camera_pose")))
         self.stage.add_pulled(PulledInput.adopt(self, self.camera_poses))  # None for a source without one
         self.frame_floor = FrameFloor(self, self.camera_poses)
 
@@ -111,11 +112,6 @@ class NbvNode(ManagedNode):
     def deactivate_stage(self) -> None:
         self.stage.stop()
         self.goal.stop()
-
-    def cleanup_stage(self) -> None:
-        camera_poses = getattr(self, "camera_poses", None)  # (a configure that failed half-way made none)
-        if camera_poses is not None:
-            camera_poses.destroy()
 
     def on_params_change(self, new: PlannerParams, changed: Set[str]) -> None:
         """Rebuild what depends on changed parameters (everything else is read at each plan)."""
@@ -188,8 +184,7 @@ class NbvNode(ManagedNode):
         self.diagnostics.frame_out(target.header.stamp, out.compute_time_ms)
 
 
-def main(args=None) -> None:
-    run_managed_node(NbvNode, args)
+main = managed_node_main(NbvNode)  # the console script (leapnbv_common.managed_node: the process tuned, then run)
 
 
 if __name__ == "__main__":
