@@ -9,13 +9,24 @@ either step is refused with the reason, and the old values stay in force.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Generic, List, Optional, Set, Type, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Generic, List, Optional, Set, Type, TypeVar
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+# rcl_interfaces has no stubs (mypy.ini does not list it yet; once it does, the ignore is unused, and allowed to be).
+from rcl_interfaces.msg import (  # type: ignore[import-untyped, unused-ignore]
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 
 from leapnbv_common.params import ParamsError, ParamSpec, param_specs, params_from_values, replace_params
 
-P = TypeVar("P")
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+    P = TypeVar("P", bound=DataclassInstance)  # a params dataclass, as leapnbv_common.params types it
+else:
+    P = TypeVar("P")
 ChangeHandler = Callable[[Any, Set[str]], None]
 
 

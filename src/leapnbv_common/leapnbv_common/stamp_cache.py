@@ -50,7 +50,7 @@ class StampCache(Generic[T]):
     def __contains__(self, stamp_ns: int) -> bool:
         return stamp_ns in self._items
 
-    def items(self) -> list:
+    def items(self) -> List[Tuple[int, T]]:
         """(stamp, item) pairs in insertion order, oldest first (a copy: safe to pop while iterating)."""
         return list(self._items.items())
 
@@ -123,8 +123,8 @@ class ExactStampPairer(Generic[T]):
     def __init__(self, capacity: int = 10, first_name: str = "first", second_name: str = "second",
                  on_drop: Optional[DropCallback] = None) -> None:
         self.names = (first_name, second_name)
-        self._first: StampCache = StampCache(capacity, first_name + "_unpaired", on_drop)
-        self._second: StampCache = StampCache(capacity, second_name + "_unpaired", on_drop)
+        self._first: StampCache[Any] = StampCache(capacity, first_name + "_unpaired", on_drop)
+        self._second: StampCache[Any] = StampCache(capacity, second_name + "_unpaired", on_drop)
 
     @property
     def unpaired_dropped(self) -> int:
@@ -145,7 +145,7 @@ class ExactStampPairer(Generic[T]):
                 + self._second.drop_older_than(stamp_ns, self.names[1] + "_superseded"))
 
     @staticmethod
-    def _add(own: StampCache, others: StampCache, stamp_ns: int, item: Any) -> Optional[Any]:
+    def _add(own: StampCache[Any], others: StampCache[Any], stamp_ns: int, item: Any) -> Optional[Any]:
         """The waiting partner of this stamp (taken out of ``others``), else keep ``item`` in ``own``."""
         other = others.pop(stamp_ns)
         if other is None:
@@ -185,15 +185,15 @@ class CompanionWait:
         self.restarts = 0
         self.on_drop: DropCallback = on_drop or _ignore_drop
         self.frame_name = frame_name
-        self._frames: StampCache = StampCache(capacity, frame_name + "_evicted", self._report)
-        self._companions: StampCache = StampCache(capacity, companion_name + "_evicted", self._report)
+        self._frames: StampCache[Any] = StampCache(capacity, frame_name + "_evicted", self._report)
+        self._companions: StampCache[Any] = StampCache(capacity, companion_name + "_evicted", self._report)
         self.served_stamp: Optional[int] = None  # newest frame stamp handed out (paired or expired)
 
     def _report(self, reason: str, stamp_ns: int) -> None:
         self.on_drop(reason, stamp_ns)
 
     @property
-    def companions(self) -> StampCache:
+    def companions(self) -> StampCache[Any]:
         """The companion cache (by stamp), e.g. to look for an older companion to carry into a frame."""
         return self._companions
 

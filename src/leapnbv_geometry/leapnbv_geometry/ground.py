@@ -7,7 +7,7 @@ finds none (:func:`floor_plane_from_camera_pose`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -95,7 +95,7 @@ def fit_ground_plane(
     min_inliers: int = 200,
     min_inlier_ratio: float = 0.1,
     seed: int = 0,
-    up: Sequence[float] = (0.0, -1.0, 0.0),
+    up: Union[Sequence[float], FloatingArray] = (0.0, -1.0, 0.0),
     max_points: int = 2048,
     refine_iterations: int = 2,
     depth_noise_coeff: float = 0.0,

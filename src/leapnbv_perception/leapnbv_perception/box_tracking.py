@@ -17,11 +17,11 @@ poses as (R (3, 3), t (3,)) of T_world_camera; boxes (x_min, y_min, x_max, y_max
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from leapnbv_common.array_types import BoolArray, FloatArray
+from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray
 
 MIN_DEPTH_M = 0.1
 MIN_POINTS = 8
@@ -63,8 +63,9 @@ def project(points: FloatArray, K: FloatArray) -> Tuple[FloatArray, BoolArray]:
     return uv, front
 
 
-def carry_box(box_a: Sequence[float], vertices_a: FloatArray, K_a: FloatArray, K_b: FloatArray,
-              image_size_b: Tuple[int, int], motion: Tuple[FloatArray, FloatArray]) -> Optional[CarriedBox]:
+def carry_box(box_a: Union[Sequence[float], FloatingArray], vertices_a: FloatArray, K_a: FloatArray,
+              K_b: FloatArray, image_size_b: Tuple[int, int],
+              motion: Tuple[FloatArray, FloatArray]) -> Optional[CarriedBox]:
     """Move ``box_a`` into frame B with the mesh's image motion (None: too few points to fit).
 
     Args:

@@ -56,6 +56,7 @@ import sys
 import time
 from collections import OrderedDict
 from typing import Any, Dict, List, Optional, Set, Tuple
+from typing import OrderedDict as OrderedDictType
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -154,7 +155,7 @@ class SimulatorNode(Node):
         self.last_stamp_ns: Optional[int] = None
         self.last_goal_stamp_ns: Optional[int] = None
         self.goals_accepted = 0
-        self._poses: Dict[int, CameraPose] = OrderedDict()  # oldest stamp first
+        self._poses: OrderedDictType[int, CameraPose] = OrderedDict()  # oldest stamp first
         if scene is None:
             scene = load_scene(p)
         self.set_scene(scene)
@@ -227,6 +228,8 @@ class SimulatorNode(Node):
             goal: Target T_world_camera.
             start_ns: Sim time the motion starts; the latest published stamp when None.
         """
+        if self.camera is None:  # (a goal names a rendered frame's stamp: there is a camera once one was)
+            raise ValueError("no camera pose yet: no frame has been rendered")
         if start_ns is None:
             start_ns = self.last_stamp_ns if self.last_stamp_ns is not None else 0
         speed = self.params.move_speed_m_s
