@@ -263,8 +263,10 @@ def test_destroy_releases_the_sources_tf_subscriptions_and_its_timer():
 
 
 def test_a_cleanup_then_configure_cycle_leaves_one_set_of_tf_subscriptions():
-    """ground_node on the TF source, through configure -> cleanup -> configure -> activate -> deactivate ->
-    cleanup: each configure makes the source's /tf and /tf_static subscriptions once, each cleanup ends them."""
+    """ground_node on the TF source, configured, cleaned up, configured again, activated, and so on.
+
+    Each configure makes the source's /tf and /tf_static subscriptions once, each cleanup ends them.
+    """
     from leapnbv_geometry.nodes.ground_node import GroundNode
 
     rclpy.init(args=["--ros-args", "-p", "camera_pose_source:=tf", "-p", "autostart:=false"])
