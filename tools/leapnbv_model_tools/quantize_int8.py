@@ -109,7 +109,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         fp32 = OnnxRuntimeBackend(args.model, intra_op_threads=1)
     except (ModelFileNotFoundError, BackendError) as error:
-        print(f"quantize-int8: {error}", file=sys.stderr)
+        line = "; ".join(part.strip() for part in str(error).splitlines() if part.strip())  # one line
+        print(f"quantize-int8: {line}", file=sys.stderr)
         return 2
     specs = dict(fp32.input_specs)
     name = next(iter(specs))

@@ -249,3 +249,17 @@ def test_the_command_line_prints_one_line_and_no_traceback(tmp_path: Path) -> No
     assert result.returncode == 2
     assert result.stderr.strip() == (f"export-hmr: checkpoint '{model}' is not a PyTorch checkpoint (it looks like an "
                                      "ONNX model)")
+
+
+def test_quantize_int8_refuses_an_unusable_model_in_one_line(checkpoint: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """quantize-int8's model (read before any frame is rendered): missing, empty, a checkpoint."""
+    (tmp_path / "empty.onnx").write_bytes(b"")
+    for model, message in ((tmp_path / "absent.onnx", "model file not found"),
+                           (tmp_path / "empty.onnx", "onnxruntime could not load"),
+                           (Path(checkpoint), "onnxruntime could not load")):
+        assert main(["quantize-int8", "hmr", str(model), "--out", str(tmp_path / "q.onnx")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"quantize-int8: {message}") and str(model) in err, err
+        assert err.count("\n") == 1 and err.endswith("\n"), err
+        assert not (tmp_path / "q.onnx").exists()
