@@ -29,9 +29,26 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 # LEAPNBV_TWO_HOSTS_PROFILE: another profile to compare (e.g. fastdds_large_messages.xml, to see the loss).
 PROFILE = pathlib.Path(os.environ.get("LEAPNBV_TWO_HOSTS_PROFILE",
                                       REPO / "src/leapnbv_bringup/config/fastdds_two_hosts.xml"))
-# LEAPNBV_TWO_HOSTS_A_NODES / _B_NODES: another split to measure (docs/TWO_HOSTS.md).
-HOST_A_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_A_NODES", "detector_node,hmr_node")
-HOST_B_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_B_NODES", "raster_node,ground_node,nbv_node")
+# The two splits of docs/TWO_HOSTS.md (host A's nodes, host B's nodes).
+SPLITS = {
+    "planner": ("detector_node,hmr_node,raster_node,ground_node", "nbv_node"),
+    "geometry": ("detector_node,hmr_node", "raster_node,ground_node,nbv_node"),
+}
+# LEAPNBV_TWO_HOSTS_SPLIT: planner (off-board) or geometry (off-board, the default case);
+# LEAPNBV_TWO_HOSTS_A_NODES / _B_NODES: any other split.
+SPLIT = os.environ.get("LEAPNBV_TWO_HOSTS_SPLIT", "geometry")
+HOST_A_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_A_NODES", SPLITS.get(SPLIT, SPLITS["geometry"])[0])
+HOST_B_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_B_NODES", SPLITS.get(SPLIT, SPLITS["geometry"])[1])
+# LEAPNBV_TWO_HOSTS_RATE: shape the link (tc tbf on both ends, a 50 ms queue), e.g. 30mbit; "" for none.
+RATE = os.environ.get("LEAPNBV_TWO_HOSTS_RATE", "")
+# LEAPNBV_TWO_HOSTS_TRAFFIC=OUT.json: count the link's traffic per topic and direction
+# (scripts/experiments/two_host_traffic.py capture, on host B's end) and write it, with the run's frames.
+TRAFFIC_OUT = os.environ.get("LEAPNBV_TWO_HOSTS_TRAFFIC", "")
+TRAFFIC_SCRIPT = REPO / "scripts/experiments/two_host_traffic.py"
+# LEAPNBV_TWO_HOSTS_IN_FLIGHT: detector_node's max_frames_in_flight. With the planner on host B a frame in
+# flight is mostly on the link or on B's CPU, not A's: 2 lets A work on the next frame meanwhile
+# (docs/TWO_HOSTS.md); the other split keeps the parameter file's value unless this is set.
+IN_FLIGHT = os.environ.get("LEAPNBV_TWO_HOSTS_IN_FLIGHT", "2" if SPLIT == "planner" else "")
 SIM_RATE_HZ = 5.0
 RECORD_S = 50.0  # seconds the camera runs
 DEPTH_FRAME_BYTES = 640 * 480 * 2
@@ -113,9 +130,27 @@ class Namespaces:
             if multicast:  # DDS discovery multicast (239.255.0.1) leaves through the veth: the only way out
                 run(["ip", "-n", ns, "route", "add", "224.0.0.0/4", "dev", dev])
 
+    def shape(self, rate: str) -> None:
+        """A token bucket of ``rate`` with a 50 ms queue on both ends (a Wi-Fi-class link's bottleneck)."""
+        for ns, dev in ((self.a, self.veth_a), (self.b, self.veth_b)):
+            run(["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", dev, "root", "tbf", "rate", rate,
+                 "burst", "32kbit", "latency", "50ms"])
+
     def rx_bytes(self, ns: str, dev: str) -> int:
         out = run(["ip", "-n", ns, "-s", "-j", "link", "show", "dev", dev])
         return int(json.loads(out)[0]["stats64"]["rx"]["bytes"])
+
+    def link_stats(self) -> Dict[str, int]:
+        """Bytes each way, the queue's drops on each end, and UDP receive-buffer errors on each host."""
+        stats = {"a_to_b_bytes": self.rx_bytes(self.b, self.veth_b), "b_to_a_bytes": self.rx_bytes(self.a, self.veth_a)}
+        for side, ns, dev in (("a", self.a, self.veth_a), ("b", self.b, self.veth_b)):
+            qdisc = json.loads(run(["ip", "netns", "exec", ns, "tc", "-s", "-j", "qdisc", "show", "dev", dev]) or "[]")
+            stats[f"qdisc_drops_{side}"] = sum(int(q.get("drops", 0)) for q in qdisc)
+            snmp = run(["ip", "netns", "exec", ns, "cat", "/proc/net/snmp"]).splitlines()
+            udp = [line.split()[1:] for line in snmp if line.startswith("Udp:")]
+            if len(udp) == 2:
+                stats[f"udp_rcvbuf_errors_{side}"] = int(dict(zip(*udp)).get("RcvbufErrors", 0))
+        return stats
 
     def close(self) -> None:
         for ns in reversed(self.made):  # the veth pair goes with its namespaces
@@ -181,7 +216,8 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     tag = uuid.uuid4().hex[:4]
     hosts = Namespaces(tag, 200 + int(domain) % 50)
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET",
-               FASTRTPS_DEFAULT_PROFILES_FILE=str(PROFILE), PYTHONUNBUFFERED="1")
+               FASTRTPS_DEFAULT_PROFILES_FILE=str(PROFILE), RMW_FASTRTPS_PUBLICATION_MODE="ASYNCHRONOUS",
+               PYTHONUNBUFFERED="1")
     env.pop("ROS_STATIC_PEERS", None)
     peers = {hosts.a: hosts.addr_b, hosts.b: hosts.addr_a} if DISCOVERY == "static_peers" else {}
     procs: Dict[str, subprocess.Popen] = {}
@@ -197,8 +233,16 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
 
     runner = [sys.executable, "-m", "leapnbv_bringup.graph_runner", "--perception", "ground_truth",
               "--body-model", body, "--no-restart", "--ready-timeout", "120"]
+    if IN_FLIGHT:
+        runner += ["--set", f"detector_node.max_frames_in_flight={IN_FLIGHT}"]
     try:
         hosts.setup(multicast=not peers)
+        if RATE:
+            hosts.shape(RATE)
+        if TRAFFIC_OUT:  # counting from before the graph starts: it learns every topic's writers from SEDP
+            start("capture", hosts.b, [sys.executable, str(TRAFFIC_SCRIPT), "capture", hosts.veth_b,
+                                       str(tmp_path / "capture.json")])
+            assert wait_for_line(tmp_path / "capture.log", "counting", 20.0, list(procs.values()))
         start("graph_a", hosts.a, [*runner, "--nodes", HOST_A_NODES, "--log-dir", str(tmp_path / "a")])
         start("graph_b", hosts.b, [*runner, "--nodes", HOST_B_NODES, "--log-dir", str(tmp_path / "b")])
         for name in ("graph_a", "graph_b"):
@@ -207,7 +251,11 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
         start("record_a", hosts.a, [sys.executable, __file__, "record", "a", str(tmp_path / "a.json")])
         start("record_b", hosts.b, [sys.executable, __file__, "record", "b", str(tmp_path / "b.json")])
         time.sleep(3.0)  # the recorders discover the graph before the first frame
-        rx_before = hosts.rx_bytes(hosts.b, hosts.veth_b)
+        link_before = hosts.link_stats()
+        rx_before = link_before["a_to_b_bytes"]
+        camera_started = time.monotonic()
+        if TRAFFIC_OUT:
+            procs["capture"].send_signal(signal.SIGUSR1)  # counts from the first frame on
         start("camera", hosts.a, [sys.executable, "-m", "leapnbv_sim.nodes.simulator_node", "--ros-args",
                                   "-p", f"rate_hz:={SIM_RATE_HZ}", "-p", "scene_seed:=3"])
         # Bounded: the camera runs RECORD_S seconds (its start-up, a few seconds, included).
@@ -218,7 +266,12 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
             time.sleep(0.5)
         stop(procs["camera"])
         time.sleep(3.0)  # the last frames drain through the graph; the nodes' diagnostics tick
-        rx_bytes = hosts.rx_bytes(hosts.b, hosts.veth_b) - rx_before
+        link_after = hosts.link_stats()
+        camera_s = time.monotonic() - camera_started
+        rx_bytes = link_after["a_to_b_bytes"] - rx_before
+        link = {k: link_after[k] - link_before.get(k, 0) for k in link_after}
+        if TRAFFIC_OUT:
+            stop(procs["capture"])
         stop(procs["record_a"])
         stop(procs["record_b"])
         codes = {name: None for name in ("graph_a", "graph_b")}
@@ -239,11 +292,30 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     ground = diag.get("/leapnbv/ground_node", {})
     ground_in = int(ground.get("frames_in", 0))
     lat = sorted((r - s) * 1e-9 for s, r, _ in goals)
-    summary = (f"A: {HOST_A_NODES}; B: {HOST_B_NODES}; discovery {DISCOVERY}: {len(frames)} frames published on A, "
-               f"{len(goals)} goals on B, "
-               f"ground_node received {ground_in} depth frames, {rx_bytes / 1e6:.1f} MB into B over the veth, "
-               f"goal latency p50 {lat[len(lat) // 2] if lat else float('nan'):.2f} s")
+    nbv = diag.get("/leapnbv/nbv_node", {})
+    # CPU, not the link: the frames each node dropped (busy, superseded, not taken) by its own count.
+    node_drops = {name.rsplit("/", 1)[-1]: {k[8:]: int(v) for k, v in values.items()
+                                              if k.startswith("dropped.") and int(v)}
+                  for name, values in diag.items() if name.startswith("/leapnbv/") and "graph_runner" not in name}
+    summary = (f"A: {HOST_A_NODES}; B: {HOST_B_NODES}; discovery {DISCOVERY}; link {RATE or 'unshaped'}: "
+               f"{len(frames)} frames published on A, {len(goals)} goals on B "
+               f"({len(goals) / max(1, len(frames)):.0%}), nbv_node frames_in {nbv.get('frames_in', 0)}, "
+               f"ground_node received {ground_in} depth frames, {rx_bytes / 1e6:.1f} MB into B and "
+               f"{link['b_to_a_bytes'] / 1e6:.1f} MB into A over the veth in {camera_s:.0f} s, "
+               f"queue drops A {link.get('qdisc_drops_a', 0)} B {link.get('qdisc_drops_b', 0)}, "
+               f"UDP receive-buffer errors A {link.get('udp_rcvbuf_errors_a', 0)} "
+               f"B {link.get('udp_rcvbuf_errors_b', 0)}, "
+               f"goal latency p50 {lat[len(lat) // 2] if lat else float('nan'):.2f} s; node drops {node_drops}")
     print(f"\n[two hosts] {summary}")
+    if TRAFFIC_OUT:
+        run_record = {"split": [HOST_A_NODES, HOST_B_NODES], "rate": RATE, "frames": len(frames),
+                      "goals": len(goals), "seconds": camera_s, "link": link, "node_drops": node_drops,
+                      "capture": json.loads((tmp_path / "capture.json").read_text())}
+        pathlib.Path(TRAFFIC_OUT).write_text(json.dumps(run_record, indent=1))
+        sys.path.insert(0, str(TRAFFIC_SCRIPT.parent))
+        import two_host_traffic
+
+        print(two_host_traffic.table(run_record))
     assert codes == {"graph_a": 0, "graph_b": 0}, codes
     assert len(frames) >= 0.5 * SIM_RATE_HZ * RECORD_S, summary
     assert len(goals) >= 0.3 * len(frames), summary
