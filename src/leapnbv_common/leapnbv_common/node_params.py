@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Callable, Generic, List, Optional, Set, Type, TypeVar
 
 # rcl_interfaces has no stubs (mypy.ini does not list it yet; once it does, the ignore is unused, and allowed to be).
-from rcl_interfaces.msg import (  # type: ignore[import-untyped, unused-ignore]
+from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
     ParameterDescriptor,

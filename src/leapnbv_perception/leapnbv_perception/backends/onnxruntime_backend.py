@@ -10,6 +10,7 @@ import numpy as np
 from leapnbv_perception.backends.base import (
     BackendError,
     EngineBackend,
+    Tensor,
     TensorSpec,
     check_inputs,
     require_model_file,
@@ -99,9 +100,9 @@ class OnnxRuntimeBackend(EngineBackend):
     @property
     def providers(self) -> Sequence[str]:
         """Providers the session actually uses."""
-        return self._session.get_providers()
+        return list(self._session.get_providers())
 
-    def run(self, inputs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    def run(self, inputs: Mapping[str, Tensor]) -> Dict[str, Tensor]:
         check_inputs(inputs, self._inputs, self.model_path)
         feed = {
             name: np.ascontiguousarray(inputs[name], dtype=spec.dtype) for name, spec in self._inputs.items()
@@ -113,7 +114,7 @@ class OnnxRuntimeBackend(EngineBackend):
         return dict(zip(self._output_names, values))
 
 
-def nudge_last_bit(values: np.ndarray) -> np.ndarray:
+def nudge_last_bit(values: Tensor) -> Tensor:
     """Floating-point ``values`` moved by one unit in the last place, away from zero.
 
     Zeros become the smallest positive subnormal; arrays of other types are returned unchanged.
@@ -131,5 +132,5 @@ class LastBitNudgedOnnxRuntimeBackend(OnnxRuntimeBackend):
     give, is not reported as a change. Never a default: a robot has no use for it.
     """
 
-    def run(self, inputs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    def run(self, inputs: Mapping[str, Tensor]) -> Dict[str, Tensor]:
         return {name: nudge_last_bit(np.asarray(value)) for name, value in super().run(inputs).items()}
