@@ -26,9 +26,6 @@ from typing import Dict, List, Optional
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-# LEAPNBV_TWO_HOSTS_PROFILE: another profile to compare (e.g. fastdds_large_messages.xml, to see the loss).
-PROFILE = pathlib.Path(os.environ.get("LEAPNBV_TWO_HOSTS_PROFILE",
-                                      REPO / "src/leapnbv_bringup/config/fastdds_two_hosts.xml"))
 # The two splits of docs/TWO_HOSTS.md (host A's nodes, host B's nodes).
 SPLITS = {
     "planner": ("detector_node,hmr_node,raster_node,ground_node", "nbv_node"),
@@ -37,6 +34,11 @@ SPLITS = {
 # LEAPNBV_TWO_HOSTS_SPLIT: planner (off-board) or geometry (off-board, the default case);
 # LEAPNBV_TWO_HOSTS_A_NODES / _B_NODES: any other split.
 SPLIT = os.environ.get("LEAPNBV_TWO_HOSTS_SPLIT", "geometry")
+# The profile of each split (docs/TWO_HOSTS.md): the planner off-board paces what crosses (a Wi-Fi-class
+# link); LEAPNBV_TWO_HOSTS_PROFILE: another profile to compare (e.g. fastdds_large_messages.xml, to see the loss).
+CONFIG = REPO / "src/leapnbv_bringup/config"
+PROFILE = pathlib.Path(os.environ.get("LEAPNBV_TWO_HOSTS_PROFILE", CONFIG / (
+    "fastdds_two_hosts_wifi.xml" if SPLIT == "planner" else "fastdds_two_hosts.xml")))
 HOST_A_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_A_NODES", SPLITS.get(SPLIT, SPLITS["geometry"])[0])
 HOST_B_NODES = os.environ.get("LEAPNBV_TWO_HOSTS_B_NODES", SPLITS.get(SPLIT, SPLITS["geometry"])[1])
 # LEAPNBV_TWO_HOSTS_RATE: shape the link (tc tbf on both ends, a 50 ms queue), e.g. 30mbit; "" for none.
@@ -45,6 +47,14 @@ RATE = os.environ.get("LEAPNBV_TWO_HOSTS_RATE", "")
 # (scripts/experiments/two_host_traffic.py capture, on host B's end) and write it, with the run's frames.
 TRAFFIC_OUT = os.environ.get("LEAPNBV_TWO_HOSTS_TRAFFIC", "")
 TRAFFIC_SCRIPT = REPO / "scripts/experiments/two_host_traffic.py"
+# LEAPNBV_TWO_HOSTS_PACE_MBIT: the profile's flow controller (leapnbv_link) paced at this many Mbit/s
+# instead of its own value (a copy of the profile is written): for a link slower than 30 Mbit/s.
+PACE_MBIT = os.environ.get("LEAPNBV_TWO_HOSTS_PACE_MBIT", "")
+# LEAPNBV_TWO_HOSTS_MIN_PLANNED: the share of published frames that must become goals (CPU-bound on a loaded
+# machine: the link's own share is asserted apart, see the end of the test).
+MIN_PLANNED = float(os.environ.get("LEAPNBV_TWO_HOSTS_MIN_PLANNED", "0.3"))
+# LEAPNBV_TWO_HOSTS_SET: more parameter overrides for both runners, space-separated NODE.PARAM=VALUE.
+EXTRA_SET = os.environ.get("LEAPNBV_TWO_HOSTS_SET", "").split()
 # LEAPNBV_TWO_HOSTS_IN_FLIGHT: detector_node's max_frames_in_flight. With the planner on host B a frame in
 # flight is mostly on the link or on B's CPU, not A's: 2 lets A work on the next frame meanwhile
 # (docs/TWO_HOSTS.md); the other split keeps the parameter file's value unless this is set.
@@ -146,6 +156,7 @@ class Namespaces:
         for side, ns, dev in (("a", self.a, self.veth_a), ("b", self.b, self.veth_b)):
             qdisc = json.loads(run(["ip", "netns", "exec", ns, "tc", "-s", "-j", "qdisc", "show", "dev", dev]) or "[]")
             stats[f"qdisc_drops_{side}"] = sum(int(q.get("drops", 0)) for q in qdisc)
+            stats[f"qdisc_packets_{side}"] = sum(int(q.get("packets", 0)) for q in qdisc)
             snmp = run(["ip", "netns", "exec", ns, "cat", "/proc/net/snmp"]).splitlines()
             udp = [line.split()[1:] for line in snmp if line.startswith("Udp:")]
             if len(udp) == 2:
@@ -198,6 +209,16 @@ def wait_for_line(path: pathlib.Path, text: str, timeout_s: float, procs: List[s
     return False
 
 
+def paced_profile(xml: str, mbit_s: float) -> str:
+    """The profile with its flow controller's bytes per period set for ``mbit_s`` (its period unchanged)."""
+    import re
+
+    period_ms = int(re.search(r"<period_ms>(\d+)</period_ms>", xml).group(1))
+    per_period = int(mbit_s * 1e6 / 8 * period_ms / 1000)
+    return re.sub(r"<max_bytes_per_period>\d+</max_bytes_per_period>",
+                  f"<max_bytes_per_period>{per_period}</max_bytes_per_period>", xml)
+
+
 # "static_peers": no multicast route at all (a Wi-Fi that drops multicast); each host names the other in
 # ROS_STATIC_PEERS. LEAPNBV_TWO_HOSTS_DISCOVERY=static_peers runs that variant (the suite runs "subnet").
 DISCOVERY = os.environ.get("LEAPNBV_TWO_HOSTS_DISCOVERY", "subnet")
@@ -215,9 +236,14 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     domain = os.environ.get("ROS_DOMAIN_ID", "0")
     tag = uuid.uuid4().hex[:4]
     hosts = Namespaces(tag, 200 + int(domain) % 50)
+    profile = PROFILE
+    if PACE_MBIT:
+        profile = tmp_path / PROFILE.name
+        profile.write_text(paced_profile(PROFILE.read_text(), float(PACE_MBIT)))
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET",
-               FASTRTPS_DEFAULT_PROFILES_FILE=str(PROFILE), RMW_FASTRTPS_PUBLICATION_MODE="ASYNCHRONOUS",
-               PYTHONUNBUFFERED="1")
+               FASTRTPS_DEFAULT_PROFILES_FILE=str(profile), PYTHONUNBUFFERED="1")
+    # The Wi-Fi profile's flow controller needs asynchronous writers (fastdds_two_hosts_wifi.xml).
+    env.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "ASYNCHRONOUS" if "wifi" in profile.name else "SYNCHRONOUS")
     env.pop("ROS_STATIC_PEERS", None)
     peers = {hosts.a: hosts.addr_b, hosts.b: hosts.addr_a} if DISCOVERY == "static_peers" else {}
     procs: Dict[str, subprocess.Popen] = {}
@@ -235,6 +261,8 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
               "--body-model", body, "--no-restart", "--ready-timeout", "120"]
     if IN_FLIGHT:
         runner += ["--set", f"detector_node.max_frames_in_flight={IN_FLIGHT}"]
+    for override in EXTRA_SET:
+        runner += ["--set", override]
     try:
         hosts.setup(multicast=not peers)
         if RATE:
@@ -293,13 +321,18 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     ground_in = int(ground.get("frames_in", 0))
     lat = sorted((r - s) * 1e-9 for s, r, _ in goals)
     nbv = diag.get("/leapnbv/nbv_node", {})
+    # What the link delivered of what host A produced (CPU-independent): raster_node's target geometries
+    # out on A, nbv_node's in on B.
+    raster_out = int(diag.get("/leapnbv/raster_node", {}).get("frames_out", 0))
+    nbv_in = int(nbv.get("frames_in", 0))
     # CPU, not the link: the frames each node dropped (busy, superseded, not taken) by its own count.
     node_drops = {name.rsplit("/", 1)[-1]: {k[8:]: int(v) for k, v in values.items()
                                               if k.startswith("dropped.") and int(v)}
                   for name, values in diag.items() if name.startswith("/leapnbv/") and "graph_runner" not in name}
     summary = (f"A: {HOST_A_NODES}; B: {HOST_B_NODES}; discovery {DISCOVERY}; link {RATE or 'unshaped'}: "
                f"{len(frames)} frames published on A, {len(goals)} goals on B "
-               f"({len(goals) / max(1, len(frames)):.0%}), nbv_node frames_in {nbv.get('frames_in', 0)}, "
+               f"({len(goals) / max(1, len(frames)):.0%}), raster_node frames_out {raster_out}, nbv_node frames_in "
+               f"{nbv_in} (target_geometry transport {nbv.get('transport_ms.target_geometry', '?')} ms, last), "
                f"ground_node received {ground_in} depth frames, {rx_bytes / 1e6:.1f} MB into B and "
                f"{link['b_to_a_bytes'] / 1e6:.1f} MB into A over the veth in {camera_s:.0f} s, "
                f"queue drops A {link.get('qdisc_drops_a', 0)} B {link.get('qdisc_drops_b', 0)}, "
@@ -318,7 +351,14 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
         print(two_host_traffic.table(run_record))
     assert codes == {"graph_a": 0, "graph_b": 0}, codes
     assert len(frames) >= 0.5 * SIM_RATE_HZ * RECORD_S, summary
-    assert len(goals) >= 0.3 * len(frames), summary
+    assert len(goals) >= MIN_PLANNED * len(frames), summary
+    if "raster_node" in HOST_A_NODES.split(",") and "nbv_node" in HOST_B_NODES.split(","):
+        # The link lost no frame: nbv_node received what raster_node published (its first frames may go out
+        # before the recorder on B hears the diagnostics: a 5 % margin).
+        assert nbv_in >= 0.95 * raster_out, summary
+        # ... and the queue of a shaped link overflowed on at most 1 % of the packets.
+        drops = link.get("qdisc_drops_a", 0) + link.get("qdisc_drops_b", 0)
+        assert drops <= 0.01 * (link.get("qdisc_packets_a", 0) + link.get("qdisc_packets_b", 0) + drops), summary
     # Every goal is from a published frame: the recorder on A hears every frame (reliable) from the
     # first it heard (the camera's first frames can go out before the recorder is matched).
     assert not [g for g in goals if g[0] >= min(frames) and g[0] not in frames], summary
@@ -326,7 +366,8 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     # (raster_node, ground_node) receives every depth frame over UDP.
     depth_readers_on_b = len({"raster_node", "ground_node"} & set(HOST_B_NODES.split(",")))
     assert rx_bytes >= depth_readers_on_b * 0.9 * len(frames) * DEPTH_FRAME_BYTES, summary
-    assert ground_in >= 0.9 * len(frames), summary
+    if "ground_node" in HOST_B_NODES.split(","):
+        assert ground_in >= 0.9 * len(frames), summary
     # One frame per goal: the view candidates list their inputs (InputStamp); no SAME_FRAME input may carry
     # another stamp, and the floor is the frame's own or one CARRIED into it by the camera-pose delta.
     with_inputs = [c for c in b["candidates"] if c[2]]
