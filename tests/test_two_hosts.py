@@ -243,7 +243,8 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET",
                FASTRTPS_DEFAULT_PROFILES_FILE=str(profile), PYTHONUNBUFFERED="1")
     # The Wi-Fi profile's flow controller needs asynchronous writers (fastdds_two_hosts_wifi.xml).
-    env.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "ASYNCHRONOUS" if "wifi" in profile.name else "SYNCHRONOUS")
+    if "wifi" in profile.name:
+        env.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "ASYNCHRONOUS")
     env.pop("ROS_STATIC_PEERS", None)
     peers = {hosts.a: hosts.addr_b, hosts.b: hosts.addr_a} if DISCOVERY == "static_peers" else {}
     procs: Dict[str, subprocess.Popen] = {}
