@@ -285,15 +285,20 @@ def capture(dev: str, out_path: str) -> int:
     return 0
 
 
-def table(run: Dict[str, object], frames: Optional[int] = None, seconds: Optional[float] = None) -> str:
-    """The per-topic table of a run (the test's traffic.json: the capture plus frames and seconds)."""
+def table(run: Dict[str, object], frames: Optional[int] = None, seconds: Optional[float] = None,
+          fps: Tuple[float, ...] = (5.0, 30.0)) -> str:
+    """The per-topic table of a run (the test's traffic.json: the capture plus frames and seconds).
+
+    Per camera frame each way, samples per frame, repeated samples, the mean serialized sample, the
+    measured kbit/s, and what the same bytes per frame make at each rate of ``fps`` (Mbit/s, both ways).
+    """
     cap = run["capture"] if "capture" in run else run
     frames = frames or int(run.get("frames", 0)) or 1
     seconds = seconds or float(run.get("seconds", cap.get("seconds", 1.0)))
     rows = sorted(cap["rows"], key=lambda r: -(r["a_to_b"]["bytes"] + r["b_to_a"]["bytes"]))
     lines = [f"{frames} frames in {seconds:.1f} s ({frames / seconds:.2f} FPS); bytes on the wire per frame",
              f"{'label':44s} {'A->B B/frame':>13s} {'B->A B/frame':>13s} {'samples/frame':>14s} "
-             f"{'repeats':>8s} {'B/sample':>9s} {'kbit/s':>9s}"]
+             f"{'repeats':>8s} {'B/sample':>9s} {'kbit/s':>9s}" + "".join(f" {f'Mb/s@{f:g}':>9s}" for f in fps)]
     total = 0
     for row in rows:
         ab, ba = row["a_to_b"], row["b_to_a"]
@@ -303,8 +308,9 @@ def table(run: Dict[str, object], frames: Optional[int] = None, seconds: Optiona
         per_sample = (ab["sample_bytes"] + ba["sample_bytes"]) / samples if samples else 0.0
         lines.append(f"{row['label'][:44]:44s} {ab['bytes'] / frames:13.0f} {ba['bytes'] / frames:13.0f} "
                      f"{samples / frames:14.2f} {ab['repeats'] + ba['repeats']:8d} {per_sample:9.0f} "
-                     f"{nbytes * 8e-3 / seconds:9.1f}")
-    lines.append(f"{'total':44s} {total / frames:13.0f} bytes/frame, {total * 8e-6 / seconds:.2f} Mbit/s")
+                     f"{nbytes * 8e-3 / seconds:9.1f}" + "".join(f" {nbytes / frames * f * 8e-6:9.3f}" for f in fps))
+    lines.append(f"{'total':44s} {total / frames:13.0f} bytes/frame, {total * 8e-6 / seconds:.2f} Mbit/s; "
+                 + ", ".join(f"{total / frames * f * 8e-6:.1f} Mbit/s at {f:g} FPS" for f in fps))
     return "\n".join(lines)
 
 
@@ -319,6 +325,7 @@ def main(argv=None) -> int:
     tab.add_argument("run")
     tab.add_argument("--frames", type=int)
     tab.add_argument("--seconds", type=float)
+    tab.add_argument("--fps", type=float, nargs="+", default=[5.0, 30.0], help="rates to scale the bytes to")
     args = parser.parse_args(argv)
     if args.command == "capture":
         return capture(args.dev, args.out)
@@ -328,7 +335,7 @@ def main(argv=None) -> int:
     except (OSError, ValueError) as error:
         print(f"two_host_traffic: cannot read {args.run}: {error}", file=sys.stderr)
         return 2
-    print(table(run, args.frames, args.seconds))
+    print(table(run, args.frames, args.seconds, tuple(args.fps)))
     return 0
 
 
