@@ -20,8 +20,13 @@ The contracts:
 - colour and depth of one frame have the same size as each other and as their camera info
   (the depth is aligned to colour); a mesh's image size is the size of the frame's images;
 - paired messages (computed from one frame) carry the same frame_id;
-- a detection has a finite box with x_max > x_min, y_max > y_min that overlaps the image, and a
-  finite score in [0, 1];
+- a detection has a finite box with x_max > x_min, y_max > y_min that overlaps the image, whose
+  corners lie within :data:`BOX_MARGIN` image sizes beyond the image's edges, and a finite score
+  in [0, 1];
+- a mesh has at most :data:`MAX_MESH_VERTICES` vertices and :data:`MAX_MESH_FACES` faces
+  (``mesh_too_large``);
+- a stamp is not later than the receiving node's clock by more than its ``max_stamp_ahead_s``
+  (``stamp_in_future``: :func:`check_stamp_not_ahead`);
 - one stamp, one content per stream: a second, different message with a stamp already seen is
   refused (an identical repeat is not an error).
 """
@@ -43,6 +48,18 @@ QUATERNION_TOLERANCE = 1e-3
 NORMAL_TOLERANCE = 1e-3
 #: Stamps remembered per stream by DuplicateStampGuard (several seconds at 30 FPS).
 DUPLICATE_MEMORY = 256
+#: Image sizes a box corner may lie beyond the image's edges: a detector's box of a person cut by the edge
+#: reaches past it (a head above the frame), by far less than the image itself; a box at +-1e9 px is no
+#: person of this image, though it overlaps it.
+BOX_MARGIN = 1.0
+#: Vertices / faces of an accepted mesh: ~10x SMPL-X (10,475 vertices, 20,908 faces), the largest body
+#: model the graph runs; a message contract, the same for every node that takes a mesh (raster, nbv), not
+#: a tuning. A 1 M-vertex mesh costs seconds per frame to rasterize and would stall the graph.
+MAX_MESH_VERTICES = 100_000
+MAX_MESH_FACES = 200_000
+#: Reasons of the limits above.
+MESH_TOO_LARGE = "mesh_too_large"
+STAMP_IN_FUTURE = "stamp_in_future"
 #: Fields left out of a message's fingerprint: they differ between two computations of the same output.
 FINGERPRINT_SKIPPED_FIELDS = ("compute_time_ms",)
 
@@ -176,6 +193,9 @@ def check_boxes(boxes: FloatingArray, image_size: Tuple[int, int], what: str = "
                 reason: Optional[str] = None) -> Float32Array:
     """(N, 5) [x0, y0, x1, y1, score] rows: finite, x1 > x0, y1 > y0, score in [0, 1], overlapping the image.
 
+    Every corner lies within BOX_MARGIN image sizes beyond the image's edges (a box of +-1e9 px overlaps the
+    image, but is no detection of it): refused like a box outside the image, under the caller's reason.
+
     Args:
         boxes: the rows (N may be 0).
         image_size: (width, height) of the image the boxes are in; (0, 0) skips the overlap test.
@@ -198,7 +218,34 @@ def check_boxes(boxes: FloatingArray, image_size: Tuple[int, int], what: str = "
         if width > 0 and height > 0 and (x1 <= 0 or y1 <= 0 or x0 >= width or y0 >= height):
             raise ContractError(f"{what} {i} box [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}] lies outside the "
                                 f"{width}x{height} image", reason)
+        if width > 0 and height > 0 and (min(x0, x1) < -BOX_MARGIN * width or max(x0, x1) > (1 + BOX_MARGIN) * width
+                                         or min(y0, y1) < -BOX_MARGIN * height
+                                         or max(y0, y1) > (1 + BOX_MARGIN) * height):
+            raise ContractError(f"{what} {i} box [{x0:.4g}, {y0:.4g}, {x1:.4g}, {y1:.4g}] reaches more than "
+                                f"{BOX_MARGIN:g} image size beyond the {width}x{height} image", reason)
     return rows
+
+
+def check_mesh_size(what: str, vertex_count: int, face_count: int) -> None:
+    """A mesh of at most MAX_MESH_VERTICES vertices and MAX_MESH_FACES faces (``mesh_too_large``).
+
+    Checked on the message's counts, before its arrays are read.
+    """
+    if vertex_count > MAX_MESH_VERTICES or face_count > MAX_MESH_FACES:
+        raise ContractError(f"{what} has {vertex_count} vertices and {face_count} faces (limit {MAX_MESH_VERTICES}"
+                            f" vertices, {MAX_MESH_FACES} faces: a body mesh, SMPL-X has 10,475 and 20,908)",
+                            MESH_TOO_LARGE)
+
+
+def check_stamp_not_ahead(what: str, stamp_ns: int, now_ns: int, max_ahead_s: float) -> None:
+    """A stamp not later than the node clock's ``now_ns`` by more than ``max_ahead_s`` (``stamp_in_future``).
+
+    No limit when ``max_ahead_s`` is 0 or the clock reads 0 (a sim-time node before its first /clock).
+    A camera frame from the future would never age out of the no-stale-goal rules (its age is negative).
+    """
+    if max_ahead_s > 0 and now_ns > 0 and stamp_ns - now_ns > max_ahead_s * 1e9:
+        raise ContractError(f"{what} stamped {(stamp_ns - now_ns) * 1e-9:.3f} s ahead of the node clock (limit"
+                            f" {max_ahead_s:g} s, max_stamp_ahead_s): are the clocks synchronised?", STAMP_IN_FUTURE)
 
 
 # --------------------------------------------------------------------------- cross-message contracts

@@ -68,6 +68,26 @@ def param(default: Any, description: str, *, min: Optional[float] = None, max: O
     return dataclasses.field(default=default, metadata=metadata)
 
 
+#: s: how far a stamp may be ahead of a node's clock (StageParams.max_stamp_ahead_s).
+MAX_STAMP_AHEAD_S = 0.5
+
+
+@dataclass
+class StageParams:
+    """What every stage node takes (leapnbv_common.stage.Stage reads it): the clock sanity rule of its inputs.
+
+    0.5 s: a robot whose clocks are synchronised (chrony / PTP: well under 10 ms) never stamps a frame ahead
+    of a node's clock (a camera stamps at exposure, in the past), while a frame from a host whose clock runs
+    ahead is refused before it is planned: it would never age out (its age is negative). Offline runs are
+    not affected: recorded and simulated stamps lie in the clock's past, and a sim-time node follows the
+    /clock its frames are stamped from.
+    """
+
+    max_stamp_ahead_s: float = param(MAX_STAMP_AHEAD_S, "s: an input stamped later than the node clock's now + this"
+                                     " is refused (rejected.stamp_in_future): clocks out of sync, a bad driver;"
+                                     " 0 = no limit", min=0.0, max=3600.0)
+
+
 def param_specs(cls: Type[Any]) -> List[ParamSpec]:
     """The ParamSpec of every field of a params dataclass, in declaration order."""
     specs = []

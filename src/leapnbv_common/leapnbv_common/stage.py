@@ -7,6 +7,11 @@ frame may wait for it. :class:`Stage` then does what every node used to write fo
 
 - converts each message **once**, on arrival (a message that breaks its contract is counted as
   ``rejected.bad_<input>`` and never kept), and checks one content per stamp (``duplicate_stamp``);
+- refuses a key or companion stamped later than the node clock's now + ``max_stamp_ahead_s`` (the
+  node's parameter, :class:`leapnbv_common.params.StageParams`; 0 = off; not applied while the clock
+  reads 0, a sim-time node before its first /clock): ``rejected.stamp_in_future``. Such a frame would
+  never age out (its age is negative) and, once served, would make every later frame "older than
+  published";
 - applies the stamp rules to the key: a frame not newer than the newest one served is dropped
   (``duplicate_stamp`` / ``older_than_published``), unless it is so much older that the stamps
   started over (a replay from its start, a simulator reset: ``STAMP_RESTART_NS``);
@@ -31,7 +36,7 @@ import dataclasses
 import traceback
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
-from leapnbv_common.contracts import ContractError, DuplicateStampGuard
+from leapnbv_common.contracts import ContractError, DuplicateStampGuard, check_stamp_not_ahead
 from leapnbv_common.pulled_input import HOUSEKEEPING_PERIOD_S, PulledInput
 from leapnbv_common.stamp_cache import STAMP_RESTART_NS, StampCache
 
@@ -236,12 +241,16 @@ class Stage:
             inputs that share it.
         frame_error_reason: What a ValueError raised by ``on_frame`` is counted as.
         on_restart: Called when the stamps started over (the node forgets what it keeps by stamp itself).
+        max_stamp_ahead_s: () -> how far (s) a stamp may be ahead of the node clock (0: no limit); default the
+            node's ``max_stamp_ahead_s`` parameter (StageParams), read per message (live parameters).
     """
 
     def __init__(self, node: Any, key: KeyInput, companions: Sequence[Companion], on_frame: Callable[[Frame], None],
                  capacity: int = 10, stamp_guard: Optional[DuplicateStampGuard] = None,
-                 frame_error_reason: str = "bad_frame", on_restart: Optional[Callable[[], None]] = None) -> None:
+                 frame_error_reason: str = "bad_frame", on_restart: Optional[Callable[[], None]] = None,
+                 max_stamp_ahead_s: Optional[Callable[[], float]] = None) -> None:
         self.node = node
+        self.max_stamp_ahead_s = max_stamp_ahead_s or self._stamp_ahead_parameter
         self.diagnostics = node.diagnostics
         self.key = key
         self.companions = list(companions)
@@ -313,6 +322,10 @@ class Stage:
     def now_ns(self) -> int:
         return int(self.node.get_clock().now().nanoseconds)
 
+    def _stamp_ahead_parameter(self) -> float:
+        params = getattr(getattr(self.node, "params", None), "value", None)
+        return float(getattr(params, "max_stamp_ahead_s", 0.0))
+
     # ------------------------------------------------------------------ arrivals
 
     def _convert(self, name: str, convert: Callable[[Any], Any], bad_reason: str, msg: Any) -> Optional[Received]:
@@ -320,6 +333,9 @@ class Stage:
         try:
             value = convert(msg)
             header = getattr(value, "header", None) or msg.header
+            stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+            # Before the stamp is remembered: a frame from the future must not make its stamp "seen".
+            check_stamp_not_ahead(name, stamp, self.now_ns(), self.max_stamp_ahead_s())
             self.stamps.check(name, value if hasattr(value, "header") and not hasattr(msg, "header") else msg)
         except ContractError as error:
             self.diagnostics.reject(error.reason or bad_reason, error.detail)
@@ -327,7 +343,6 @@ class Stage:
         except ValueError as error:
             self.diagnostics.reject(bad_reason, str(error))
             return None
-        stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
         return Received(stamp, header, value, msg)
 
     def _guarded(self, reason: str, call: Callable[[], None]) -> None:

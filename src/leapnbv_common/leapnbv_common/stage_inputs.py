@@ -7,13 +7,23 @@ its bytes until a frame uses it).
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 from sensor_msgs.msg import CameraInfo
 
-from leapnbv_common.conversions import COLOUR_ENCODINGS, DEPTH_ENCODINGS, SerializedImage, camera_info_to_k, check_image
+from leapnbv_common.contracts import check_mesh_size
+from leapnbv_common.conversions import (
+    COLOUR_ENCODINGS,
+    DEPTH_ENCODINGS,
+    HumanMeshArrays,
+    SerializedImage,
+    camera_info_to_k,
+    check_image,
+    human_mesh_to_arrays,
+)
 
-__all__ = ["checked_serialized_image", "checked_depth_image", "checked_colour_image", "checked_camera_info"]
+__all__ = ["checked_serialized_image", "checked_depth_image", "checked_colour_image", "checked_camera_info",
+           "checked_human_mesh"]
 
 
 def checked_serialized_image(cdr: bytes, encodings: Sequence[str], what: str) -> SerializedImage:
@@ -53,3 +63,14 @@ def checked_camera_info(msg: CameraInfo) -> CameraInfo:
     """
     camera_info_to_k(msg)
     return msg
+
+
+def checked_human_mesh(msg: Any) -> HumanMeshArrays:
+    """A HumanMesh's arrays, once its size passed the limit (checked on the counts, before the arrays are read).
+
+    Raises:
+        ContractError: more than MAX_MESH_VERTICES vertices or MAX_MESH_FACES faces (``mesh_too_large``).
+        ConversionError: a mesh that breaks the HumanMesh contract (human_mesh_to_arrays).
+    """
+    check_mesh_size("HumanMesh", len(msg.vertices) // 3, len(msg.faces) // 3)
+    return human_mesh_to_arrays(msg)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from leapnbv_common.params import param
+from leapnbv_common.params import StageParams, param
 
 WAIT_MAX_S = 10.0
 MAX_RANGE_M = 100.0
@@ -21,7 +21,7 @@ def check_depth_range(min_depth: float, max_depth: float) -> None:
 
 
 @dataclass
-class RasterParams:
+class RasterParams(StageParams):
     """raster_node: HumanMesh + depth (+ the frame's GroundPlane) -> TargetGeometry, person mask, metric mesh."""
 
     slop_s: float = param(0.005, "s: largest stamp difference between a mesh and the depth frame it is paired with",
@@ -49,7 +49,7 @@ class RasterParams:
 
 
 @dataclass
-class GroundParams:
+class GroundParams(StageParams):
     """Parameters of ground_node.
 
     ground_node: depth + camera_info (minus the latest person mask) -> GroundPlane (RANSAC, or the

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List
 
-from leapnbv_common.params import param
+from leapnbv_common.params import StageParams, param
 from leapnbv_perception.backends.onnxruntime_backend import GRAPH_OPTIMIZATIONS
 from leapnbv_perception.detector_families import DEFAULT_DETECTOR_FAMILY, detector_family_names
 
@@ -22,7 +22,7 @@ GRAPH_OPTIMIZATION_LEVELS = tuple(GRAPH_OPTIMIZATIONS)
 
 
 @dataclass
-class EngineParams:
+class EngineParams(StageParams):
     """What every engine-running node takes: the backend and how it runs (all fixed at start-up)."""
 
     backend: str = param("onnxruntime", "onnxruntime (CPU), tensorrt (Jetson) or ground_truth (the simulator's "

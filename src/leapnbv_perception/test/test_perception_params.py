@@ -28,7 +28,7 @@ def test_detector_thresholds_change_at_runtime_within_their_ranges() -> None:
         replace_params(params, {"backend": "tensorrt"})
     assert {spec.name for spec in param_specs(DetectorParams) if not spec.read_only} == {
         "score_threshold", "iou_threshold", "max_detections", "max_frames_in_flight", "in_flight_timeout_s",
-        "carry_min_confidence", "carry_max_age_s"}
+        "carry_min_confidence", "carry_max_age_s", "max_stamp_ahead_s"}
 
 
 def test_engine_choices() -> None:
@@ -41,7 +41,7 @@ def test_engine_choices() -> None:
 
 def test_hmr_runtime_settings() -> None:
     runtime = {spec.name for spec in param_specs(HmrParams) if not spec.read_only}
-    assert runtime == {"box_scale", "unmirror_left_hand", "track_previous_target", "min_track_iou"}
+    assert runtime == {"box_scale", "unmirror_left_hand", "track_previous_target", "min_track_iou", "max_stamp_ahead_s"}
     with pytest.raises(ParamsError, match="box_scale = 0.5 is below its minimum 1.0"):
         replace_params(HmrParams(), {"box_scale": 0.5})
 

@@ -20,7 +20,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Dict, List, Tuple, Type
 
-from leapnbv_common.params import ParamsError, param
+from leapnbv_common.params import ParamsError, StageParams, param
 from leapnbv_planner.requirements import REQUIREMENTS
 from leapnbv_planner.score_terms import get_term, registered_terms, weight_parameter
 
@@ -75,7 +75,7 @@ class CandidateRingParams:
 
 
 @dataclass
-class PlannerParams(CandidateRingParams):
+class PlannerParams(CandidateRingParams, StageParams):
     """Every nbv node parameter but the term weights (see nbv_params_class for the full class)."""
 
     score_terms: List[str] = param(DEFAULT_SCORE_TERMS, "score terms summed into the score, in this order"
@@ -98,6 +98,11 @@ class PlannerParams(CandidateRingParams):
                                    " they arrive", read_only=True)
     obstacle_map_resolution: float = param(0.1, "metres: voxel edge of the obstacle map (its points are voxel"
                                            " centres)", min=0.01, max=2.0)
+    max_obstacle_voxels: int = param(200_000, "occupied voxels an obstacle map may have; a larger one is refused"
+                                     " (rejected.obstacle_map_too_large) and the previous map kept (200,000: a"
+                                     " 40 x 40 m floor's walls and furniture at 0.1 m; a map of millions is a"
+                                     " mapping fault, and each costs memory and time per plan)",
+                                     min=1, max=100_000_000)
     map_max_target_points: int = param(1500, "target points whose line of sight is walked through the map, per"
                                        " candidate", min=1, max=1_000_000)
     map_target_margin: float = param(0.1, "metres: the end of each line of sight, at the target, not checked in"

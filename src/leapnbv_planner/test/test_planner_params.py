@@ -25,7 +25,7 @@ ROBOT_VALUES = {
     "delta_px": 4.0, "ground_wait_s": 0.5, "ground_max_age_s": 0.5, "use_obstacle_map": True,
     "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 150,
     "max_goal_age_s": 1.0, "camera_pose_wait_s": 0.1, "num_rings": 3, "min_radius": 1.5, "reachability": True,
-    "weight_body_occlusion": 0.83,
+    "weight_body_occlusion": 0.83, "max_stamp_ahead_s": 0.5, "max_obstacle_voxels": 200_000,
 }
 # One frame per output and no stale goal: the frame's own plane is waited for 0.5 s, an older
 # plane is carried (by the camera-pose delta) from at most 0.5 s back, goals are at most 1 s old, and the pose
@@ -41,7 +41,7 @@ def test_defaults_are_the_robot_values_and_valid():
         "score_terms", "camera_pose_source", "max_goal_age_s", "camera_pose_wait_s", "body_mesh_wait_s",
         "weight_travel", "weight_body_occlusion", "num_rings", "min_radius", "reachability", "max_path_length",
         "grid_resolution", "unknown_space", "camera_height", "camera_tilt", "score_infeasible", "fit_to_free_space",
-        "min_free_radius"}
+        "min_free_radius", "max_stamp_ahead_s", "max_obstacle_voxels"}
     for name, value in ROBOT_VALUES.items():
         assert getattr(params, name) == value, name
     assert params.score_terms == ["visibility", "area", "body_occlusion", "travel"]

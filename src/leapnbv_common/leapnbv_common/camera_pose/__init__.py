@@ -155,6 +155,7 @@ class TopicCameraPoseSource:
         self.diagnostics = node.diagnostics
         self.get_logger = node.get_logger  # rejects_bad_input logs through it
         self.poses: StampCache = StampCache(max(1, int(capacity)))
+        self.refusals: StampCache = StampCache(max(1, int(capacity)))  # stamp -> why its pose was refused
         self.on_pose = on_pose
         self.stamps = DuplicateStampGuard()
         self.subscription: Any = node.create_subscription(PoseStamped, topic, self._on_message,
@@ -162,7 +163,11 @@ class TopicCameraPoseSource:
 
     @rejects_bad_input("bad_camera_pose")
     def _on_message(self, msg: PoseStamped) -> None:
-        pose = camera_pose_from_msg(msg)
+        try:
+            pose = camera_pose_from_msg(msg)
+        except ConversionError as error:  # counted by the decorator; remembered to say why a frame went without
+            self.refusals.put(stamp_to_ns(msg.header.stamp), str(error))
+            raise
         if refused(self.diagnostics, "bad_camera_pose", self.stamps.check, "camera_pose", msg):
             return  # another pose with the stamp of one already here: the first one stays
         self.poses.put(pose.stamp_ns, pose)
@@ -172,6 +177,11 @@ class TopicCameraPoseSource:
     def pose_at(self, stamp_ns: int, camera_frame: str = "") -> Optional[StampedCameraPose]:
         """The pose with exactly this stamp, if it arrived and is still remembered (the topic names the frame)."""
         return self.poses.get_exact(int(stamp_ns))
+
+    def refusal_at(self, stamp_ns: int) -> Optional[str]:
+        """Why the pose of this stamp was refused (the contract it broke), or None when none was."""
+        refusal: Optional[str] = self.refusals.get_exact(int(stamp_ns))
+        return refusal
 
     def expect(self, stamp_ns: int, camera_frame: str = "") -> None:
         """A frame of this stamp waits for its pose: topic poses are handed to on_pose as they arrive anyway."""

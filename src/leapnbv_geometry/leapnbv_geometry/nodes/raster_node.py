@@ -30,14 +30,13 @@ from leapnbv_common.conversions import (
     camera_info_to_k,
     depth_to_metres,
     ground_plane_to_arrays,
-    human_mesh_to_arrays,
     image_size,
     numpy_to_image,
 )
 from leapnbv_common.managed_node import ManagedNode, managed_node_main
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Stage
-from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image
+from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image, checked_human_mesh
 from leapnbv_common.topics import GROUND_PLANE, HUMAN_MESH, HUMAN_MESH_METRIC, PERSON_MASK, TARGET_GEOMETRY
 from leapnbv_geometry.params import RasterParams
 from leapnbv_geometry.raster import warm_up
@@ -58,7 +57,7 @@ class RasterNode(ManagedNode):
         # The mesh starts the work (the newest only). Depth frames and camera infos are pulled when a mesh
         # comes (they do not wake the node at 30 Hz) and depth frames stay serialized until one pairs; the
         # frame's plane (ground_node stamps it with the frame's, the mesh's, stamp) is waited for briefly.
-        self.stage = Stage(self, KeyInput("human_mesh", HumanMesh, HUMAN_MESH, human_mesh_to_arrays,
+        self.stage = Stage(self, KeyInput("human_mesh", HumanMesh, HUMAN_MESH, checked_human_mesh,
                                           stage_input_qos(1)), [
             Companion("depth", Image, "depth", checked_depth_image, camera_input_qos(p.depth_cache_size),
                       match=NEAREST, slop_s=lambda f: self.params.value.slop_s,

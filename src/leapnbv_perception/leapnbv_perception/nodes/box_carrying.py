@@ -14,6 +14,7 @@ import numpy as np
 
 from leapnbv_common.array_types import Float32Array
 from leapnbv_common.camera_pose import create_camera_pose_source
+from leapnbv_common.contracts import check_mesh_size, check_stamp_not_ahead, refused
 from leapnbv_common.conversions import HumanMeshArrays, SerializedImage, human_mesh_to_arrays, stamp_to_ns
 from leapnbv_common.diagnostics import rejects_bad_input
 from leapnbv_common.pulled_input import PulledInput
@@ -62,6 +63,12 @@ class BoxCarrier:
         """The newest metric mesh of the target (raster_node), kept to carry its box into later frames."""
         self.diagnostics.input_seen("human_mesh_metric", info)
         stamp = stamp_to_ns(msg.header.stamp)
+        # A mesh from the future would stay the newest for good; a mesh too large is refused before it is read.
+        if refused(self.diagnostics, "bad_human_mesh", check_stamp_not_ahead, "human_mesh_metric", stamp,
+                   self.node.get_clock().now().nanoseconds, self.node.params.value.max_stamp_ahead_s) or \
+                refused(self.diagnostics, "bad_human_mesh", check_mesh_size, "human_mesh_metric",
+                        len(msg.vertices) // 3, len(msg.faces) // 3):
+            return
         if self.last_mesh is None or stamp > self.last_mesh[0]:
             self.last_mesh = (stamp, msg.header.frame_id, human_mesh_to_arrays(msg))
 

@@ -4,11 +4,14 @@ No stale goal (docs/ARCHITECTURE.md, "Timing"): a goal goes out only from a fram
 ``max_goal_age_s``; ``goal_status`` says whether the latched goal may be acted on (CURRENT); a timer,
 running only while a goal is current, replaces a goal that ages out by an explicit "no goal" (STALE,
 and next_best_view / base_goal / base_path re-published with an empty frame_id), as deactivating the
-node does (NONE). The rules themselves: :mod:`leapnbv_planner.goal_age`.
+node does (NONE). Every status carries ``valid_until`` (the goal's stamp + max_goal_age_s while CURRENT, else
+0), so a consumer checks the goal on its own clock also while this node is frozen, and ``planned_without``
+(the optional inputs in use that the goal's frame lacked, their why in ``reason``). The rules themselves:
+:mod:`leapnbv_planner.goal_age`.
 """
 from __future__ import annotations
 
-from typing import Any, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
@@ -18,7 +21,7 @@ from leapnbv_common import topics
 from leapnbv_common.conversions import path_msg, pose_msg, set_stamp
 from leapnbv_common.qos import latched_goal_qos
 from leapnbv_msgs.msg import GoalStatus
-from leapnbv_planner.goal_age import expired_age_s, too_old
+from leapnbv_planner.goal_age import expired_age_s, too_old, valid_until_ns
 
 __all__ = ["LatchedGoal", "GOAL_AGE_CHECK_PERIOD_S"]
 
@@ -45,6 +48,7 @@ class LatchedGoal:
         self.stamp: Optional[int] = None  # frame stamp of the last goal published
         self.frame = ""
         self.state = GoalStatus.STATE_NONE
+        self.planned_without: Dict[str, str] = {}  # of the latched goal: input name -> why
         self.age_timer: Any = None
 
     def now_ns(self) -> int:
@@ -72,12 +76,18 @@ class LatchedGoal:
         if self.state == GoalStatus.STATE_CURRENT and max_goal_age_s > 0 and self.age_timer is not None:
             self.age_timer.reset()
 
-    def publish(self, header: Header, stamp_ns: int, chosen: Tuple[Any, Any], base_goal: Tuple[Any, Any]) -> None:
-        """Latch the goal of a frame: the camera's view and the base's goal, in the frame's header."""
+    def publish(self, header: Header, stamp_ns: int, chosen: Tuple[Any, Any], base_goal: Tuple[Any, Any],
+                planned_without: Optional[Dict[str, str]] = None) -> None:
+        """Latch the goal of a frame: the camera's view and the base's goal, in the frame's header.
+
+        ``planned_without``: the optional inputs in use that the frame was planned without, each with why.
+        """
         self.goal_pub.publish(PoseStamped(header=header, pose=pose_msg(*chosen)))
         self.base_goal_pub.publish(PoseStamped(header=header, pose=pose_msg(*base_goal)))
         self.stamp, self.frame = stamp_ns, header.frame_id
-        self.publish_status(GoalStatus.STATE_CURRENT, "goal published")
+        self.planned_without = dict(planned_without or {})
+        self.publish_status(GoalStatus.STATE_CURRENT, "goal published" + "".join(
+            f"; planned without {name}: {why}" for name, why in self.planned_without.items()))
         if self.node.params.value.max_goal_age_s > 0 and self.age_timer.is_canceled():
             self.age_timer.reset()
 
@@ -116,5 +126,8 @@ class LatchedGoal:
         if self.stamp is not None:
             set_stamp(msg.goal_stamp, self.stamp)
             msg.goal_age_s = float((now - self.stamp) * 1e-9)
+        if self.stamp is not None and state == GoalStatus.STATE_CURRENT:
+            set_stamp(msg.valid_until, valid_until_ns(self.stamp, self.node.params.value.max_goal_age_s))
+            msg.planned_without = list(self.planned_without)
         self.state = state
         self.status_pub.publish(msg)

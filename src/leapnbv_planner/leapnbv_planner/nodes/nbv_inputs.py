@@ -18,11 +18,12 @@ from sensor_msgs.msg import PointCloud2
 from leapnbv_common import topics
 from leapnbv_common.array_types import Float32Array, FloatArray, IntArray
 from leapnbv_common.camera_pose import CameraPoseSource, StampedCameraPose
-from leapnbv_common.contracts import check_same_frame, refused
-from leapnbv_common.conversions import GroundPlaneArrays, human_mesh_to_arrays, obstacle_map_to_points, stamp_to_ns
+from leapnbv_common.contracts import ContractError, check_same_frame, refused
+from leapnbv_common.conversions import GroundPlaneArrays, obstacle_map_to_points, stamp_to_ns
 from leapnbv_common.diagnostics import rejects_bad_input
 from leapnbv_common.qos import latched_map_qos
 from leapnbv_common.stage import Frame
+from leapnbv_common.stage_inputs import checked_human_mesh
 from leapnbv_msgs.msg import HumanMesh, InputStamp
 from leapnbv_planner.floor_carry import carry_plane
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, voxel_map_from_centres
@@ -34,8 +35,13 @@ Floor = Tuple[GroundPlaneArrays, List[tuple]]
 
 
 def body_mesh_arrays(msg: HumanMesh) -> Tuple[FloatArray, IntArray]:
-    """(vertices (V, 3) float64, faces (F, 3)) of a metric body mesh, checked (what BODY_MESH terms read)."""
-    mesh = human_mesh_to_arrays(msg)
+    """(vertices (V, 3) float64, faces (F, 3)) of a metric body mesh, checked (what BODY_MESH terms read).
+
+    Raises:
+        ContractError: a mesh above MAX_MESH_VERTICES / MAX_MESH_FACES (``mesh_too_large``), or one that breaks
+            the HumanMesh contract.
+    """
+    mesh = checked_human_mesh(msg)
     faces: IntArray = mesh.faces.reshape(-1, 3)
     return mesh.vertices.astype(np.float64), faces
 
@@ -119,6 +125,10 @@ class ObstacleMapInput:
 
     @rejects_bad_input("bad_obstacle_map")
     def on_message(self, msg: PointCloud2) -> None:
+        # Counted before any work: a map too large is refused whole and the previous one stays in use.
+        if refused(self.diagnostics, "obstacle_map_too_large", check_map_size, int(msg.width) * int(msg.height),
+                   int(self.node.params.value.max_obstacle_voxels), self.map):
+            return
         points = obstacle_map_to_points(msg)  # a map with a NaN point is refused whole (the previous one stays)
         self.map = voxel_map_from_centres(points, self.node.params.value.obstacle_map_resolution)
         self.points = points
@@ -139,16 +149,35 @@ class ObstacleMapInput:
     def in_use(self) -> bool:
         return self.map is not None and bool(self.node.params.value.use_obstacle_map)
 
-    def camera_pose_for(self, frame: Frame) -> Optional[StampedCameraPose]:
-        """The frame's camera pose in the map's frame, or None when the frame cannot use the map (counted)."""
+    def camera_pose_for(self, frame: Frame, source: Any = None) -> Tuple[Optional[StampedCameraPose], str]:
+        """(the frame's camera pose in the map's frame, or None; why the frame is planned without the map, or "").
+
+        Without a usable pose the frame is planned without the map, counted (``no_camera_pose``: missing, or
+        refused by the camera-pose ``source``, which says why when it has ``refusal_at``; ``camera_pose_frame``)
+        and said (``counted.planned_without.obstacle_map``, the rejection's detail, goal_status).
+        """
         if not self.in_use():
-            return None
+            return None, ""
         pose: Optional[StampedCameraPose] = frame["camera_pose"]
+        refusal_at = getattr(source, "refusal_at", None)
+        refusal = refusal_at(frame.stamp_ns) if pose is None and refusal_at is not None else None
         if pose is None:
-            self.diagnostics.reject("no_camera_pose", "no camera pose with this frame's stamp: planned without the map")
-            return None
-        if pose.frame_id != self.frame_id:
-            self.diagnostics.reject("camera_pose_frame", f"camera pose in frame {pose.frame_id!r}, the obstacle map in"
-                                    f" {self.frame_id!r}: planned without the map")
-            return None
-        return pose
+            reason, why = "no_camera_pose", (f"the camera pose of this frame was refused ({refusal})" if refusal
+                                             else "no camera pose with this frame's stamp came")
+        elif pose.frame_id != self.frame_id:
+            reason, why = "camera_pose_frame", (f"the camera pose is in frame {pose.frame_id!r}, the obstacle map in"
+                                                f" {self.frame_id!r}")
+        else:
+            return pose, ""
+        self.diagnostics.reject(reason, why + ": planned without the obstacle map")
+        self.diagnostics.count("planned_without.obstacle_map")
+        return None, why
+
+
+def check_map_size(count: int, limit: int, previous: Optional[VoxelObstacleMap]) -> None:
+    """An obstacle map of at most ``limit`` voxel centres (ContractError ``obstacle_map_too_large``)."""
+    if count > limit:
+        kept = f"the previous map ({previous.voxel_count} voxels) stays in use" if previous is not None else \
+            "planned without a map until a smaller one comes"
+        raise ContractError(f"obstacle map of {count} voxels is larger than max_obstacle_voxels ({limit}): {kept}",
+                            "obstacle_map_too_large")

@@ -154,9 +154,14 @@ class NbvNode(ManagedNode):
             return
         inputs: List[tuple] = [("target_geometry", stamp), *floor[1]]
         body_mesh = frame[topics.HUMAN_MESH_METRIC]
+        planned_without = {}  # optional inputs in use that this frame lacks (goal_status says so)
         if body_mesh is not None:
             inputs.append((topics.HUMAN_MESH_METRIC, stamp))
-        camera_pose = self.obstacle_map.camera_pose_for(frame)
+        elif self.terms_need(BODY_MESH):
+            planned_without[topics.HUMAN_MESH_METRIC] = "no metric body mesh of this frame: S_o of the observed points"
+        camera_pose, without_map = self.obstacle_map.camera_pose_for(frame, self.camera_poses)
+        if without_map:
+            planned_without["obstacle_map"] = without_map
         if camera_pose is not None:
             if ("camera_pose", stamp, InputStamp.SAME_FRAME) not in inputs:
                 inputs.append(("camera_pose", stamp))
@@ -173,7 +178,7 @@ class NbvNode(ManagedNode):
         elif self.goal.too_old(stamp):
             self.diagnostics.drop("goal_too_old")  # planning took it past the limit: no goal of it
         else:
-            self.goal.publish(target.header, stamp, chosen, plan.base_goal)
+            self.goal.publish(target.header, stamp, chosen, plan.base_goal, planned_without)
             goal_published = True
         out = arrays_to_view_candidates(plan.to_arrays(), target.header, compute_time_ms, inputs=inputs)
         self.candidates_pub.publish(out)
