@@ -220,7 +220,11 @@ def parity(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1, hands
 
 
 class ExportCheckError(RuntimeError):
-    """A check of the staged export failed (the file is not moved to --out)."""
+    """A check of the staged export failed (the file is not moved to --out); ``report``: the parity report."""
+
+    def __init__(self, message: str, report: Optional[ParityReport] = None) -> None:
+        super().__init__(message)
+        self.report = report
 
 
 def checked_export(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
@@ -240,16 +244,13 @@ def checked_export(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadat
             check_backend_contract(OnnxRuntimeBackend(staged), SMPLERX_CONTRACT, source=path)
         except ModelContractError as error:
             raise ExportCheckError(f"engine contract: {str(error).splitlines()[0]}") from error
-        reports.append(parity_report(model, staged, crops.astype(np.float32), hands=hands))
-        if not reports[-1].ok:
-            failed = [o.name for o in reports[-1].outputs if not o.ok]
-            raise ExportCheckError(f"parity onnxruntime vs PyTorch over the limit in {', '.join(failed)}")
+        report = parity_report(model, staged, crops.astype(np.float32), hands=hands)
+        reports.append(report)
+        if not report.ok:
+            failed = [o.name for o in report.outputs if not o.ok]
+            raise ExportCheckError(f"parity onnxruntime vs PyTorch over the limit in {', '.join(failed)}", report)
 
-    try:
-        export_onnx(model, path, input_hw, metadata, opset, hands=hands, check=check)
-    except ExportCheckError as error:
-        error.report = reports[-1] if reports else None  # type: ignore[attr-defined]
-        raise
+    export_onnx(model, path, input_hw, metadata, opset, hands=hands, check=check)
     return reports[-1]
 
 
@@ -296,8 +297,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         report = checked_export(model, args.out, input_hw, metadata, args.opset, hands=hands,
                                 parity_crops=args.parity_crops)
     except ExportCheckError as error:
-        failed = getattr(error, "report", None)
-        for line in failed.lines() if failed is not None else []:
+        for line in error.report.lines() if error.report is not None else []:
             print(line)
         kept = "the earlier file there is unchanged" if os.path.exists(args.out) else "nothing written"
         print(f"export-hmr: {error}; {kept} at '{args.out}'", file=sys.stderr)
