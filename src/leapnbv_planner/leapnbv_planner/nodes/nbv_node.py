@@ -157,7 +157,7 @@ class NbvNode(ManagedNode):
         planned_without = {}  # optional inputs in use that this frame lacks (goal_status says so)
         if body_mesh is not None:
             inputs.append((topics.HUMAN_MESH_METRIC, stamp))
-        elif self.terms_need(BODY_MESH):
+        elif self.terms_need(BODY_MESH) and self.count_publishers(topics.HUMAN_MESH_METRIC) > 0:
             planned_without[topics.HUMAN_MESH_METRIC] = "no metric body mesh of this frame: S_o of the observed points"
         camera_pose, without_map = self.obstacle_map.camera_pose_for(frame, self.camera_poses)
         if without_map:
