@@ -69,6 +69,8 @@ def test_intrinsics_boxes_sizes_and_frames():
         ([10, 20, float("inf"), 400, 0.5], "not finite"), ([10, 20, 200, 400, 1.5], r"outside \[0, 1\]"),
         ([10, 20, 200, 400, -0.1], r"outside \[0, 1\]"), ([200, 20, 10, 400, 0.5], "empty or inverted"),
         ([10, 20, 10, 400, 0.5], "empty or inverted"), ([700, 20, 800, 400, 0.5], "outside the 640x480 image"),
+        ([-1e9, -1e9, 1e9, 1e9, 0.5], "beyond the 640x480 image"), ([10, -481, 200, 400, 0.5], "beyond"),
+        ([10, 20, 1281, 400, 0.5], "beyond"),
     ]:
         with pytest.raises(c.ContractError, match=message):
             c.check_boxes(np.array([good[0], row]), (640, 480))
@@ -129,3 +131,28 @@ def test_refused_counts_under_the_contract_or_the_callers_reason():
     assert c.refused(diagnostics, "bad_depth", c.check_finite, "depth offset", [NAN])
     assert rejected == [("image_size_mismatch", "a is 1x1 but b is 2x1"),
                         ("bad_depth", "depth offset has 1 non-finite value(s) (NaN or inf)")]
+
+
+def test_boxes_may_reach_one_image_size_beyond_the_edges():
+    edge = np.array([[-640, -480, 1280, 960, 0.5], [-100, -50, 200, 400, 0.9]])
+    np.testing.assert_array_equal(c.check_boxes(edge, (640, 480)), edge.astype(np.float32))
+
+
+def test_a_mesh_above_the_vertex_or_face_limit_is_too_large():
+    c.check_mesh_size("mesh", 10_475, 20_908)
+    c.check_mesh_size("mesh", c.MAX_MESH_VERTICES, c.MAX_MESH_FACES)
+    for vertices, faces in [(c.MAX_MESH_VERTICES + 1, 1), (3, c.MAX_MESH_FACES + 1)]:
+        with pytest.raises(c.ContractError, match="limit 100000 vertices, 200000 faces") as error:
+            c.check_mesh_size("mesh", vertices, faces)
+        assert error.value.reason == c.MESH_TOO_LARGE
+
+
+def test_a_stamp_ahead_of_the_clock_beyond_the_tolerance_is_in_the_future():
+    now = 1_800_000_000 * 10**9
+    c.check_stamp_not_ahead("image", now + 500_000_000, now, 0.5)  # at the tolerance: accepted
+    c.check_stamp_not_ahead("image", now - 10**12, now, 0.5)  # the past: always
+    c.check_stamp_not_ahead("image", now + 10**18, now, 0.0)  # 0: no limit
+    c.check_stamp_not_ahead("image", now, 0, 0.5)  # a clock at 0 (sim time before /clock): no check
+    with pytest.raises(c.ContractError, match=r"image stamped 0.501 s ahead of the node clock \(limit 0.5 s") as error:
+        c.check_stamp_not_ahead("image", now + 501_000_000, now, 0.5)
+    assert error.value.reason == c.STAMP_IN_FUTURE

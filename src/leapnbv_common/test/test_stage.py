@@ -229,3 +229,33 @@ def test_an_exception_in_on_frame_is_counted_and_the_stage_serves_the_next_frame
         node.send("key", stamp)
     assert calls == [100 * MS, 200 * MS, 300 * MS]
     assert node.diagnostics.rejected["bad_depth"] == 1 and node.diagnostics.rejected["internal_error"] == 1
+
+
+def test_a_key_or_companion_stamped_ahead_of_the_clock_is_refused_before_its_stamp_is_remembered() -> None:
+    from types import SimpleNamespace
+
+    from leapnbv_common.params import StageParams
+
+    node = FakeNode()
+    node.params = SimpleNamespace(value=StageParams())  # type: ignore[attr-defined]  # the node's parameter: 0.5 s
+    served: List[Any] = []
+    stage = Stage(node, KeyInput("key", PointStamped, "key", point, None),
+                  [Companion("a", PointStamped, "a", point, wait_s=lambda f: 0.1)], served.append)
+    stage.start()
+    node.now = 1000 * MS
+    node.send("a", 1000 + 3_600_000, x=1.0)  # an hour ahead
+    node.send("key", 1000 + 3_600_000)
+    assert node.diagnostics.rejected["stamp_in_future"] == 2 and not served and not stage.waiting
+    node.send("key", 1400)  # 0.4 s ahead: within the tolerance
+    node.send("a", 1400, x=2.0)
+    assert [f["a"] for f in served] == [2.0]
+    node.now = 2000 * MS
+    node.send("a", 2000, x=3.0)
+    node.send("key", 2000)  # the future frame was never served: this one is not "older than published"
+    assert [f["a"] for f in served] == [2.0, 3.0] and not node.diagnostics.dropped
+
+    node, stage, served = make([])
+    stage.max_stamp_ahead_s = lambda: 0.0  # 0: no limit
+    node.now = 1000 * MS
+    node.send("key", 1000 + 3_600_000)
+    assert len(served) == 1 and not node.diagnostics.rejected

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from leapnbv_planner.floor_carry import carry_plane
-from leapnbv_planner.goal_age import expired_age_s, too_old
+from leapnbv_planner.goal_age import expired_age_s, too_old, valid_until_ns
 from leapnbv_planner.inputs import CameraInMap
 
 S = 1_000_000_000
@@ -20,6 +20,14 @@ def test_a_goal_expires_with_its_age_past_the_limit():
     assert expired_age_s(10 * S, 9 * S, 1.0) is None
     assert expired_age_s(int(10.5 * S), 9 * S, 1.0) == pytest.approx(1.5)
     assert expired_age_s(100 * S, 0, 0.0) is None
+
+
+def test_valid_until_is_the_last_instant_the_goal_stands():
+    assert valid_until_ns(9 * S, 1.0) == 10 * S
+    assert expired_age_s(valid_until_ns(9 * S, 1.0), 9 * S, 1.0) is None  # still current at valid_until
+    assert expired_age_s(valid_until_ns(9 * S, 1.0) + 1, 9 * S, 1.0) is not None
+    assert valid_until_ns(9 * S, 0.3) == 9 * S + 300_000_000  # no float32 rounding
+    assert valid_until_ns(9 * S, 0.0) == 0  # no limit
 
 
 def test_a_plane_carried_to_a_camera_moved_up_and_turned_keeps_the_world_floor():
