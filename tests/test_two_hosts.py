@@ -1,11 +1,17 @@
 """The graph split over two hosts (docs/TWO_HOSTS.md), as two network namespaces joined by a veth pair.
 
-Host A (namespace 1): the camera (the simulator, 5 FPS, driving to each goal) + detector_node +
-hmr_node. Host B (namespace 2): raster_node + ground_node + nbv_node. Colour stays on A; depth,
-camera infos, camera poses, the obstacle map and the meshes cross to B; goals cross back to A.
-Both use src/leapnbv_bringup/config/fastdds_two_hosts.xml and ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET,
-as the document says. The namespaces, the veth and every process are made here and removed in a
-finally; the test needs root (`ip netns`) and skips with the reason otherwise.
+The suite's case, "geometry off-board": host A (namespace 1) runs the camera (the simulator, 5 FPS,
+driving to each goal) + detector_node + hmr_node; host B (namespace 2) raster_node + ground_node +
+nbv_node. Colour stays on A; depth, camera infos, camera poses, the obstacle map and the meshes cross
+to B; goals cross back to A. Both use src/leapnbv_bringup/config/fastdds_two_hosts.xml and
+ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET, as the document says. The namespaces, the veth and every
+process are made here and removed in a finally; the test needs root (`ip netns`) and skips with the
+reason otherwise.
+
+Opt-in cases (environment variables below, docs/TWO_HOSTS.md "The test"): the planner off-board
+(LEAPNBV_TWO_HOSTS_SPLIT=planner, with fastdds_two_hosts_wifi.xml) on a link shaped to a Wi-Fi-class
+rate (LEAPNBV_TWO_HOSTS_RATE=30mbit: tbf with a 50 ms queue on both ends), and the link's traffic per
+topic (LEAPNBV_TWO_HOSTS_TRAFFIC=out.json, scripts/experiments/two_host_traffic.py).
 
 This file is also the recording helper it runs inside each namespace:
     python tests/test_two_hosts.py record {a|b} OUT.json
