@@ -133,6 +133,11 @@ class PlanInputs:
         obstacle_map: the robot's obstacle map; used only together with camera_pose.
         camera_pose: the frame's camera in the map's frame (the caller checks that its frame is the map's).
         body_mesh: the person's metric body mesh (the raster node's human_mesh_metric), or None.
+        extra_foot_points: (E, 3) foot points of further views to score beside the ring (the committed goal of
+            :mod:`leapnbv_planner.commitment`, brought into this frame), or None (nothing more is computed). Each
+            is projected onto the frame's floor and gets its camera by the ring's mounting rule; it is checked,
+            path-searched and scored like a ring candidate, reported in ``Plan.extra`` and never chosen by the
+            plan (the ring's candidates, indices and choice are the same with or without them).
     """
 
     target: TargetArrays
@@ -141,6 +146,7 @@ class PlanInputs:
     obstacle_map: Optional[ObstacleMap] = None
     camera_pose: Optional[CameraPose] = None
     body_mesh: Optional[BodyMesh] = None
+    extra_foot_points: Optional[Array] = None
 
     @property
     def uses_obstacle_map(self) -> bool:

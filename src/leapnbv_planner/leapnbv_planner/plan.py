@@ -6,11 +6,12 @@ geometry and ground plane (any objects with the attributes of the Protocols ``Ta
 parameters, and optionally the robot's obstacle map with the frame's camera pose in it and the
 person's body mesh. It builds the candidate ring, joins the map's obstacles to the frame's
 background for the footprint test, checks feasibility (and the free paths), scores the candidates
-with the configured terms, chooses the best feasible one and computes the base goal. The scoring
-gets the PlanInputs unchanged: each term reads what it declared (:mod:`leapnbv_planner.requirements`:
-the map's lines of sight, the body mesh, the paths), computed once and only for a term that reads
-it; no step here knows a term by name. The result, :class:`Plan`, holds everything the node
-publishes (candidates, goal, base goal, markers).
+with the configured terms, chooses the best feasible one and computes the base goal; views given as
+``extra_foot_points`` (the committed goal, :mod:`leapnbv_planner.commitment`) are then checked and scored
+the same way, beside the ring. The scoring gets the PlanInputs unchanged: each term reads what it
+declared (:mod:`leapnbv_planner.requirements`: the map's lines of sight, the body mesh, the paths),
+computed once and only for a term that reads it; no step here knows a term by name. The result,
+:class:`Plan`, holds everything the node publishes (candidates, goal, base goal, markers).
 
 Everything is in the frame's camera optical frame; the current camera is the origin.
 """
@@ -18,12 +19,13 @@ Everything is in the frame's camera optical frame; the current camera is the ori
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union, cast, overload
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple, Union, cast, overload
 
 import numpy as np
 
 from leapnbv_planner.arrays import Array
 from leapnbv_planner.candidates import (
+    CandidateGenerationError,
     CandidateSet,
     FeasibilityReason,
     FeasibilityResult,
@@ -48,8 +50,8 @@ from leapnbv_planner.scoring import CandidateScores, choose_best, score_context
 if TYPE_CHECKING:  # the core needs no ROS; only the conversion to the message arrays imports it
     from leapnbv_common.conversions import ViewCandidatesArrays
 
-__all__ = ["Frame", "Plan", "PlanInputError", "PlanInputs", "base_goal_frame", "level_frames", "mesh_vertex_normals",
-           "plan_views"]
+__all__ = ["ExtraViews", "Frame", "Plan", "PlanInputError", "PlanInputs", "base_goal_frame", "level_frames",
+           "mesh_vertex_normals", "plan_views"]
 
 Frame = Tuple[Array, Array]  # (3, 3) rotation with axes as columns, (3,) position
 # fit_to_free_space: the nearest probes of a candidate that are free on the floor grid and get the exact footprint test.
@@ -58,6 +60,42 @@ _EXACT_TESTS_PER_CANDIDATE = 16
 
 class PlanInputError(ValueError):
     """The frame cannot be planned (invalid target or ground plane); the text says which."""
+
+
+@dataclass
+class ExtraViews:
+    """The views of ``PlanInputs.extra_foot_points``, planned beside the ring: checked, path-searched and scored
+    with the ring's rules and terms, on the ring's floor grid, so their scores compare with the ring's.
+
+    Attributes:
+        candidates: their poses: foot points on the frame's floor, cameras by the ring's mounting rule
+            (``cameras_at_feet``: aimed at the frame's centroid), the ring's centre; ``is_current`` all False.
+        feasibility: feasible (E,) and the reason codes (E,): travel range, footprint and (with reachability) a free
+            path of at most max_path_length on the ring's grid (a foot point off the grid has none: UNREACHABLE).
+        scores: the ring's terms and weights, (E, T) values and (E,) score (0 when infeasible unless
+            score_infeasible).
+        path_lengths: (E,) metres of the free path to each (inf: none), None when reachability is off.
+        base_paths: per view, (P, 3) floor points of its path (as ``Plan.base_path``), None without one.
+        up: (3,) the ground normal as the plane gives it (``Plan.up``).
+    """
+
+    candidates: CandidateSet
+    feasibility: FeasibilityResult
+    scores: CandidateScores
+    path_lengths: Optional[Array]
+    base_paths: List[Optional[Array]]
+    up: Array
+
+    def __len__(self) -> int:
+        return len(self.candidates)
+
+    def pose(self, index: int) -> Frame:
+        """(rotation, position) of view ``index``'s camera, the frame's optical frame."""
+        return self.candidates.rotations[index], self.candidates.positions[index]
+
+    def base_goal(self, index: int) -> Frame:
+        """The robot base goal of view ``index``: its foot point, x toward the ring centre (as ``Plan.base_goal``)."""
+        return base_goal_frame(self.candidates.foot_points[index], self.candidates.ring_center, self.up)
 
 
 @dataclass
@@ -88,6 +126,7 @@ class Plan:
         computed: every requirement the scoring computed (:mod:`leapnbv_planner.requirements`), by name: its
             value for the scored candidates (rows in the order of ``flatnonzero(scored)``), None where the
             frame lacked it.
+        extra: the views of ``PlanInputs.extra_foot_points``, None when none were given.
     """
 
     candidates: CandidateSet
@@ -105,6 +144,7 @@ class Plan:
     mesh_line_of_sight_clear: Optional[Array] = None
     used_obstacle_map: bool = False
     computed: Dict[str, object] = field(default_factory=dict)
+    extra: Optional[ExtraViews] = None
 
     def chosen_pose(self) -> Optional[Frame]:
         """(rotation, position) of the next-best view, None when none is feasible."""
@@ -256,6 +296,8 @@ def _plan(inputs: PlanInputs) -> Plan:
                       path_lengths=path_lengths)
     scores, computed = _score_picked(frame, background)
     chosen = choose_best(scores.score, feasibility.feasible, candidates.positions, np.zeros(3))
+    extra = None if inputs.extra_foot_points is None else \
+        _plan_extra(inputs, candidates, obstacles, obstacles_in_plane, reach, target_points, background)
     base_goal, base_path = None, None
     if chosen >= 0:
         base_goal = base_goal_frame(candidates.foot_points[chosen], candidates.ring_center, normal)
@@ -269,7 +311,47 @@ def _plan(inputs: PlanInputs) -> Plan:
                 path_lengths=path_lengths, base_path=base_path, reach=reach,
                 mesh_line_of_sight_clear=_on_scored_or_none(computed.get(MESH_LINE_OF_SIGHT.name), picked,
                                                             len(candidates)),
-                used_obstacle_map=inputs.uses_obstacle_map, computed=computed)
+                used_obstacle_map=inputs.uses_obstacle_map, computed=computed, extra=extra)
+
+
+def _plan_extra(inputs: PlanInputs, ring: CandidateSet, obstacles: Array, obstacles_in_plane: Array,
+                reach: Optional[Reachability], target_points: Array, background: Array) -> ExtraViews:
+    """The extra views planned beside the ring, after it: its grid and clouds, its rules, a scoring of their own (the
+    ring's values and choice never see them).
+
+    Raises:
+        CandidateGenerationError: the foot points are not (E, 3) finite values.
+    """
+    params, ground = inputs.params, inputs.floor
+    feet = np.asarray(inputs.extra_foot_points, dtype=np.float64)
+    if feet.ndim != 2 or feet.shape[1] != 3 or not np.all(np.isfinite(feet)):
+        raise CandidateGenerationError(f"extra_foot_points must be finite (E, 3) values, got shape {feet.shape}")
+    normal = np.asarray(ground.normal, dtype=np.float64).reshape(3)
+    unit_normal, unit_offset = normalize_plane(normal, float(ground.offset))
+    # Onto this frame's floor: a point planned on an earlier frame's plane is off this one by the planes' difference.
+    feet = feet - (feet @ unit_normal + unit_offset)[:, None] * unit_normal[None, :]
+    rotations, positions = cameras_at_feet(feet, np.asarray(inputs.target.centroid, dtype=np.float64).reshape(3),
+                                           unit_normal, ring.camera_height, params)
+    views = CandidateSet(rotations=rotations, positions=positions, foot_points=feet, ring_center=ring.ring_center,
+                         camera_height=ring.camera_height, is_current=np.zeros(len(feet), dtype=bool))
+    feasibility = check_feasibility(views, obstacles, normal, float(ground.offset), params, obstacles_in_plane)
+    path_lengths = None
+    if reach is not None:
+        path_lengths = reach.path_lengths_at(feet)
+        reasons = np.asarray(feasibility.reasons).copy()
+        # The ring's rule (_check_paths): a free path of at most max_path_length.
+        reachable = np.isfinite(path_lengths) & (path_lengths <= float(params.max_path_length))
+        reasons[(reasons == int(FeasibilityReason.OK)) & ~reachable] = int(FeasibilityReason.UNREACHABLE)
+        feasibility = FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons)
+    scored = np.ones(len(views), dtype=bool) if params.score_infeasible \
+        else np.asarray(feasibility.feasible, dtype=bool)
+    frame = PlanFrame(inputs=inputs, candidates=views, picked=np.flatnonzero(scored), target_points=target_points,
+                      path_lengths=path_lengths)
+    scores, _ = _score_picked(frame, background)
+    base_paths = [reach.path_to(foot) if reach is not None and ok else None
+                  for foot, ok in zip(feet, np.asarray(feasibility.feasible, dtype=bool))]
+    return ExtraViews(candidates=views, feasibility=feasibility, scores=scores, path_lengths=path_lengths,
+                      base_paths=base_paths, up=normal)
 
 
 def _on_scored(values: Array, picked: Array, count: int, fill: float) -> Array:
