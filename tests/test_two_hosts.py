@@ -219,7 +219,8 @@ def paced_profile(xml: str, mbit_s: float) -> str:
     """The profile with its flow controller's bytes per period set for ``mbit_s`` (its period unchanged)."""
     import re
 
-    period_ms = int(re.search(r"<period_ms>(\d+)</period_ms>", xml).group(1))
+    found = re.search(r"<period_ms>(\d+)</period_ms>", xml)
+    period_ms = int(found.group(1)) if found else 100  # Fast DDS's default period
     per_period = int(mbit_s * 1e6 / 8 * period_ms / 1000)
     return re.sub(r"<max_bytes_per_period>\d+</max_bytes_per_period>",
                   f"<max_bytes_per_period>{per_period}</max_bytes_per_period>", xml)

@@ -35,7 +35,7 @@ import socket
 import struct
 import sys
 import time
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 ETH_P_ALL = 0x0003
 PACKET_OUTGOING = 4
@@ -232,11 +232,11 @@ class Counter:
         self._direction = direction
         self.add(direction, frame)
 
-    def result(self) -> Dict[str, object]:
+    def result(self) -> Dict[str, Any]:
         labels = sorted({label for _, label in self.bytes} | {label for _, label in self.samples})
         rows = []
         for label in labels:
-            row = {"label": label}
+            row: Dict[str, Any] = {"label": label}
             for direction in ("a_to_b", "b_to_a"):
                 key = (direction, label)
                 row[direction] = {"bytes": self.bytes.get(key, 0), "frames": self.frames.get(key, 0),
@@ -257,7 +257,7 @@ def capture(dev: str, out_path: str) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stopping.append(1))
     started = time.time()
-    startup: Dict[str, object] = {}
+    startup: Dict[str, Any] = {}
 
     def on_usr1(*_) -> None:  # the run starts now: what came before (discovery, start-up) is kept apart
         nonlocal started
@@ -285,7 +285,7 @@ def capture(dev: str, out_path: str) -> int:
     return 0
 
 
-def table(run: Dict[str, object], frames: Optional[int] = None, seconds: Optional[float] = None,
+def table(run: Dict[str, Any], frames: Optional[int] = None, seconds: Optional[float] = None,
           fps: Tuple[float, ...] = (5.0, 30.0)) -> str:
     """The per-topic table of a run (the test's traffic.json: the capture plus frames and seconds).
 
