@@ -386,6 +386,79 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
         name == "ground_plane" and (stamp == c[0] or rel == 1) for name, stamp, rel in c[2])]
     assert not floors, f"goals whose floor is neither the frame's own nor carried: {floors[:5]}"
 
+# ----------------------------------------------------------------------------- the traffic counter (no root)
+
+
+def _ip_frames(payload: bytes, ident: int, dport: int, mtu: int = 1500) -> List[bytes]:
+    """Ethernet frames of one UDP datagram, cut into IPv4 fragments as the kernel does."""
+    import struct
+
+    udp = struct.pack(">HHHH", 7411, dport, 8 + len(payload), 0) + payload
+    step = (mtu - 20) // 8 * 8
+    frames = []
+    for offset in range(0, len(udp), step):
+        chunk = udp[offset:offset + step]
+        more = offset + step < len(udp)
+        ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(chunk), ident, (0x2000 if more else 0) | offset // 8,
+                         64, 17, 0, bytes([10, 200, 1, 1]), bytes([10, 200, 1, 2]))
+        frames.append(b"\x02" * 6 + b"\x04" * 6 + b"\x08\x00" + ip + chunk)
+    return frames
+
+
+def test_traffic_counter_attributes_rtps_to_topics():
+    """two_host_traffic.Counter counts a writer's traffic on the topic its SEDP announcement names.
+
+    Its fragmented sample, a repeat of it and the reader's ACKNACK (addressed by INFO_DST) are counted
+    on the topic, every IP fragment's bytes included.
+    """
+    import struct
+
+    sys.path.insert(0, str(TRAFFIC_SCRIPT.parent))
+    import two_host_traffic as traffic
+
+    writer_prefix, reader_prefix = bytes(range(1, 13)), bytes(range(21, 33))
+    writer_entity = bytes([0, 0, 0x12, 0x03])
+    header = b"RTPS\x02\x03\x01\x0f"
+
+    def sub(sid: int, flags: int, body: bytes) -> bytes:
+        return struct.pack("<BBH", sid, flags | 1, len(body)) + body
+
+    name = b"rt/leapnbv/target_geometry\x00"
+    name += b"\x00" * (-len(name) % 4)
+    params = (struct.pack("<HH", 0x5A, 16) + writer_prefix + writer_entity
+              + struct.pack("<HHI", 0x05, 4 + len(name), len(name.rstrip(b"\x00")) + 1) + name
+              + struct.pack("<HH", 1, 0))
+    sedp = header + writer_prefix + sub(0x15, 0x04, struct.pack("<HH", 0, 16) + bytes.fromhex("000003c7000003c2")
+                                        + struct.pack("<iI", 0, 1) + b"\x00\x03\x00\x00" + params)
+    sample = 100_000
+    fragment = bytes(4000)
+    data_frag = header + writer_prefix + sub(0x16, 0, struct.pack("<HH", 0, 28) + bytes(4) + writer_entity
+                                             + struct.pack("<iIIHHI", 0, 7, 1, 1, len(fragment), sample) + fragment)
+    small = bytes(3000)  # one DATA, bigger than an IP fragment: its size from the submessage's length
+    data = header + writer_prefix + sub(0x15, 0x04, struct.pack("<HH", 0, 16) + bytes(4) + writer_entity
+                                        + struct.pack("<iI", 0, 8) + small)
+    acknack = header + reader_prefix + sub(0x0E, 0, writer_prefix) + sub(0x06, 0, bytes(4) + writer_entity + bytes(20))
+    counter = traffic.Counter()
+    sedp_frames = _ip_frames(sedp, 1, 7410)
+    data_frames = _ip_frames(data_frag, 2, 7411)
+    again = _ip_frames(data_frag, 3, 7411)
+    data_frames += _ip_frames(data, 5, 7411)
+    for frame in sedp_frames + data_frames + again:
+        counter.feed("a_to_b", frame)
+    for frame in _ip_frames(acknack, 4, 7413):
+        counter.feed("b_to_a", frame)
+    rows = {row["label"]: row for row in counter.result()["rows"]}
+    topic = rows["rt/leapnbv/target_geometry"]
+    assert len(data_frames) == 6  # 4000 B of fragment and 3000 B of DATA: 3 + 3 IP fragments, all on the topic
+    assert topic["a_to_b"]["bytes"] == sum(len(f) for f in data_frames + again)
+    assert topic["a_to_b"]["samples"] == 3 and topic["a_to_b"]["repeats"] == 1
+    # DATA_FRAG's sample size and the whole DATA, not the bytes of the first IP fragment
+    assert topic["a_to_b"]["sample_bytes"] == 2 * sample + len(small)
+    assert topic["b_to_a"]["bytes"] == len(_ip_frames(acknack, 4, 7413)[0])
+    assert rows["DDS discovery (SEDP)"]["a_to_b"]["bytes"] == sum(len(f) for f in sedp_frames)
+    assert "RTPS unattributed" not in rows
+
+
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "record":
         sys.exit(record(sys.argv[2], sys.argv[3]))
