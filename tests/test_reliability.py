@@ -55,7 +55,7 @@ pytestmark = [pytest.mark.ros]
 FRAME_ID = "camera_color_optical_frame"
 OTHER_FRAME = "camera_depth_optical_frame"  # a real frame name, just not this frame's
 MAP_FRAME = "map"
-BASE_NS = 1_800_000_000 * 1_000_000_000
+BASE_NS = 1_700_000_000 * 1_000_000_000  # in the clock's past, as recorded stamps: inputs ahead of it are refused
 STEP_NS = 10_000_000  # 10 ms between stamps: every stamp is new, the person mask stays fresh
 NAN = float("nan")
 
@@ -108,8 +108,11 @@ def graph(tmp_path_factory, sample):
     truncated = logs / "truncated_body.npz"
     data = open(body, "rb").read()
     truncated.write_bytes(data[: len(data) // 2])
+    # Stamps of 2023 (BASE_NS), not the clock's: no goal age limit, as in a replay (tests/test_frame_timing.py and
+    # tests/test_input_limits.py test it on the clock's stamps).
     overrides = {"detector_node": {"backend": "ground_truth"},
-                 "hmr_node": {"backend": "ground_truth", "body_model_path": body}}
+                 "hmr_node": {"backend": "ground_truth", "body_model_path": body},
+                 "nbv_node": {"max_goal_age_s": "0.0"}}
     procs = harness.start_graph(str(logs), overrides)
     # Startup faults, each in its own namespace: they must start, say what is wrong, and keep serving.
     faults = {
