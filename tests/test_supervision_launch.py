@@ -15,7 +15,16 @@ import types
 
 import pytest
 
-from leapnbv_bringup.graph import MANAGER_NODE, MONITOR_NODE, NAMESPACE, default_params_file, graph_nodes, node_names
+from leapnbv_bringup.graph import (
+    MANAGER_NODE,
+    MONITOR_NODE,
+    NAMESPACE,
+    default_params_file,
+    fastdds_profile_file,
+    graph_nodes,
+    node_names,
+)
+from leapnbv_bringup.graph_runner import GraphRunner
 
 LAUNCH_FILE = "src/leapnbv_bringup/launch/leapnbv.launch.py"
 
@@ -59,16 +68,20 @@ def launch_description(repo_root, monkeypatch):
     return module.generate_launch_description()
 
 
-def run_launch(description, **arguments):
-    """Declared defaults + `arguments`, then the OpaqueFunction: the Node actions it returns."""
+def run_launch(description, function="_nodes", **arguments):
+    """Declared defaults + `arguments`, then the OpaqueFunction `function`: the actions it returns."""
     entities = description.args[0]
     declared = {e.args[0]: e.kwargs["default_value"] for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
     unknown = set(arguments) - set(declared)
     assert not unknown, f"not launch arguments: {unknown}"
     context = types.SimpleNamespace(launch_configurations={**declared, **arguments})
-    opaque = [e for e in entities if type(e).__name__ == "OpaqueFunction"]
-    assert len(opaque) == 1
-    return opaque[0].kwargs["function"](context)
+    opaque = [e.kwargs["function"] for e in entities if type(e).__name__ == "OpaqueFunction"]
+    assert [f.__name__ for f in opaque] == ["_environment", "_nodes"]  # the environment before the nodes
+    return next(f for f in opaque if f.__name__ == function)(context)
+
+
+def launch_environment(description, **arguments):
+    return {e.args[0]: e.args[1] for e in run_launch(description, "_environment", **arguments)}
 
 
 def test_launch_file_compiles(repo_root, tmp_path):
@@ -98,8 +111,21 @@ def test_launch_nodes_remaps_and_respawn_come_from_the_graph(launch_description)
     monitor = by_name[MONITOR_NODE.name]
     assert (monitor["package"], monitor["executable"]) == ("leapnbv_bringup", "graph_monitor")
     assert monitor["parameters"] == [{"nodes": node_names()}]
-    env = [e for e in launch_description.args[0] if type(e).__name__ == "SetEnvironmentVariable"]
-    assert env[0].args[0] == "FASTRTPS_DEFAULT_PROFILES_FILE"
+    assert launch_environment(launch_description) == {"FASTRTPS_DEFAULT_PROFILES_FILE": fastdds_profile_file()}
+
+
+def test_a_profile_that_paces_writers_publishes_asynchronously(launch_description, repo_root):
+    # Fast DDS's flow controllers work only on asynchronous writers: without the mode, raster_node's
+    # paced writer is not created. Other profiles keep rmw_fastrtps's default (synchronous).
+    config = repo_root / "src" / "leapnbv_bringup" / "config"
+    wifi = str(config / "fastdds_two_hosts_wifi.xml")
+    assert launch_environment(launch_description, fastdds_profile=wifi) == {
+        "FASTRTPS_DEFAULT_PROFILES_FILE": wifi, "RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
+    wired = str(config / "fastdds_two_hosts.xml")
+    assert launch_environment(launch_description, fastdds_profile=wired) == {"FASTRTPS_DEFAULT_PROFILES_FILE": wired}
+    runner = GraphRunner(env={"FASTRTPS_DEFAULT_PROFILES_FILE": wifi})
+    assert runner.env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
+    assert "RMW_FASTRTPS_PUBLICATION_MODE" not in GraphRunner(env={}).env
 
 
 def test_launch_arguments_choose_respawn_topics_and_one_hosts_nodes(launch_description):

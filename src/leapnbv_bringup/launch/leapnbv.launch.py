@@ -36,6 +36,7 @@ from leapnbv_bringup.graph import (
     MONITOR_NODE,
     NAMESPACE,
     default_params_file,
+    fastdds_environment,
     fastdds_profile_file,
     graph_nodes,
     node_names,
@@ -51,6 +52,12 @@ def _arg_name(key):
 
 def _true(text):
     return text.strip().lower() in ("1", "true", "yes", "on")
+
+
+def _environment(context):
+    """The Fast DDS profile's environment (asynchronous publication for a profile that paces writers)."""
+    profile = LaunchConfiguration("fastdds_profile").perform(context)
+    return [SetEnvironmentVariable(key, value) for key, value in fastdds_environment(profile).items()]
 
 
 def _nodes(context):
@@ -97,9 +104,9 @@ def generate_launch_description():
         DeclareLaunchArgument("monitor", default_value="true",
                               description="run graph_monitor: node starts and silence on /diagnostics"),
         DeclareLaunchArgument("fastdds_profile", default_value=fastdds_profile_file(),
-                              description="Fast DDS XML profile (two hosts: fastdds_two_hosts.xml)"),
+                              description="Fast DDS XML profile (two hosts: fastdds_two_hosts.xml; "
+                                          "over Wi-Fi: fastdds_two_hosts_wifi.xml)"),
     ]
     args += [DeclareLaunchArgument(_arg_name(k), default_value=v, description=f"input topic for '{k}'")
              for k, v in INPUT_TOPICS.items()]
-    env = SetEnvironmentVariable("FASTRTPS_DEFAULT_PROFILES_FILE", LaunchConfiguration("fastdds_profile"))
-    return LaunchDescription(args + [env, OpaqueFunction(function=_nodes)])
+    return LaunchDescription(args + [OpaqueFunction(function=_environment), OpaqueFunction(function=_nodes)])

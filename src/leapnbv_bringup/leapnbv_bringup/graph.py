@@ -104,3 +104,22 @@ def default_params_file() -> str:
 def fastdds_profile_file() -> str:
     """The Fast DDS large-message profile shipped beside the parameter file."""
     return os.path.join(os.path.dirname(default_params_file()), "fastdds_large_messages.xml")
+
+
+def fastdds_environment(profile_file: str) -> Dict[str, str]:
+    """The environment a Fast DDS profile needs: the file, and asynchronous publication if it paces writers.
+
+    A flow controller (fastdds_two_hosts_wifi.xml paces the large stage outputs under a Wi-Fi link's rate) works
+    only on writers that publish asynchronously; with rmw_fastrtps's default synchronous mode the writer that
+    names one fails to be created (raster_node does not configure). Other profiles keep the default mode.
+    """
+    env = {"FASTRTPS_DEFAULT_PROFILES_FILE": profile_file}
+    try:
+        with open(profile_file, encoding="utf-8") as handle:
+            paces = "<flow_controller_descriptor_list" in handle.read()
+    except OSError:
+        paces = False  # Fast DDS itself reports the missing profile
+    if paces:
+        env["RMW_FASTRTPS_PUBLICATION_MODE"] = "ASYNCHRONOUS"
+    return env
+

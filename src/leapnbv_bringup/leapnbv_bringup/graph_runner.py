@@ -51,7 +51,14 @@ import time
 from dataclasses import dataclass, field
 from typing import IO, TYPE_CHECKING, Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
-from leapnbv_bringup.graph import NAMESPACE, NodeSpec, default_params_file, fastdds_profile_file, graph_nodes
+from leapnbv_bringup.graph import (
+    NAMESPACE,
+    NodeSpec,
+    default_params_file,
+    fastdds_environment,
+    fastdds_profile_file,
+    graph_nodes,
+)
 from leapnbv_bringup.readiness import (
     AWAITING_PUBLISHER,
     NOT_HEARD,
@@ -152,6 +159,8 @@ class GraphRunner:
         self.log_dir = log_dir
         self.env = dict(os.environ if env is None else env)
         self.env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", fastdds_profile_file())
+        for key, value in fastdds_environment(self.env["FASTRTPS_DEFAULT_PROFILES_FILE"]).items():
+            self.env.setdefault(key, value)
         self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         self.env["PYTHONUNBUFFERED"] = "1"
         self.restart = restart
