@@ -34,10 +34,10 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from leapnbv_common.params import param
 from leapnbv_planner.arrays import Array
 from leapnbv_planner.candidates import FeasibilityReason
 from leapnbv_planner.inputs import CameraPose
+from leapnbv_planner.params import CommitmentParams  # defined beside the other node parameters (no import cycle)
 from leapnbv_planner.plan import Frame, Plan, base_goal_frame
 from leapnbv_planner.scoring import SCORE_TIE_TOLERANCE
 
@@ -47,31 +47,6 @@ __all__ = ["DISTANCE_TOLERANCE_M", "CommitReason", "CommitmentParams", "Committe
 # Metres: distances within this of a threshold are on the side of keeping the goal (as SCORE_TIE_TOLERANCE for
 # scores): far above the rounding of a transform, far below anything a robot can tell apart.
 DISTANCE_TOLERANCE_M = 1e-9
-
-
-@dataclass
-class CommitmentParams:
-    """The goal commitment's parameters (fields of the nbv node's parameters: every one can change at runtime)."""
-
-    commit_goals: bool = param(True, "keep the published goal across plans, in the fixed frame of the camera pose,"
-                               " re-scored from each view, until another view beats it by commit_margin, it becomes"
-                               " infeasible or unreachable, the person moves past commit_person_moved_m or the"
-                               " current view is as good; off (or a frame without a camera pose): each plan's"
-                               " choice is the goal")
-    # 0.02: the two best views of bags/sample_a change places with a score difference that moves by at most
-    # 0.0047 from one frame to the next (largest gap 0.0042); 0.02 is four times that, the evaluation's min_gain
-    # (the least predicted gain worth a move), and 2.4 % more of the body's facing surface in view (weight 0.83).
-    commit_margin: float = param(0.02, "score: how much more than the committed goal (re-scored from the current"
-                                 " view) another view must score to replace it; staying is as good when the"
-                                 " current view scores within it of the committed goal and of the best view",
-                                 min=0.0, max=1.0)
-    # 0.5 m: a second at a slow walk; the person's floor position (the ring centre) jitters by 4.5 cm at most
-    # over bags/sample_a's frames.
-    commit_person_moved_m: float = param(0.5, "metres: how far the person's floor position may move from where it"
-                                         " was at the commit before the goal is planned anew", min=0.0, max=10.0)
-    commit_same_goal_m: float = param(0.25, "metres: a view whose foot point is this near the committed goal's is"
-                                      " the same goal and never replaces it (0.25: Nav2's default xy goal"
-                                      " tolerance)", min=0.0, max=5.0)
 
 
 class CommitReason(enum.IntEnum):

@@ -75,8 +75,36 @@ class CandidateRingParams:
 
 
 @dataclass
-class PlannerParams(CandidateRingParams, StageParams):
-    """Every nbv node parameter but the term weights (see nbv_params_class for the full class)."""
+class CommitmentParams:
+    """The goal commitment's parameters (:mod:`leapnbv_planner.commitment`; nbv node parameters, all live)."""
+
+    commit_goals: bool = param(True, "keep the published goal across plans, in the fixed frame of the camera pose,"
+                               " re-scored from each view, until another view beats it by commit_margin, it becomes"
+                               " infeasible or unreachable, the person moves past commit_person_moved_m or the"
+                               " current view is as good; off (or a frame without a camera pose): each plan's"
+                               " choice is the goal")
+    # 0.02: the two best views of bags/sample_a change places with a score difference that moves by at most
+    # 0.0047 from one frame to the next (largest gap 0.0042); 0.02 is four times that, the evaluation's min_gain
+    # (the least predicted gain worth a move), and 2.4 % more of the body's facing surface in view (weight 0.83).
+    commit_margin: float = param(0.02, "score: how much more than the committed goal (re-scored from the current"
+                                 " view) another view must score to replace it; staying is as good when the"
+                                 " current view scores within it of the committed goal and of the best view",
+                                 min=0.0, max=1.0)
+    # 0.5 m: a second at a slow walk; the person's floor position (the ring centre) jitters by 4.5 cm at most
+    # over bags/sample_a's frames.
+    commit_person_moved_m: float = param(0.5, "metres: how far the person's floor position may move from where it"
+                                         " was at the commit before the goal is planned anew", min=0.0, max=10.0)
+    commit_same_goal_m: float = param(0.25, "metres: a view whose foot point is this near the committed goal's is"
+                                      " the same goal and never replaces it (0.25: Nav2's default xy goal"
+                                      " tolerance)", min=0.0, max=5.0)
+
+
+@dataclass
+class PlannerParams(CandidateRingParams, CommitmentParams, StageParams):
+    """Every nbv node parameter but the term weights (see nbv_params_class for the full class).
+
+    The goal commitment's (``commit_*``, :class:`CommitmentParams`) are among them.
+    """
 
     score_terms: List[str] = param(DEFAULT_SCORE_TERMS, "score terms summed into the score, in this order"
                                    " (registered in leapnbv_planner.score_terms; weight of each: weight_<name>)")

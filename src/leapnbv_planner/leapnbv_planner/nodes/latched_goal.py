@@ -8,6 +8,11 @@ node does (NONE). Every status carries ``valid_until`` (the goal's stamp + max_g
 0), so a consumer checks the goal on its own clock also while this node is frozen, and ``planned_without``
 (the optional inputs in use that the goal's frame lacked, their why in ``reason``). The rules themselves:
 :mod:`leapnbv_planner.goal_age`.
+
+The goal published is the commitment's (:mod:`leapnbv_planner.nodes.goal_commitment`), and each CURRENT status
+says why it is what it is (``commitment``, ``goal_changed``, ``committed_since``, the scores weighed and the
+margin; the decision's line in ``reason``). A committed goal that a plan drops without a feasible view to
+take its place (infeasible, unreachable, the person moved) is withdrawn at once (NONE), not left to age out.
 """
 from __future__ import annotations
 
@@ -21,6 +26,7 @@ from leapnbv_common import topics
 from leapnbv_common.conversions import path_msg, pose_msg, set_stamp
 from leapnbv_common.qos import latched_goal_qos
 from leapnbv_msgs.msg import GoalStatus
+from leapnbv_planner.commitment import CommitReason, GoalDecision
 from leapnbv_planner.goal_age import expired_age_s, too_old, valid_until_ns
 
 __all__ = ["LatchedGoal", "GOAL_AGE_CHECK_PERIOD_S"]
@@ -49,6 +55,7 @@ class LatchedGoal:
         self.frame = ""
         self.state = GoalStatus.STATE_NONE
         self.planned_without: Dict[str, str] = {}  # of the latched goal: input name -> why
+        self.decision: Optional[GoalDecision] = None  # the commitment's decision of the latched goal
         self.age_timer: Any = None
 
     def now_ns(self) -> int:
@@ -67,6 +74,7 @@ class LatchedGoal:
 
     def stop(self) -> None:
         """Deactivate: no goal from a planner that stopped (a motion stack must not keep acting on the last one)."""
+        self.decision = None
         if self.state == GoalStatus.STATE_CURRENT:
             self.withdraw()
             self.publish_status(GoalStatus.STATE_NONE, "the planner was deactivated: the last goal was withdrawn")
@@ -75,6 +83,23 @@ class LatchedGoal:
         """A new max_goal_age_s: the next check applies it to the latched goal."""
         if self.state == GoalStatus.STATE_CURRENT and max_goal_age_s > 0 and self.age_timer is not None:
             self.age_timer.reset()
+
+    def publish_decision(self, header: Header, stamp_ns: int, decision: GoalDecision,
+                         planned_without: Dict[str, str]) -> bool:
+        """Latch the goal a plan's commitment decided (or withdraw a dropped one); whether a goal went out."""
+        if decision.goal is None or decision.base_goal is None:
+            self.node.diagnostics.reject("no_feasible_view", "every candidate is infeasible: no goal published")
+            if decision.changed and self.state == GoalStatus.STATE_CURRENT:
+                self.decision = decision
+                self.withdraw()
+                self.publish_status(GoalStatus.STATE_NONE, "the committed goal was withdrawn: " + decision.describe())
+            return False
+        if self.too_old(stamp_ns):
+            self.node.diagnostics.drop("goal_too_old")  # planning took it past the limit: no goal of it
+            return False
+        self.decision = decision
+        self.publish(header, stamp_ns, decision.goal, decision.base_goal, planned_without)
+        return True
 
     def publish(self, header: Header, stamp_ns: int, chosen: Tuple[Any, Any], base_goal: Tuple[Any, Any],
                 planned_without: Optional[Dict[str, str]] = None) -> None:
@@ -86,7 +111,8 @@ class LatchedGoal:
         self.base_goal_pub.publish(PoseStamped(header=header, pose=pose_msg(*base_goal)))
         self.stamp, self.frame = stamp_ns, header.frame_id
         self.planned_without = dict(planned_without or {})
-        self.publish_status(GoalStatus.STATE_CURRENT, "goal published" + "".join(
+        why = "goal published" if self.decision is None else self.decision.describe()
+        self.publish_status(GoalStatus.STATE_CURRENT, why + "".join(
             f"; planned without {name}: {why}" for name, why in self.planned_without.items()))
         if self.node.params.value.max_goal_age_s > 0 and self.age_timer.is_canceled():
             self.age_timer.reset()
@@ -106,6 +132,7 @@ class LatchedGoal:
         if age_s is None:
             return
         self.age_timer.cancel()
+        self.decision = None
         self.withdraw()
         self.node.diagnostics.drop("goal_withdrawn_stale")
         self.publish_status(GoalStatus.STATE_STALE, f"no goal from a frame younger than {limit:g} s: the last one"
@@ -129,5 +156,18 @@ class LatchedGoal:
         if self.stamp is not None and state == GoalStatus.STATE_CURRENT:
             set_stamp(msg.valid_until, valid_until_ns(self.stamp, self.node.params.value.max_goal_age_s))
             msg.planned_without = list(self.planned_without)
+        if self.decision is not None and (state == GoalStatus.STATE_CURRENT or self.decision.goal is None):
+            commitment_fields(msg, self.decision, self.stamp)
         self.state = state
         self.status_pub.publish(msg)
+
+
+def commitment_fields(msg: GoalStatus, decision: GoalDecision, stamp_ns: Optional[int]) -> None:
+    """The commitment's fields of a goal status (GoalStatus.msg: commitment, goal_changed, committed_since, ...)."""
+    msg.commitment = decision.reason.name
+    msg.goal_changed = decision.reason != CommitReason.KEPT  # a goal chosen (or dropped) by this plan, not kept
+    since = decision.committed.stamp_ns if decision.committed is not None else stamp_ns
+    if since is not None and decision.goal is not None:
+        set_stamp(msg.committed_since, since)
+    msg.held_score, msg.best_score, msg.margin = (float(decision.held_score), float(decision.best_score),
+                                                  float(decision.margin))

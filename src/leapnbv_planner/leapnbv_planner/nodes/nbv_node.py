@@ -30,6 +30,9 @@ each camera frame). With both, the map's obstacles join the footprint test and S
 target points whose line of sight crosses free map space: furniture the current view cannot see
 still keeps the robot from choosing a view behind it. A frame waits at most ``camera_pose_wait_s``
 for its pose; without one (or without a map) the node plans from the frame alone.
+Goal commitment (``commit_*``, :mod:`leapnbv_planner.nodes.goal_commitment`): next_best_view carries the
+committed goal, replaced only for a reason goal_status names; ViewCandidates' ``chosen_index`` stays the
+plan's own choice (a kept goal is no ring candidate).
 """
 from __future__ import annotations
 
@@ -47,6 +50,7 @@ from leapnbv_common.qos import stage_input_qos, stage_output_qos
 from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
 from leapnbv_msgs.msg import GroundPlane, HumanMesh, InputStamp, TargetGeometry, ViewCandidates
 from leapnbv_planner.inputs import PlanInputs
+from leapnbv_planner.nodes.goal_commitment import NodeCommitment, decision_path_frames, scores_changed
 from leapnbv_planner.nodes.latched_goal import LatchedGoal
 from leapnbv_planner.nodes.markers import candidate_markers
 from leapnbv_planner.nodes.nbv_inputs import FrameFloor, ObstacleMapInput, body_mesh_arrays
@@ -76,17 +80,19 @@ class NbvNode(ManagedNode):
         # Optional: the robot's map of static obstacles and the camera's pose in that map per frame. Without
         # them the planner sees only what the frame shows.
         self.obstacle_map = ObstacleMapInput(self)
+        self.commitment = NodeCommitment(self)
         # The target starts the work (the newest only); it takes the plane of its own frame (waited for),
-        # its camera pose while a map is in use (DDS does not order topics: waited for briefly) and its
-        # metric body mesh while a chosen term reads it (BODY_MESH) and some node publishes them.
+        # its camera pose while a map or the commitment is in use (DDS does not order topics: waited for briefly)
+        # and its metric body mesh while a chosen term reads it (BODY_MESH) and some node publishes them.
         self.stage = Stage(self, KeyInput("target_geometry", TargetGeometry, topics.TARGET_GEOMETRY,
                                           target_geometry_to_arrays, stage_input_qos(1), bad_reason="bad_target",
                                           frame_name="target", accept=self.accept_target), [
             Companion("ground_plane", GroundPlane, topics.GROUND_PLANE, ground_plane_to_arrays,
                       stage_input_qos(PLANE_CACHE), wait_s=lambda f: self.params.value.ground_wait_s,
                       capacity=PLANE_CACHE),
-            Companion("camera_pose", lookup=self.frame_camera_pose, needed=lambda f: self.obstacle_map.in_use(),
-                      wait_s=lambda f: self.params.value.camera_pose_wait_s,
+            Companion("camera_pose", lookup=self.frame_camera_pose,
+                      needed=lambda f: self.commitment.needs_pose(self.obstacle_map.in_use()),
+                      wait_s=lambda f: self.commitment.pose_wait_s(self.obstacle_map.in_use()),
                       expect=lambda f: self.camera_poses.expect(f.stamp_ns, f.header.frame_id)),
             Companion(topics.HUMAN_MESH_METRIC, HumanMesh, topics.HUMAN_MESH_METRIC, body_mesh_arrays,
                       stage_input_qos(5), needed=lambda f: self.terms_need(BODY_MESH),
@@ -112,6 +118,7 @@ class NbvNode(ManagedNode):
     def deactivate_stage(self) -> None:
         self.stage.stop()
         self.goal.stop()
+        self.commitment.clear()  # a goal committed before is no goal of the next activation
 
     def on_params_change(self, new: PlannerParams, changed: Set[str]) -> None:
         """Rebuild what depends on changed parameters (everything else is read at each plan)."""
@@ -119,6 +126,8 @@ class NbvNode(ManagedNode):
             self.obstacle_map.rebuild(new.obstacle_map_resolution)  # a grid too large: the change is refused
         if "max_goal_age_s" in changed:
             self.goal.limit_changed(new.max_goal_age_s)
+        if scores_changed(changed):
+            self.commitment.clear()  # the committed goal's score is no longer comparable with the new ones
 
     def terms_need(self, requirement: Requirement) -> bool:
         """Whether a chosen score term declares this requirement (the node waits only for inputs a term reads)."""
@@ -133,7 +142,7 @@ class NbvNode(ManagedNode):
 
     def frame_camera_pose(self, frame: Frame) -> Optional[Received]:
         pose = self.camera_poses.pose_at(frame.stamp_ns, frame.header.frame_id)
-        return None if pose is None else Received(pose.stamp_ns, frame.header, pose)
+        return None if pose is None else self.commitment.seen(Received(pose.stamp_ns, frame.header, pose))
 
     def accept_target(self, target: Received) -> Optional[str]:
         """Drop a frame that is already too old for a goal before any work (a drop reason, or None)."""
@@ -162,28 +171,23 @@ class NbvNode(ManagedNode):
         camera_pose, without_map = self.obstacle_map.camera_pose_for(frame, self.camera_poses)
         if without_map:
             planned_without["obstacle_map"] = without_map
+        fixed_pose = self.commitment.camera_pose(frame)  # the committed goal's fixed frame
+        if (camera_pose is not None or fixed_pose is not None) \
+                and ("camera_pose", stamp, InputStamp.SAME_FRAME) not in inputs:
+            inputs.append(("camera_pose", stamp))
         if camera_pose is not None:
-            if ("camera_pose", stamp, InputStamp.SAME_FRAME) not in inputs:
-                inputs.append(("camera_pose", stamp))
             inputs.append(("obstacle_map", self.obstacle_map.stamp_ns, InputStamp.STATIC))
         plan = plan_views(PlanInputs(frame["target_geometry"], floor[0], self.params.value,
                                      self.obstacle_map.map if camera_pose is not None else None, camera_pose,
-                                     body_mesh))
+                                     body_mesh, extra_foot_points=self.commitment.extra_foot_points(fixed_pose)))
+        decision = self.commitment.update(plan, fixed_pose, stamp)
         compute_time_ms = (time.perf_counter() - started) * 1e3
         # The goal first (what the motion stack waits for), then the candidates, the path and the markers.
-        goal_published = False
-        chosen = plan.chosen_pose()
-        if chosen is None or plan.base_goal is None:
-            self.diagnostics.reject("no_feasible_view", "every candidate is infeasible: no goal published")
-        elif self.goal.too_old(stamp):
-            self.diagnostics.drop("goal_too_old")  # planning took it past the limit: no goal of it
-        else:
-            self.goal.publish(target.header, stamp, chosen, plan.base_goal, planned_without)
-            goal_published = True
+        goal_published = self.goal.publish_decision(target.header, stamp, decision, planned_without)
         out = arrays_to_view_candidates(plan.to_arrays(), target.header, compute_time_ms, inputs=inputs)
         self.candidates_pub.publish(out)
         if goal_published:
-            self.goal.publish_path(plan.base_path_frames(), target.header)
+            self.goal.publish_path(decision_path_frames(plan, decision), target.header)
         if self.markers_pub.get_subscription_count() > 0:  # built and sent only while RViz / Foxglove listens
             self.markers_pub.publish(candidate_markers(target.header, out, plan))
         self.diagnostics.frame_out(target.header.stamp, out.compute_time_ms)
