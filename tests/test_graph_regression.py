@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import yaml
 
@@ -12,7 +13,7 @@ pytest.importorskip("rclpy")
 
 from leapnbv_bags.bag_io import read_bag, validate_bag_crcs  # noqa: E402
 from leapnbv_bringup.graph import OUTPUT_TOPICS  # noqa: E402
-from leapnbv_common.conversions import stamp_to_ns  # noqa: E402
+from leapnbv_common.conversions import pose_to_numpy, stamp_to_ns  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 BAGS = ("bags/sample_a", "bags/sample_b")
@@ -22,7 +23,11 @@ INPUT_TOPICS = {
     "/camera/aligned_depth_to_color/image_raw": "sensor_msgs/msg/Image",
     "/camera/aligned_depth_to_color/camera_info": "sensor_msgs/msg/CameraInfo",
     "/leapnbv/sim/ground_truth": "leapnbv_msgs/msg/SceneGroundTruth",
+    "/leapnbv/camera_pose": "geometry_msgs/msg/PoseStamped",  # the optical frame in "map" (leapnbv_sim.sample_bags)
 }
+# A goal switch: next_best_view moves by more than this in the map between consecutive frames (the camera drifts
+# 2 cm a frame; the two views the plan's choice alternates between on sample_a are 0.95 m apart).
+SWITCH_M = 0.1
 
 
 def run_regression(repo_root, bag, out_dir, *extra, env=None):
@@ -47,6 +52,35 @@ def test_committed_bags_read_back_with_rosbags_and_mcap_crcs(repo_root, bag):
             assert 0.0 < msg.occlusion_share < 1.0
     assert counts == {t: 10 for t in INPUT_TOPICS}
     assert validate_bag_crcs(repo_root / bag) == counts
+    poses = camera_poses(repo_root / bag)
+    steps = [np.linalg.norm(b[1] - a[1]) for a, b in zip(list(poses.values()), list(poses.values())[1:])]
+    assert np.allclose(steps, 0.02, atol=1e-6)  # the camera drifts 2 cm a frame, level
+
+
+def camera_poses(bag):
+    """The bag's camera poses (all in "map"): stamp -> (rotation, position)."""
+    poses = {}
+    for _, _, _, msg in read_bag(bag, topics=["/leapnbv/camera_pose"]):
+        assert msg.header.frame_id == "map"
+        poses[stamp_to_ns(msg.header.stamp)] = pose_to_numpy(msg.pose)
+    return poses
+
+
+def goal_switches(bag, outputs):
+    """(goal switches in the map, changes of the plan's own choice) over a replay's recorded outputs."""
+    poses = camera_poses(bag)
+    goals, chosen = {}, {}
+    for topic, _, _, msg in read_bag(outputs):
+        stamp = stamp_to_ns(msg.header.stamp) if hasattr(msg, "header") else None
+        if topic.endswith("/next_best_view"):
+            rotation, position = poses[stamp]
+            goals[stamp] = rotation @ pose_to_numpy(msg.pose)[1] + position
+        elif topic.endswith("/view_candidates"):
+            chosen[stamp] = int(msg.chosen_index)
+    in_order = [goals[stamp] for stamp in sorted(goals)]
+    switches = sum(np.linalg.norm(b - a) > SWITCH_M for a, b in zip(in_order, in_order[1:]))
+    choices = [chosen[stamp] for stamp in sorted(chosen)]
+    return int(switches), sum(a != b for a, b in zip(choices, choices[1:]))
 
 
 def test_graph_output_matches_golden_for_every_frame(repo_root, tmp_path):
@@ -64,6 +98,11 @@ def test_graph_output_matches_golden_for_every_frame(repo_root, tmp_path):
     assert set(per_topic) == set(OUTPUT_TOPICS)
     for topic, got in per_topic.items():
         assert sorted(got) == stamps, topic
+    # The goal commitment: the plan's own choice alternates between candidates 34 and 35 (0.95 m apart, 5 times
+    # in the 10 frames; 5 goal switches before the commitment), the published goal stays where it was committed.
+    switches, plan_changes = goal_switches(repo_root / bag, tmp_path / "outputs")
+    assert plan_changes == 5
+    assert switches <= 1
 
 
 def test_changed_scoring_weight_in_yaml_fails_and_names_frames_and_fields(repo_root, tmp_path):

@@ -6,9 +6,10 @@ stays ROS-free.
 """
 from __future__ import annotations
 
-from typing import Dict, Iterable, Iterator, Tuple
+from typing import Dict, Iterable, Iterator, Optional, Tuple
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
@@ -20,6 +21,7 @@ from leapnbv_common.conversions import (
     header_with_stamp,
     make_camera_info,
     numpy_to_image,
+    pose_msg,
 )
 from leapnbv_common.topics import (
     COLOR_IMAGE_TOPIC,
@@ -82,8 +84,18 @@ def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: s
     }
 
 
+def camera_pose_message(camera: CameraPose, header: Header, world_frame_id: str) -> PoseStamped:
+    """The camera pose topic's message of a frame, as the simulator publishes it.
+
+    T_world_camera_optical in ``world_frame_id``, stamped with the frame's ``header``.
+    """
+    return PoseStamped(header=Header(frame_id=world_frame_id, stamp=header.stamp),
+                       pose=pose_msg(camera.rotation, camera.position))
+
+
 def serialized_camera_frames(
-    frames: Iterable[Tuple[int, RenderedFrame]], frame_id: str, body_model_id: str, topics: Iterable[str]
+    frames: Iterable[Tuple[int, RenderedFrame]], frame_id: str, body_model_id: str, topics: Iterable[str],
+    camera_pose: Optional[Tuple[str, str]] = None,
 ) -> Iterator[Tuple[str, int, bytes]]:
     """(topic, stamp, CDR bytes) of each frame's messages, as a bag records them.
 
@@ -92,6 +104,8 @@ def serialized_camera_frames(
         frame_id: Optical frame of the colour camera.
         body_model_id: Stored in each SceneGroundTruth.
         topics: Which of :func:`camera_frame_messages`' topics to serialize, in this order.
+        camera_pose: (topic, world frame id): also each frame's camera pose (:func:`camera_pose_message`), after
+            the frame's other messages (as the simulator publishes it); None: no camera pose.
 
     Yields:
         The serialized messages, frame by frame, ``topics`` in order within a frame.
@@ -101,3 +115,7 @@ def serialized_camera_frames(
         messages = camera_frame_messages(frame, header_with_stamp(stamp, frame_id), body_model_id)
         for topic in order:
             yield topic, stamp, serialize_message(messages[topic])
+        if camera_pose is not None:
+            header = header_with_stamp(stamp, frame_id)
+            yield camera_pose[0], stamp, serialize_message(camera_pose_message(frame.camera_pose, header,
+                                                                               camera_pose[1]))

@@ -3,7 +3,9 @@
     python -m leapnbv_sim.sample_bags [--out bags] [--force]
 
 The robot drifts 2 cm sideways per frame (10 Hz), so consecutive frames differ by more than
-noise and the HMR stage has a target to track. Deterministic: the same seeds and stand-in body
+noise and the HMR stage has a target to track. Each frame carries the camera's pose in a ``map`` frame
+(``/leapnbv/camera_pose``, as a robot's localisation publishes it), so the planner keeps its committed goal
+in a fixed frame across the frames. Deterministic: the same seeds and stand-in body
 give byte-identical images.
 """
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from leapnbv_bags.bag_io import RELIABLE_QOS, SENSOR_DATA_QOS, BagWriter, make_typestore
-from leapnbv_common.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPIC
+from leapnbv_common.topics import CAMERA_POSE_TOPIC, CAMERA_TOPICS, GROUND_TRUTH_TOPIC
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
 from leapnbv_sim.poses import CameraPose
@@ -39,6 +41,7 @@ SAMPLE_BAGS: Dict[str, SampleBagSpec] = {
 }
 NUM_FRAMES = 10
 DRIFT_M_PER_FRAME = 0.02
+MAP_FRAME_ID = "map"  # the fixed frame of the sample bags' camera poses
 
 
 def render_drifting_frames(
@@ -78,7 +81,8 @@ def make_sample_bag(
     """
     scene = generate_scene(SceneConfig(seed=seed, walls=walls, body_resolution="small"), body_model)
     frames = render_drifting_frames(scene)
-    counts = write_scene_bag(path, frames, body_model_id=body_model_id, overwrite=overwrite)
+    counts = write_scene_bag(path, frames, body_model_id=body_model_id, overwrite=overwrite,
+                             camera_pose_frame_id=MAP_FRAME_ID)
     shares = [f.ground_truth.occluder_share for f in frames]
     return SampleBagInfo(counts, (float(np.min(shares)), float(np.max(shares))))
 
@@ -92,10 +96,11 @@ def write_scene_bag(
     period_ns: int = 100_000_000,
     body_model_id: str = "stand_in_small",
     overwrite: bool = False,
+    camera_pose_frame_id: Optional[str] = None,
 ) -> Dict[str, int]:
-    """Record rendered frames under RealSense topic names plus the simulator's ground truth.
+    """Record rendered frames under RealSense topic names plus the simulator's ground truth (and camera pose).
 
-    Each frame i gets stamp ``start_stamp_ns + i * period_ns`` on all five topics (header stamp
+    Each frame i gets stamp ``start_stamp_ns + i * period_ns`` on all its topics (header stamp
     and bag log time alike); the messages are the simulator node's own
     (:func:`leapnbv_sim.frame_messages.camera_frame_messages`, the ROS glue that this ROS-free
     module imports only when it writes). rclpy's CDR leaves alignment padding uninitialised, so
@@ -110,6 +115,8 @@ def write_scene_bag(
         period_ns: Time between frames, nanoseconds.
         body_model_id: Stored in each SceneGroundTruth.
         overwrite: Replace an existing bag atomically once the new one is complete.
+        camera_pose_frame_id: Also record each frame's camera pose (its ``camera_pose``: the optical frame in the
+            world) on the camera pose topic, in this frame id; None: no camera pose.
 
     Returns:
         Message count per topic.
@@ -124,11 +131,16 @@ def write_scene_bag(
                 CAMERA_TOPICS["depth"]: "sensor_msgs/msg/Image",
                 CAMERA_TOPICS["depth/camera_info"]: "sensor_msgs/msg/CameraInfo",
                 GROUND_TRUTH_TOPIC: "leapnbv_msgs/msg/SceneGroundTruth"}
+    frame_topics = list(msgtypes)
+    pose = None if camera_pose_frame_id is None else (CAMERA_POSE_TOPIC, camera_pose_frame_id)
+    if pose is not None:
+        msgtypes[CAMERA_POSE_TOPIC] = "geometry_msgs/msg/PoseStamped"
     with BagWriter(path, overwrite=overwrite, typestore=make_typestore()) as bag:
         for topic, msgtype in msgtypes.items():
-            bag.add_topic(topic, msgtype, qos=RELIABLE_QOS if topic == GROUND_TRUTH_TOPIC else SENSOR_DATA_QOS)
+            bag.add_topic(topic, msgtype, qos=RELIABLE_QOS if topic in (GROUND_TRUTH_TOPIC, CAMERA_POSE_TOPIC)
+                          else SENSOR_DATA_QOS)
         stamped = ((int(start_stamp_ns) + index * int(period_ns), frame) for index, frame in enumerate(frames))
-        for topic, stamp, cdr in serialized_camera_frames(stamped, frame_id, body_model_id, list(msgtypes)):
+        for topic, stamp, cdr in serialized_camera_frames(stamped, frame_id, body_model_id, frame_topics, pose):
             bag.write(topic, stamp, bag.typestore.deserialize_cdr(cdr, msgtypes[topic]))
         counts = dict(bag.message_counts)
     return counts
