@@ -204,6 +204,9 @@ def test_an_older_plane_is_carried_by_the_camera_pose_delta_and_recorded_as_carr
     """With the camera poses of both stamps, the previous frame's plane is moved into the frame: the base
     goal lies on the frame's true floor (0.3 m higher camera, 10 deg more pitch), not on the old one."""
     probe = graph["probe"]
+    # Commitment off: frame b would keep the goal committed on frame a (the same person); the checks below are of
+    # the goal frame b's own plan chose on the carried floor.
+    assert set_parameters(probe, NODE, commit_goals=False)[0].successful
     rotation_a, position_a = camera_in_map(1.2, 10.0)
     rotation_b, position_b = camera_in_map(1.5, 20.0)
     stamp_a = now_ns(graph)
@@ -235,6 +238,7 @@ def test_an_older_plane_is_carried_by_the_camera_pose_delta_and_recorded_as_carr
     _, goal = pose_to_numpy(of_stamp(graph["base_goals"], stamp_b)[0].pose)
     assert abs(normal_b @ goal + offset_b) < 1e-3  # on the frame's own floor
     assert abs(normal_a @ goal + offset_a) > 0.1  # the uncarried old plane would be 0.1 m+ off
+    assert set_parameters(probe, NODE, commit_goals=True)[0].successful
 
 
 def test_carry_plane_moves_a_floor_between_camera_poses():

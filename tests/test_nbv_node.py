@@ -33,7 +33,7 @@ from leapnbv_common.conversions import (  # noqa: E402
 )
 from leapnbv_common.params import params_from_values  # noqa: E402
 from leapnbv_common.qos import latched_goal_qos, stage_output_qos  # noqa: E402
-from leapnbv_msgs.msg import GroundPlane, TargetGeometry, ViewCandidates  # noqa: E402
+from leapnbv_msgs.msg import GoalStatus, GroundPlane, TargetGeometry, ViewCandidates  # noqa: E402
 from leapnbv_planner.params import DEFAULT_SCORE_TERMS, nbv_params_class  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
@@ -54,12 +54,14 @@ def marker_arrays_by_stamp(arrays: list, key: tuple) -> list:
 # ----------------------------------------------------------------------------- scene + graph
 
 
-def observation(header: Header) -> tuple:
+def observation(header: Header, person_dx: float = 0.0) -> tuple:
     """A person ~3 m ahead standing on the floor 1.2 m below the camera, a low box in front of
-    their legs, floor and a far wall; returns (TargetGeometry, GroundPlane) for one frame."""
+    their legs, floor and a far wall; returns (TargetGeometry, GroundPlane) for one frame.
+    ``person_dx``: metres the person stands to the side (camera x)."""
     rng = np.random.default_rng(7)
     n = 3000
     person = np.column_stack([rng.uniform(-0.25, 0.25, n), rng.uniform(-0.5, 1.15, n), rng.uniform(2.85, 3.15, n)])
+    person[:, 0] += person_dx
     floor = np.column_stack([rng.uniform(-3, 3, 400), np.full(400, CAMERA_HEIGHT), rng.uniform(0.5, 6, 400)])
     box = np.column_stack([rng.uniform(-0.4, 0.4, 300), rng.uniform(0.2, CAMERA_HEIGHT, 300), np.full(300, 2.0)])
     wall = np.column_stack([rng.uniform(-3, 3, 400), rng.uniform(-1.0, CAMERA_HEIGHT, 400), np.full(400, 6.0)])
@@ -76,9 +78,9 @@ def observation(header: Header) -> tuple:
     return target, plane
 
 
-def send_frame(graph: dict, header: Header) -> tuple:
+def send_frame(graph: dict, header: Header, person_dx: float = 0.0) -> tuple:
     """Publish one frame's ground plane, then (as the slower stage) its target; returns its stamp key."""
-    target, plane = observation(header)
+    target, plane = observation(header, person_dx)
     graph["ground_pub"].publish(plane)
     graph["probe"].spin_for(0.1)
     graph["target_pub"].publish(target)
@@ -517,4 +519,57 @@ def test_obstacle_map_resolution_change_rebuilds_the_map(graph, planned):
     finally:
         resolution = deployed_params().obstacle_map_resolution
         (result,) = set_parameters(graph["probe"], f"{NS}/nbv_node", obstacle_map_resolution=resolution)
+        assert result.successful, result.reason
+
+
+def test_near_ties_keep_the_committed_goal_and_a_view_ahead_by_the_margin_replaces_it(graph, planned):
+    # The person steps 1 cm to one side and the other frame by frame, the camera still (a fixed pose in "odom",
+    # not the obstacle map's frame: the commitment keeps its goal in any fixed frame). The scene is symmetric:
+    # the plan's choice alternates between candidates 16 and 2, which score within 1.3e-4 of each other.
+    probe = graph["probe"]
+    node = f"{NS}/nbv_node"
+    statuses = probe.collect(GoalStatus, f"{NS}/goal_status", latched_goal_qos())
+    pose_pub = probe.node.create_publisher(PoseStamped, f"{NS}/camera_pose", stage_output_qos(10))
+    assert probe.spin_until(lambda: pose_pub.get_subscription_count() >= 1, 5.0)
+
+    def frame(sec: int, dx: float) -> tuple:
+        header = make_header(sec, 0)
+        pose_pub.publish(PoseStamped(header=Header(frame_id="odom", stamp=header.stamp),
+                                     pose=pose_msg(*CAMERA_IN_MAP)))
+        probe.spin_for(0.1)
+        key = send_frame(graph, header, dx)
+        assert probe.spin_until(lambda: by_stamp(graph["candidates"], key) and by_stamp(graph["goals"], key)
+                                and [s for s in statuses if (s.goal_stamp.sec, s.goal_stamp.nanosec) == key], 10.0), \
+            read_log(graph["procs"][node])[-3000:]
+        (views,) = by_stamp(graph["candidates"], key)
+        (goal,) = by_stamp(graph["goals"], key)
+        status = [s for s in statuses if (s.goal_stamp.sec, s.goal_stamp.nanosec) == key][-1]
+        # The goal in the fixed frame (the camera's pose is the same in every frame).
+        rotation, position = pose_to_numpy(goal.pose)
+        return views.chosen_index, CAMERA_IN_MAP[0] @ position + CAMERA_IN_MAP[1], status
+
+    try:
+        frames = [frame(600 + i, 0.01 if i % 2 else -0.01) for i in range(6)]
+        choices = [chosen for chosen, _, _ in frames]
+        assert len(set(choices)) == 2 and all(a != b for a, b in zip(choices, choices[1:]))  # alternates
+        _, committed, status = frames[0]  # a goal committed anew (any goal before was in another fixed frame)
+        assert status.state == GoalStatus.STATE_CURRENT and status.goal_changed
+        assert status.commitment in ("FIRST_GOAL", "FIXED_FRAME_CHANGED"), status.reason
+        for _, goal, status in frames[1:]:
+            assert status.commitment == "KEPT" and not status.goal_changed, status.reason
+            assert np.linalg.norm(goal - committed) < 0.01  # the same place: the goal did not flip
+            assert abs(status.margin - 0.02) < 1e-6 and 0.0 < status.best_score - status.held_score < 0.02 or \
+                status.best_score <= status.held_score
+            assert status.reason.startswith("goal kept")
+            assert (status.committed_since.sec, status.committed_since.nanosec) == (600, 0)
+        # The rival view ahead by more than the margin in force (a live parameter; the goal is not dropped by it).
+        (result,) = set_parameters(probe, node, commit_margin=1e-5)
+        assert result.successful, result.reason
+        chosen, goal, status = frame(606, 0.01)
+        assert status.commitment == "BEATEN_BY_MARGIN" and status.goal_changed, status.reason
+        assert status.best_score - status.held_score > 1e-5 and "beats it by more than 1e-05" in status.reason
+        assert chosen == choices[1] and np.linalg.norm(goal - committed) > 0.5  # the other view of the pair
+        assert (status.committed_since.sec, status.committed_since.nanosec) == (606, 0)
+    finally:
+        (result,) = set_parameters(probe, node, commit_margin=deployed_params().commit_margin)
         assert result.successful, result.reason
