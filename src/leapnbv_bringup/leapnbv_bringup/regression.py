@@ -46,7 +46,10 @@ TOLERANCES: Dict[Tuple[str, str], float] = {
     ("detections", "boxes"): 0.5,                 # px
     ("detections", "scores"): 1e-4,
     ("human_mesh", "vertices"): 1e-4,             # 0.1 mm
-    ("human_mesh_metric", "vertices"): 1e-4,
+    # The metric mesh sits where the camera translation from the network's weak-perspective scale puts it (5 m
+    # on sample_a): the engine's last bits come out amplified there. Measured with every engine output nudged by
+    # one ulp (scripts/experiments/regression_numeric_configs.sh, exported s32): 1.2e-4 m.
+    ("human_mesh_metric", "vertices"): 5e-4,
     ("target_geometry", "centroid"): 1e-3,        # m
     ("target_geometry", "bbox"): 1e-3,
     ("target_geometry", "visible_fraction"): 1e-3,
@@ -63,7 +66,8 @@ TOLERANCES: Dict[Tuple[str, str], float] = {
     ("view_candidates", "s_visibility"): 1e-4,
     ("view_candidates", "s_area"): 1e-4,
     ("view_candidates", "s_occlusion"): 1e-4,
-    ("view_candidates", "s_body_occlusion"): 1e-3,
+    # Counts mesh vertices at the edge of a depth test: the metric mesh's 0.1 mm move above flipped 1.2e-3.
+    ("view_candidates", "s_body_occlusion"): 2e-3,
     ("view_candidates", "s_travel"): 1e-4,
     ("view_candidates", "positions"): 0.01,       # each candidate's camera centre, m
     ("view_candidates", "heading_deg"): 1.0,      # each candidate's orientation, degrees
