@@ -92,12 +92,12 @@ def copy(msg):
 def sample(repo_root):
     """The messages of the first frame of bags/sample_a, by topic (deserialized anew on each call)."""
     classes = {"sensor_msgs/msg/Image": Image, "sensor_msgs/msg/CameraInfo": CameraInfo,
-               "leapnbv_msgs/msg/SceneGroundTruth": SceneGroundTruth}
+               "leapnbv_msgs/msg/SceneGroundTruth": SceneGroundTruth, "geometry_msgs/msg/PoseStamped": PoseStamped}
     first: Dict[str, Tuple[type, bytes]] = {}
     for topic, msgtype, _, cdr in read_bag(repo_root / "bags/sample_a", raw=True):
         if topic not in first:
             first[topic] = (classes[msgtype], bytes(cdr))
-    assert len(first) == 5
+    assert len(first) == 6  # images, camera infos, the simulator's truth, the camera pose
     return lambda topic: deserialize_message(first[topic][1], first[topic][0])
 
 
