@@ -10,13 +10,13 @@ import pytest
 from leapnbv_bringup import regression
 from leapnbv_bringup.regression import (
     TIE_TOLERANCE,
+    candidate_goal,
     compare_outputs,
     format_report,
     golden_json_bytes,
     golden_npz_bytes,
     load_golden,
     save_golden,
-    tied_goal,
 )
 from leapnbv_planner.plan import base_goal_frame
 
@@ -154,15 +154,13 @@ def test_committed_goldens_tied_goal_of_their_own_choice_is_their_goal_and_their
     path = repo_root / "bags" / f"{bag}.golden.npz"
     golden = load_golden(str(path))
     # The first frame's goal is its plan's own choice (the commitment's first goal); later frames may keep an
-    # earlier goal. Where a goal is the plan's choice, tied_goal gives it from the candidate's pose.
+    # earlier goal. Where a goal is the plan's choice, candidate_goal gives it from the candidate's pose.
     own = []
     for stamp, views in sorted(golden["view_candidates"].items()):
-        chosen = int(views["chosen_index"])
-        tie = regression.Tie(chosen, chosen, (0.0, 0.0), (0.0, 0.0))
         for topic in ("next_best_view", "base_goal"):
-            goal = tied_goal(topic, golden, stamp, tie)
+            goal = candidate_goal(topic, golden, stamp, int(views["chosen_index"]))
             assert goal is not None
-            if regression.goal_is_own_choice(topic, golden, stamp, tie):
+            if regression.goal_is_own_choice(topic, golden, stamp):
                 # Within the goal's tolerance (1 cm): the goal is the committed view's, put on the floor again.
                 np.testing.assert_allclose(goal["position"], golden[topic][stamp]["position"], atol=0.01)
                 np.testing.assert_allclose(goal["rotation"], golden[topic][stamp]["rotation"], atol=0.01)

@@ -224,16 +224,16 @@ def find_tie(got: Dict[str, np.ndarray], want: Dict[str, np.ndarray]) -> Optiona
     return Tie(golden_index, index, golden_scores, scores)
 
 
-def tied_goal(topic: str, golden: Dict[str, Dict[int, Dict[str, np.ndarray]]], stamp: int,
-              tie: Tie) -> Optional[Dict[str, np.ndarray]]:
-    """The goal the planner gives for the tied view, from the golden's pose of that candidate (None: no golden).
+def candidate_goal(topic: str, golden: Dict[str, Dict[int, Dict[str, np.ndarray]]], stamp: int,
+                   index: int) -> Optional[Dict[str, np.ndarray]]:
+    """The goal the planner gives for candidate ``index``, from the golden's pose of it (None: no golden).
 
     next_best_view is the candidate's camera pose; base_goal is the planner's base frame
     (leapnbv_planner.plan.base_goal_frame) at the candidate's foot point on the golden base goal's floor (its
     z axis is the floor's up, its position on the floor), facing the ring centre.
     """
     views = golden["view_candidates"][stamp]
-    position, rotation = views["positions"][tie.index], views["rotations"][tie.index]
+    position, rotation = views["positions"][index], views["rotations"][index]
     if topic == "next_best_view":
         return {"position": position, "rotation": rotation}
     base = golden.get("base_goal", {}).get(stamp)
@@ -247,11 +247,9 @@ def tied_goal(topic: str, golden: Dict[str, Dict[int, Dict[str, np.ndarray]]], s
     return {"position": foot, "rotation": rotation}
 
 
-def goal_is_own_choice(topic: str, golden: Dict[str, Dict[int, Dict[str, np.ndarray]]], stamp: int,
-                       tie: Tie) -> bool:
+def goal_is_own_choice(topic: str, golden: Dict[str, Dict[int, Dict[str, np.ndarray]]], stamp: int) -> bool:
     """Whether the golden's goal of this frame is the pose of its own chosen view (not a goal kept by commitment)."""
-    own = tied_goal(topic, golden, stamp, Tie(tie.golden_index, tie.golden_index, tie.golden_scores,
-                                              tie.golden_scores))
+    own = candidate_goal(topic, golden, stamp, int(golden["view_candidates"][stamp]["chosen_index"]))
     want = golden.get(topic, {}).get(stamp)
     return own is None or want is None or not compare_frame(topic, stamp, want, own)
 
@@ -345,7 +343,7 @@ def compare_outputs(got: Dict[str, Dict[int, Dict[str, np.ndarray]]],
 
     A frame whose chosen view is another one than the golden's of a score within TIE_TOLERANCE (find_tie) is a
     tie: a "tie" finding names both views and both runs' scores, the chosen index is compared with this run's,
-    and next_best_view / base_goal with the goal of the view this run chose (tied_goal) where the golden's goal
+    and next_best_view / base_goal with the goal of the view this run chose (candidate_goal) where the golden's goal
     was its plan's own choice. nbv_node's goal commitment keeps a goal over frames, so a tie can carry: in the
     frames after it, a goal that differs from the golden's exactly as it did at the tie (CarriedTie: the same
     offset, the same angle) is reported as a carried tie until both runs' goals meet again. Every other field
@@ -366,18 +364,22 @@ def compare_outputs(got: Dict[str, Dict[int, Dict[str, np.ndarray]]],
                 continue
             want = golden[topic][stamp]
             tie = ties.get(stamp)
+            changed: Optional[List[Finding]] = None
             if tie is not None and topic == "view_candidates":
                 want = dict(want, chosen_index=np.array(tie.index))
                 findings.append(Finding(topic, stamp, "chosen_index", "tie", tie.describe()))
             elif tie is not None and topic in ("next_best_view", "base_goal") \
-                    and goal_is_own_choice(topic, golden, stamp, tie):
+                    and goal_is_own_choice(topic, golden, stamp):
                 # The golden goal was its plan's choice: this run's is the view it chose. A goal the commitment
                 # kept (not the plan's choice) is the same whichever of the tied views the plan chose.
-                tied = tied_goal(topic, golden, stamp, tie)
-                if tied is not None and not compare_frame(topic, stamp, frame, tied):
-                    carried = carried_from(stamp, frame, golden[topic][stamp])
-                want = tied or want
-            changed = compare_frame(topic, stamp, frame, want)
+                tied = candidate_goal(topic, golden, stamp, tie.index)
+                if tied is not None:
+                    changed = compare_frame(topic, stamp, frame, tied)
+                    if not changed:
+                        carried = carried_from(stamp, frame, want)
+                    want = tied
+            if changed is None:
+                changed = compare_frame(topic, stamp, frame, want)
             if topic in ("next_best_view", "base_goal") and carried is not None and carried.stamp_ns != stamp:
                 if not changed:
                     carried = None  # the two runs' goals met again
