@@ -268,10 +268,13 @@ class LifecycleManager:
         # Failed: a transition that fails goes back to the state it started from (a callback that raised goes
         # through errorprocessing and may end elsewhere: get_state tells); the reason comes on /diagnostics.
         start_state = record.state
+        # A node that fails again (a configure retry) stays failed with the reason already said while the new
+        # attempt's reason comes: readiness keeps reporting it failed (ERROR), not as coming up between attempts.
+        known = record.reported if record.failed and record.reported else ""
         record.failed = True
-        record.reason = f"{call.what} failed"
+        record.reason = known or f"{call.what} failed"
         self._failure_report[record.name] = (call.what, call.sent)
-        record.reason_pending = True
+        record.reason_pending = not known
         if call.what == "configure":
             self._configure_at[record.name] = now + max(self.configure_retry_s, 0.0)
         elif call.what == "activate":
