@@ -66,15 +66,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for path in write_manifests():
             print(path)
         return 0
-    from leapnbv_model_tools.checkpoint import random_smplerx, save_official
-    from leapnbv_model_tools.smplerx import VARIANTS
+    from leapnbv_model_tools.checkpoint import VARIANTS, random_network, save_official
 
-    parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools random-checkpoint")
+    parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools random-checkpoint",
+                                     description="a randomly initialised SMPLer-X or SMPLest-X checkpoint in the "
+                                                 "official file structure")
     parser.add_argument("--variant", required=True, choices=sorted(VARIANTS))
     parser.add_argument("--out", required=True)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(rest)
-    print(save_official(random_smplerx(args.variant, args.seed), args.out))
+    print(save_official(random_network(args.variant, args.seed), args.out))
     return 0
 
 

@@ -5,7 +5,11 @@ parameters (leapnbv_perception.hmr). The file appears at --out only when every c
 
 Exit codes (leapnbv_model_tools.exit_codes.ModelToolExit): 0 written; 1 a check failed (nothing
 written at --out, an earlier file there is left as it was); 2 a wrong argument or an unusable input
-(missing, truncated, not a checkpoint, another variant): one line on stderr naming the file."""
+(missing, truncated, not a checkpoint, another variant or family): one line on stderr naming the file.
+
+Both families export to the same contract: SMPLer-X (s32 ... h32) and SMPLest-X (smplest_x_h). What
+SMPLest-X does differently at test time is in the metadata, not in a second tail: its left hand is not
+mirrored (``unmirror_left_hand`` false) and its crops are the box x 1.2 (``box_ratio``)."""
 
 from __future__ import annotations
 
@@ -19,13 +23,33 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from leapnbv_model_tools.checkpoint import CheckpointError, load_smplerx
+from leapnbv_model_tools.checkpoint import (
+    VARIANTS,
+    CheckpointError,
+    Network,
+    box_ratio_of,
+    family_of,
+    load_network,
+    unmirrors_left_hand,
+    variant_label,
+)
 from leapnbv_model_tools.exit_codes import ModelToolExit
 from leapnbv_model_tools.file_hash import sha256_of
-from leapnbv_model_tools.smplerx import VARIANTS, SMPLerX
 
 OUTPUT_NAMES = ("root_pose", "body_pose", "lhand_pose", "rhand_pose", "jaw_pose", "betas", "expression", "cam_param")
 DEFAULT_OPSET = 16  # RoiAlign/GridSample-free graph; 17 only adds LayerNormalization, which is not used
+
+# Operators an export may use: each is supported by TensorRT 8.4's ONNX parser already (onnx-tensorrt
+# docs/operators.md of 8.4, so by 8.5 and later) without a plugin. Not in it on purpose: LayerNormalization
+# (parsed from TensorRT 8.6), GridSample, RoiAlign and NonZero (added in 8.5, RoiAlign and GridSample as
+# plugins), Einsum (restricted). The networks are written so that their graphs stay inside this set.
+TENSORRT_OPERATORS = frozenset({
+    "Add", "And", "BatchNormalization", "Cast", "Ceil", "Clip", "Concat", "Constant", "ConstantOfShape", "Conv",
+    "ConvTranspose", "Div", "Equal", "Erf", "Exp", "Expand", "Flatten", "Floor", "Gather", "Gemm", "Greater",
+    "GreaterOrEqual", "Identity", "Less", "LessOrEqual", "MatMul", "Max", "Min", "Mul", "Neg", "Not", "Or", "Pow",
+    "Range", "ReduceMax", "ReduceMean", "ReduceSum", "Relu", "Reshape", "Shape", "Sigmoid", "Slice", "Softmax",
+    "Split", "Sqrt", "Squeeze", "Sub", "Tile", "Transpose", "Unsqueeze", "Where",
+})
 
 # Parity limit. Two FP32 evaluations of one network (PyTorch's kernels, onnxruntime's) differ by rounding
 # in another order, and how far depends on the network and its weights: ~1e-6 on random weights, 1.2e-4 in
@@ -48,7 +72,7 @@ HANDS_ESTIMATED, HANDS_NOT_ESTIMATED = "estimated", "not_estimated"
 
 
 class _Exported(torch.nn.Module):
-    def __init__(self, model: SMPLerX, hands: bool = True) -> None:
+    def __init__(self, model: Network, hands: bool = True) -> None:
         super().__init__()
         self.model = model
         self.hands = hands
@@ -58,12 +82,16 @@ class _Exported(torch.nn.Module):
         return tuple(outputs[name] for name in OUTPUT_NAMES)
 
 
-def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, int], box_ratio: float = 1.25,
-                    unmirror_left_hand: bool = True, hands: bool = True) -> Dict[str, str]:
-    """The metadata the export writes (leapnbv_perception.hmr.EXPORT_METADATA_KEYS reads it)."""
+def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, int],
+                    box_ratio: Optional[float] = None, unmirror_left_hand: Optional[bool] = None,
+                    hands: bool = True) -> Dict[str, str]:
+    """The metadata the export writes (leapnbv_perception.hmr.check_export_metadata reads it). ``box_ratio`` and
+    ``unmirror_left_hand`` default to the variant's family's (SMPLer-X 1.25 and true, SMPLest-X 1.2 and false)."""
+    box_ratio = box_ratio_of(variant) if box_ratio is None else box_ratio
+    unmirror_left_hand = unmirrors_left_hand(variant) if unmirror_left_hand is None else unmirror_left_hand
     return {
         "leapnbv.producer": "leapnbv_model_tools export-hmr",
-        "leapnbv.variant": f"smpler_x_{variant}",
+        "leapnbv.variant": variant_label(variant),
         "leapnbv.checkpoint_sha256": checkpoint_sha256,
         "leapnbv.input_size": f"{input_hw[0]}x{input_hw[1]}",
         "leapnbv.unmirror_left_hand": "true" if unmirror_left_hand else "false",
@@ -73,7 +101,7 @@ def export_metadata(variant: str, checkpoint_sha256: str, input_hw: Tuple[int, i
 
 
 # Above this many bytes of weights the graph is written with its tensors in one external file,
-# ``<out>.data`` beside it: one protobuf message cannot exceed 2 GiB (smpler_x_h32 has 2.6 GB).
+# ``<out>.data`` beside it: one protobuf message cannot exceed 2 GiB (smpler_x_h32 has 2.6 GB, smplest_x_h 2.8 GB).
 EXTERNAL_DATA_ABOVE_BYTES = 1_800_000_000
 
 
@@ -81,7 +109,7 @@ def weight_bytes(model: torch.nn.Module) -> int:
     return sum(t.numel() * t.element_size() for t in list(model.parameters()) + list(model.buffers()))
 
 
-def export_onnx(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
+def export_onnx(model: Network, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
                 opset: int = DEFAULT_OPSET, hands: bool = True,
                 check: Optional[Callable[[str], None]] = None) -> str:
     """Write the ONNX graph to ``path`` (and ``path.data`` when the weights exceed
@@ -141,6 +169,11 @@ def operator_types(path: str) -> Sequence[str]:
     return sorted({node.op_type for node in onnx.load(path, load_external_data=False).graph.node})
 
 
+def operators_outside_tensorrt(path: str) -> List[str]:
+    """The graph's operators that are not in TENSORRT_OPERATORS (empty: the graph parses on TensorRT 8.5)."""
+    return [op for op in operator_types(path) if op not in TENSORRT_OPERATORS]
+
+
 @dataclass(frozen=True)
 class OutputParity:
     """One output's parity: onnxruntime against PyTorch FP32, and PyTorch FP32's own noise against FP64."""
@@ -186,7 +219,7 @@ def _outputs(model: torch.nn.Module, batch: np.ndarray, hands: bool, dtype: torc
     return {name: got[name].double().numpy() for name in OUTPUT_NAMES}
 
 
-def parity_report(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1, hands: bool = True) -> ParityReport:
+def parity_report(model: Network, path: str, crops: np.ndarray, threads: int = 1, hands: bool = True) -> ParityReport:
     """Per output: |onnxruntime - PyTorch FP32| and PyTorch's FP32 noise (against the same network in FP64)
     over crops (N, 3, H, W). The network is converted to FP64 and back in place (exact: every FP32 value is an
     FP64 value), so no second copy of its weights is held."""
@@ -214,7 +247,7 @@ def parity_report(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1
     return ParityReport(tuple(outputs))
 
 
-def parity(model: SMPLerX, path: str, crops: np.ndarray, threads: int = 1, hands: bool = True) -> float:
+def parity(model: Network, path: str, crops: np.ndarray, threads: int = 1, hands: bool = True) -> float:
     """Largest |onnxruntime - PyTorch FP32| over all outputs and crops (N, 3, H, W) float32."""
     return parity_report(model, path, crops, threads, hands).worst_difference
 
@@ -227,11 +260,11 @@ class ExportCheckError(RuntimeError):
         self.report = report
 
 
-def checked_export(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
+def checked_export(model: Network, path: str, input_hw: Tuple[int, int], metadata: Dict[str, str],
                    opset: int = DEFAULT_OPSET, hands: bool = True, parity_crops: int = 2,
                    seed: int = 0) -> ParityReport:
-    """export_onnx with the engine contract check and the parity check on the staged file: the file is
-    moved to ``path`` only when both pass; otherwise ExportCheckError (with the parity report, if one was
+    """export_onnx with the operator check (TENSORRT_OPERATORS), the engine contract check and the parity check
+    on the staged file: the file is moved to ``path`` only when all pass; otherwise ExportCheckError (with the parity report, if one was
     made) and ``path`` is as it was."""
     from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
     from leapnbv_perception.model_contracts import SMPLERX_CONTRACT, ModelContractError, check_backend_contract
@@ -240,6 +273,9 @@ def checked_export(model: SMPLerX, path: str, input_hw: Tuple[int, int], metadat
     reports: List[ParityReport] = []
 
     def check(staged: str) -> None:
+        outside = operators_outside_tensorrt(staged)
+        if outside:
+            raise ExportCheckError(f"operators TensorRT 8.5 does not parse without a plugin: {', '.join(outside)}")
         try:
             check_backend_contract(OnnxRuntimeBackend(staged), SMPLERX_CONTRACT, source=path)
         except ModelContractError as error:
@@ -268,12 +304,15 @@ def _output_problem(path: str) -> Optional[str]:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m leapnbv_model_tools export-hmr", description=__doc__)
-    parser.add_argument("--checkpoint", required=True, help="smpler_x_{s,b,l,h}32.pth.tar (official structure)")
-    parser.add_argument("--variant", required=True, choices=sorted(VARIANTS))
+    parser.add_argument("--checkpoint", required=True,
+                        help="smpler_x_{s,b,l,h}32.pth.tar or smplest_x_h.pth.tar (official structure)")
+    parser.add_argument("--variant", required=True, choices=sorted(VARIANTS),
+                        help="s32, b32, l32, h32 (SMPLer-X), smplest_x_h (SMPLest-X); t*: test-only narrow members")
     parser.add_argument("--out", required=True)
     parser.add_argument("--input", default="512x384", choices=["512x384", "256x192"])
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET)
-    parser.add_argument("--box-ratio", type=float, default=1.25)
+    parser.add_argument("--box-ratio", type=float, default=None,
+                        help="crop box ratio written to the metadata (default: the family's, 1.25 or 1.2)")
     parser.add_argument("--parity-crops", type=int, default=2, help="random crops compared with onnxruntime")
     parser.add_argument("--without-hands", action="store_true",
                         help="body-only engine: the hand branch is not computed, lhand_pose / rhand_pose are the "
@@ -283,11 +322,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     problem = _output_problem(args.out)
     if problem is None and args.parity_crops < 1:
         problem = f"--parity-crops {args.parity_crops}: at least 1"
+    if problem is None and args.without_hands and family_of(args.variant) == "smplest_x":
+        problem = (f"--without-hands: {args.variant} has no separate hand branch (its hands come from the body's "
+                   "decoder), so a body-only engine would save nothing")
     if problem is not None:
         print(f"export-hmr: {problem}", file=sys.stderr)
         return ModelToolExit.BAD_INPUT
     try:
-        model = load_smplerx(args.checkpoint, args.variant)
+        model = load_network(args.checkpoint, args.variant)
     except CheckpointError as error:
         print(f"export-hmr: {error.one_line()}", file=sys.stderr)
         return ModelToolExit.BAD_INPUT

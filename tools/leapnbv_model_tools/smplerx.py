@@ -129,13 +129,16 @@ class PatchEmbed(nn.Module):
 
 
 class ViTEncoder(nn.Module):
-    """ViT over the 256 x 192 body image; returns (feature map (1, C, 16, 12), task tokens (1, 31, C))."""
+    """ViT over the 256 x 192 body image; returns (feature map (1, C, 16, 12), task tokens (1, T, C)).
 
-    def __init__(self, variant: Variant) -> None:
+    T is 31 for SMPLer-X (TASK_TOKENS); SMPLest-X's encoder is the same ViT with 80 tokens."""
+
+    def __init__(self, variant: Variant, task_tokens: int = TASK_TOKENS) -> None:
         super().__init__()
         dim = variant.embed_dim
+        self.num_task_tokens = task_tokens
         self.patch_embed = PatchEmbed(dim)
-        self.task_tokens = nn.Parameter(torch.zeros(1, TASK_TOKENS, dim))
+        self.task_tokens = nn.Parameter(torch.zeros(1, task_tokens, dim))
         self.pos_embed = nn.Parameter(torch.zeros(1, 16 * 12 + 1, dim))
         self.blocks = nn.ModuleList([Block(dim, variant.num_heads) for _ in range(variant.depth)])
         self.last_norm = LayerNorm(dim, eps=LAYER_NORM_EPS)
@@ -149,8 +152,8 @@ class ViTEncoder(nn.Module):
         for block in self.blocks:
             x = block(x)
         x = self.last_norm(x)
-        tokens = x[:, :TASK_TOKENS]
-        feature_map = x[:, TASK_TOKENS:].transpose(1, 2).reshape(batch, channels, height, width)
+        tokens = x[:, :self.num_task_tokens]
+        feature_map = x[:, self.num_task_tokens:].transpose(1, 2).reshape(batch, channels, height, width)
         return feature_map, tokens
 
 
