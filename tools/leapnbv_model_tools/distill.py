@@ -1,4 +1,10 @@
-"""distill: train a SMPLer-X student on a teacher's meshes (centroid-relative per-vertex loss).
+"""distill: train a SMPLer-X (or SMPLest-X) student on a teacher's meshes (centroid-relative per-vertex loss).
+
+Teacher and student may be of either family (``--teacher-variant smplest_x_h``: SMPLest-X-H beside the
+SMPLer-X teachers); each network's mesh is made as its own test-time forward makes it (SMPLer-X's left
+hand un-mirrored, SMPLest-X's as predicted). Both see the same crops (the box x 1.25, below), also a
+SMPLest-X network, which was trained on the box x 1.2: its meshes are centroid-relative, so the crop's
+scale changes what it sees by 4 %, not where the mesh lies.
 
     python -m leapnbv_model_tools distill --train train.jsonl [--val val.jsonl]
         --teacher T.pth.tar --teacher-variant l32 --student-variant s32 [--student-checkpoint S.pth.tar]
@@ -200,10 +206,13 @@ class TeacherCache:
     """Centroid-relative teacher meshes on disk, keyed by the teacher's identity and each crop's sha256."""
 
     def __init__(self, root: str, teacher_sha256: str, teacher_variant: str, body_sha256: str,
-                 input_hw: Tuple[int, int]) -> None:
+                 input_hw: Tuple[int, int], unmirror_left: bool = True) -> None:
+        # The variant names the family too (smplest_x_h, s32), so the two families' meshes never share a folder.
+        hand = "left hand un-mirrored" if unmirror_left else "left hand as predicted (not mirrored)"
         identity = {"teacher_sha256": teacher_sha256, "teacher_variant": teacher_variant,
                     "body_model_sha256": body_sha256, "input": f"{input_hw[0]}x{input_hw[1]}",
-                    "mesh": "centroid-relative vertices, float32, add_hand_mean, left hand un-mirrored"}
+                    "mesh": f"centroid-relative vertices, float32, add_hand_mean, {hand}"}
+        self.unmirror_left = unmirror_left
         self.key = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
         self.folder = Path(root) / self.key[:24]
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -224,7 +233,8 @@ class TeacherCache:
                 self.reused += 1
                 continue
             with torch.no_grad():
-                mesh = centroid_relative(mesh_from_outputs(layer, teacher(torch.from_numpy(crops[index][None]))))[0]
+                outputs = teacher(torch.from_numpy(crops[index][None]))
+                mesh = centroid_relative(mesh_from_outputs(layer, outputs, self.unmirror_left))[0]
             temporary = target.with_suffix(f".{os.getpid()}.tmp.npy")
             np.save(temporary, mesh.numpy().astype(np.float32))
             os.replace(temporary, target)
@@ -361,19 +371,27 @@ def init_from_mean(student: nn.Module, samples: List[Sample]) -> Dict[str, np.nd
         # The heads' 6-D layout: x[0::2] the first column, x[1::2] the second (torch_smplx.rot6d_to_matrix).
         return axis_angle_to_matrix(axis_angle)[..., :2].reshape(-1)
 
-    left_as_output = unmirror(axis_angle_to_matrix(mean["lhand"]))[..., :2].reshape(-1)  # the head sees it mirrored
     biases = {
         "root": six_d(mean["root"]), "body": six_d(mean["body"]), "jaw": six_d(mean["jaw"]),
-        "hand": 0.5 * (six_d(mean["rhand"]) + left_as_output),
         "betas": torch.from_numpy(np.mean([s.params["betas"] for s in samples], axis=0)).float(),
         "expression": torch.from_numpy(np.mean([s.params["expression"] for s in samples], axis=0)).float(),
     }
-    heads = {"root": student.body_regressor.root_pose_out, "body": student.body_regressor.body_pose_out,
-             "betas": student.body_regressor.shape_out, "hand": student.hand_regressor.hand_pose_out,
-             "jaw": student.face_regressor.jaw_pose_out, "expression": student.face_regressor.expr_out}
+    if getattr(student, "family", "smpler_x") == "smplest_x":
+        # One head for both hands, left (not mirrored) then right; the decoder's linear heads.
+        biases["hand"] = torch.cat([six_d(mean["lhand"]), six_d(mean["rhand"])])
+        decoder = student.decoder
+        heads = {"root": decoder.dec_body_root_pose, "body": decoder.dec_body_pose, "betas": decoder.dec_body_shape,
+                 "hand": decoder.dec_hand_pose, "jaw": decoder.dec_face_jaw_pose,
+                 "expression": decoder.dec_face_expression}
+    else:
+        left_as_output = unmirror(axis_angle_to_matrix(mean["lhand"]))[..., :2].reshape(-1)  # the head sees it mirrored
+        biases["hand"] = 0.5 * (six_d(mean["rhand"]) + left_as_output)
+        heads = {"root": student.body_regressor.root_pose_out, "body": student.body_regressor.body_pose_out,
+                 "betas": student.body_regressor.shape_out, "hand": student.hand_regressor.hand_pose_out,
+                 "jaw": student.face_regressor.jaw_pose_out, "expression": student.face_regressor.expr_out}
     with torch.no_grad():
         for name, head in heads.items():
-            last = head[-1]
+            last = head[-1] if isinstance(head, nn.Sequential) else head
             if last.bias.shape != biases[name].shape:
                 raise DistillError(f"--init-mean: head {name} has {tuple(last.bias.shape)} outputs, the mean "
                                    f"{tuple(biases[name].shape)}")
@@ -410,8 +428,7 @@ def _mean_over_processes(value: float, world: int) -> float:
 
 
 def distill(config: DistillConfig) -> Dict[str, object]:
-    from leapnbv_model_tools.checkpoint import CheckpointError, load_smplerx, random_smplerx
-    from leapnbv_model_tools.smplerx import VARIANTS
+    from leapnbv_model_tools.checkpoint import VARIANTS, CheckpointError, load_network, random_network, unmirrors_left_hand
     from leapnbv_model_tools.torch_smplx import (
         TorchSMPLX,
         centroid_relative,
@@ -445,12 +462,13 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     except (ValueError, OSError, KeyError) as error:
         raise DistillError(f"body model '{config.body_model}' is unusable: {str(error).splitlines()[0]}") from error
     try:  # every unusable checkpoint (missing, truncated, not a checkpoint, another variant): one line naming it
-        teacher = load_smplerx(config.teacher, config.teacher_variant) if use_teacher else None
-        student = (load_smplerx(config.student_checkpoint, config.student_variant) if config.student_checkpoint
-                   else random_smplerx(config.student_variant, config.seed))
+        teacher = load_network(config.teacher, config.teacher_variant) if use_teacher else None
+        student = (load_network(config.student_checkpoint, config.student_variant) if config.student_checkpoint
+                   else random_network(config.student_variant, config.seed))
     except CheckpointError as error:
         raise DistillError(error.one_line()) from error
     layer = TorchSMPLX(body)
+    student_unmirror = unmirrors_left_hand(config.student_variant)
     train = read_manifest(config.train)
     val = read_manifest(config.val) if config.val else []
     if config.projection_weight > 0 and any(s.params is None or s.camera_k is None for s in train):
@@ -473,7 +491,8 @@ def distill(config: DistillConfig) -> Dict[str, object]:
     cache = None
     if use_teacher:
         cache = TeacherCache(config.cache or str(out / "teacher_cache"), config.teacher_sha256,
-                             config.teacher_variant, config.body_model_sha256, input_hw)
+                             config.teacher_variant, config.body_model_sha256, input_hw,
+                             unmirrors_left_hand(config.teacher_variant))
         cache.fill(teacher, layer, np.concatenate([train_crops, val_crops]), train_hashes + val_hashes, rank, world)
         _barrier(world)
         train_targets = torch.from_numpy(cache.load(train_hashes))
@@ -540,7 +559,8 @@ def distill(config: DistillConfig) -> Dict[str, object]:
             return
         student.eval()
         with torch.no_grad():
-            meshes = [mesh_from_outputs(layer, student(torch.from_numpy(c[None])))[0].numpy() for c in val_crops]
+            meshes = [mesh_from_outputs(layer, student(torch.from_numpy(c[None])), student_unmirror)[0].numpy()
+                      for c in val_crops]
         row: Dict[str, float] = {"step": step}
         if val_targets is not None:
             row["val_teacher"] = float(np.mean([pa_mpvpe_mm(m, t) for m, t in zip(meshes, val_targets)]))
@@ -556,7 +576,7 @@ def distill(config: DistillConfig) -> Dict[str, object]:
         model.train()
         freeze_batchnorm(student)
         outputs = model(torch.from_numpy(train_crops[mine.numpy()]))
-        meshes = mesh_from_outputs(layer, outputs)
+        meshes = mesh_from_outputs(layer, outputs, student_unmirror)
         loss = vertex_loss(meshes, train_targets[mine]).mean()
         if train_projection is not None:
             projected = student_box_projection(meshes, outputs["cam_param"])
@@ -593,12 +613,14 @@ def distill(config: DistillConfig) -> Dict[str, object]:
 def export_student(student: nn.Module, config: DistillConfig, out: Path, input_hw: Tuple[int, int]) -> Dict:
     from leapnbv_model_tools.checkpoint import save_official
     from leapnbv_model_tools.export import export_metadata, export_onnx, parity_report
+    from leapnbv_perception.hmr_crop import DEFAULT_BOX_SCALE
 
     student.eval()
     checkpoint = save_official(student, str(out / "student.pth.tar"))
     onnx_path = str(out / "student.onnx")
+    # The box ratio it was trained on (distill's crops), whatever its family's own; the un-mirroring is the family's.
     export_onnx(student, onnx_path, input_hw, export_metadata(config.student_variant, sha256_of(checkpoint),
-                                                               input_hw))
+                                                               input_hw, box_ratio=DEFAULT_BOX_SCALE))
     crops = np.random.default_rng(0).uniform(0.0, 1.0, size=(1, 3) + input_hw).astype(np.float32)
     report = parity_report(student, onnx_path, crops)  # export-hmr's limit: each output's own FP32 noise
     return {"onnx": onnx_path, "checkpoint": checkpoint, "parity": report.worst_difference, "parity_ok": report.ok}

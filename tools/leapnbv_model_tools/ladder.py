@@ -8,7 +8,9 @@
    the person box and the body parameters in the camera frame are the simulator's ground truth.
    Train / validation / test manifests (``distill``'s format) under DIR/data.
 2. A wider teacher (``--teacher-variant``, default t128) trained on the ground-truth meshes
-   (``distill --targets gt``).
+   (``distill --targets gt``). Several, comma-separated, side by side: ``t128,smplest_x_t128`` puts
+   a SMPLest-X teacher beside the SMPLer-X one (each trained the same way, each distilled into its
+   own copy of the student; the folders then carry the teacher's variant).
 3. A narrower student (``--student-variant``, default t32) distilled from the teacher's meshes.
 4. The same student trained on the ground truth with the same budget (epochs, batch, lr).
 5. Each in FP32 (the exported ONNX, onnxruntime) and FP16 (fp16-check's guarded ONNX, run by the
@@ -71,8 +73,9 @@ def latency_ms(path: str, input_hw, runs: int = 10) -> float:
     return float(np.median(times) * 1000.0)
 
 
-def evaluate(onnx_path: str, fp16: bool, test_manifest: str, body_path: str, input_hw) -> float:
-    """Mean PA-MPVPE (mm) to the ground truth over the test split."""
+def evaluate(onnx_path: str, fp16: bool, test_manifest: str, body_path: str, input_hw,
+             unmirror_left: bool = True) -> float:
+    """Mean PA-MPVPE (mm) to the ground truth over the test split (``unmirror_left``: the network's family's)."""
     import onnx
     import onnxruntime
 
@@ -100,7 +103,7 @@ def evaluate(onnx_path: str, fp16: bool, test_manifest: str, body_path: str, inp
         outputs = run(make_crop(sample, input_hw)[None])
         with torch.no_grad():
             values = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in outputs.items()}
-            mesh = mesh_from_outputs(layer, values)
+            mesh = mesh_from_outputs(layer, values, unmirror_left)
             truth = mesh_from_axis_angle(layer, {k: torch.from_numpy(sample.params[k][None]).float()
                                                  for k in PARAM_SIZES})
         errors.append(pa_mpvpe_mm(mesh[0].numpy(), truth[0].numpy()))
@@ -108,6 +111,8 @@ def evaluate(onnx_path: str, fp16: bool, test_manifest: str, body_path: str, inp
 
 
 def run_ladder(out: Path, size: str, teacher_variant: str, student_variant: str, lr: float) -> Dict[str, object]:
+    """``teacher_variant``: one variant, or several comma-separated (each its own teacher and distilled student)."""
+    from leapnbv_model_tools.checkpoint import unmirrors_left_hand
     from leapnbv_model_tools.distill import DistillConfig, distill, make_crop, read_manifest
     from leapnbv_model_tools.fp16 import fp16_check
     from leapnbv_stand_ins.files import ensure_stand_in_smplx_dense
@@ -119,7 +124,8 @@ def run_ladder(out: Path, size: str, teacher_variant: str, student_variant: str,
     manifests = make_dataset(out / "data", plan, body)
     timings = {"data_s": time.perf_counter() - started}
 
-    def train(name: str, variant: str, epochs: int, targets: str, teacher: str = "") -> Dict[str, object]:
+    def train(name: str, variant: str, epochs: int, targets: str, teacher: str = "",
+              teacher_variant: str = "") -> Dict[str, object]:
         begun = time.perf_counter()
         result = distill(DistillConfig(
             train=manifests["train"], val=manifests["val"], teacher=teacher, teacher_variant=teacher_variant,
@@ -128,15 +134,23 @@ def run_ladder(out: Path, size: str, teacher_variant: str, student_variant: str,
         timings[f"{name}_s"] = time.perf_counter() - begun
         return result
 
-    teacher = train("teacher_gt", teacher_variant, plan["teacher_epochs"], "gt")
-    distilled = train("student_distilled", student_variant, plan["student_epochs"], "teacher",
-                      str(teacher["checkpoint"]))
+    teachers = [v for v in teacher_variant.split(",") if v]
+    several = len(teachers) > 1
+    runs = []  # (row name, variant, distill result)
+    for variant in teachers:
+        suffix = f"_{variant}" if several else ""
+        label = f" from {variant}" if several else ""
+        teacher = train(f"teacher_gt{suffix}", variant, plan["teacher_epochs"], "gt")
+        distilled = train(f"student_distilled{suffix}", student_variant, plan["student_epochs"], "teacher",
+                          str(teacher["checkpoint"]), variant)
+        runs += [(f"teacher (GT){' ' + variant if several else ''}", variant, teacher),
+                 (f"student distilled{label}", student_variant, distilled)]
+    first_distilled = runs[1][2]
     baseline = train("student_gt", student_variant, plan["student_epochs"], "gt")
+    runs.append(("student (GT, same budget)", student_variant, baseline))
     calib = np.stack([make_crop(s, input_hw) for s in read_manifest(manifests["val"])])
     rows = []
-    for name, variant, result in (("teacher (GT)", teacher_variant, teacher),
-                                  ("student distilled", student_variant, distilled),
-                                  ("student (GT, same budget)", student_variant, baseline)):
+    for name, variant, result in runs:
         fp32_path = str(result["onnx"])
         check = fp16_check(fp32_path, calib, str(Path(fp32_path).parent / "fp16"), verify=False)
         params = sum(p.numel() for p in torch.load(str(result["checkpoint"]), map_location="cpu",
@@ -145,11 +159,12 @@ def run_ladder(out: Path, size: str, teacher_variant: str, student_variant: str,
             rows.append({"model": name, "variant": variant, "precision": precision, "parameters": int(params),
                          "size_mb": Path(path).stat().st_size / 1e6,
                          "latency_ms": latency_ms(path, input_hw),
-                         "pa_mpvpe_mm": evaluate(path, precision == "fp16", manifests["test"], body, input_hw),
+                         "pa_mpvpe_mm": evaluate(path, precision == "fp16", manifests["test"], body, input_hw,
+                                                 unmirrors_left_hand(variant)),
                          "fp32_kept_nodes": len(check.kept_nodes) if precision == "fp16" else 0})
     timings["total_s"] = time.perf_counter() - started
     summary = {"size": size, "counts": plan, "rows": rows, "timings": timings,
-               "student_onnx": str(distilled["onnx"])}
+               "student_onnx": str(first_distilled["onnx"])}
     (out / "ladder.json").write_text(json.dumps(summary, indent=1) + "\n")
     (out / "ladder.md").write_text(format_table(summary) + "\n")
     plot(rows, str(out / "ladder.png"))
@@ -193,7 +208,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
     parser.add_argument("--size", default="tiny", choices=sorted(SIZES))
-    parser.add_argument("--teacher-variant", default="t128")
+    parser.add_argument("--teacher-variant", default="t128",
+                        help="the teacher's variant, or several comma-separated side by side (t128,smplest_x_t128)")
     parser.add_argument("--student-variant", default="t32")
     parser.add_argument("--lr", type=float, default=3e-4)
     args = parser.parse_args(argv)
