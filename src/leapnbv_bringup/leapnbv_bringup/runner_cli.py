@@ -13,7 +13,7 @@ import sys
 import time
 from typing import Dict, List, Optional
 
-from leapnbv_bringup.graph import INPUT_TOPICS
+from leapnbv_bringup.graph import INPUT_TOPICS, node_names
 from leapnbv_bringup.supervision import RestartPolicy
 
 Overrides = Dict[str, Dict[str, str]]
@@ -33,6 +33,11 @@ def perception_overrides(perception: Optional[str], detector_model: Optional[str
     if body_model:
         overrides["hmr_node"]["body_model_path"] = os.path.abspath(body_model)
     return overrides
+
+
+def sim_time_overrides(nodes: List[str]) -> Overrides:
+    """Every node on simulated time: ``use_sim_time`` (rclpy's own parameter: the node clock follows /clock)."""
+    return {name: {"use_sim_time": "true"} for name in nodes}
 
 
 def merge_overrides(*parts: Overrides) -> Overrides:
@@ -70,6 +75,9 @@ def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--" + key.replace("/", "-").replace("_", "-") + "-topic", default=topic,
                             dest="topic_" + key.replace("/", "_"), help=f"input topic for '{key}'")
     parser.add_argument("--log-dir", default=None, help="write each node's output to DIR/<node>.log")
+    parser.add_argument("--use-sim-time", action="store_true",
+                        help="every node on simulated time (use_sim_time: its clock follows /clock, e.g. the "
+                        "simulator's with publish_clock)")
 
 
 def add_supervision_arguments(parser: argparse.ArgumentParser) -> None:
@@ -119,8 +127,9 @@ def runner_from_arguments(args: argparse.Namespace, **kwargs):
     """The GraphRunner that the shared graph arguments describe (``kwargs``: more GraphRunner arguments)."""
     from leapnbv_bringup.graph_runner import GraphRunner
 
+    sim_time = sim_time_overrides(node_names()) if getattr(args, "use_sim_time", False) else {}
     overrides = merge_overrides(
-        perception_overrides(args.perception, args.detector_model, args.hmr_model, args.body_model),
+        sim_time, perception_overrides(args.perception, args.detector_model, args.hmr_model, args.body_model),
         parse_set_arguments(args.set))
     topics = {key: getattr(args, "topic_" + key.replace("/", "_")) for key in INPUT_TOPICS}
     return GraphRunner(args.params, overrides, topics, args.log_dir, **kwargs)

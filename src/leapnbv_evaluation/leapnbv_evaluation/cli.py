@@ -6,6 +6,12 @@
         --detector-model yolov8s.onnx --hmr-model smplerx.onnx --body-model SMPLX_NEUTRAL.npz \\
         --scene-body-model SMPLX_NEUTRAL.npz
 
+Continuous episodes (``--continuous``, :mod:`leapnbv_evaluation.continuous`): the robot drives while the
+graph plans from every frame, on sim time; outputs continuous.md (the table and one row per episode) and
+continuous.json (:class:`~leapnbv_evaluation.continuous_results.ContinuousRun`)::
+
+    python -m leapnbv_evaluation.cli --continuous --room corridor --scenes 40 --out out/continuous_corridor
+
 What runs: :mod:`leapnbv_evaluation.harness` (the graph, the in-process simulator, the closed
 loop), :mod:`leapnbv_evaluation.episode` (the methods and how a view is scored); with
 ``--workers N`` the scenes are split among N processes with a graph each
@@ -22,7 +28,7 @@ import argparse
 import os
 import sys
 import time
-from typing import List, Optional, Sequence
+from typing import Any, List, Optional, Sequence
 
 from leapnbv_evaluation.benchmark_set import (
     BASE_ROOMS,
@@ -32,10 +38,12 @@ from leapnbv_evaluation.benchmark_set import (
     checked_seed_count,
     room_seeds,
 )
+from leapnbv_evaluation.continuous_results import ContinuousRun, continuous_table_markdown, per_episode_markdown
 from leapnbv_evaluation.episode import EvaluationError
 from leapnbv_evaluation.harness import ClosedLoopEvaluator
-from leapnbv_evaluation.options import EvaluationOptions
+from leapnbv_evaluation.options import CLOCK_MODES, EvaluationOptions
 from leapnbv_evaluation.parallel import DOMAIN_BASE_ENV, own_domain, run_in_workers
+from leapnbv_evaluation.report_files import write_text_atomically
 from leapnbv_evaluation.results import EvaluationRun
 from leapnbv_evaluation.task_report import task_table_markdown, write_evaluation_outputs
 from leapnbv_perception.smplx_layer import SMPLXModel
@@ -86,6 +94,33 @@ def run_evaluation(seeds: Sequence[int], out_dir: str, options: Optional[Evaluat
     return run
 
 
+def run_continuous(seeds: Sequence[int], out_dir: str, options: EvaluationOptions,
+                   domain_base: Optional[int] = None) -> ContinuousRun:
+    """Continuous episodes of the scenes in this process; writes continuous.md and continuous.json.
+
+    Returns:
+        The run.
+    """
+    started = time.monotonic()
+    if options.log_dir is None:
+        options.log_dir = os.path.join(out_dir, "logs")
+    os.makedirs(out_dir, exist_ok=True)
+    with own_domain(domain_base) as domain:
+        print(f"[evaluation] ROS domain {domain}, continuous ({options.clock} clock)", flush=True)
+        with ClosedLoopEvaluator(options) as evaluator:
+            def progress(episode: Any) -> None:
+                print(f"[evaluation] seed {episode.seed}: {episode.outcome} in {episode.time_s:.1f} s sim "
+                      f"({episode.wall_s:.0f} s wall), coverage {episode.coverage_start:.3f} -> "
+                      f"{episode.coverage_end:.3f}, {episode.goal_switches} switches", flush=True)
+
+            run = evaluator.evaluate_continuous(seeds, on_episode=progress)
+    run.total_wall_s = round(time.monotonic() - started, 3)
+    run.write(os.path.join(out_dir, "continuous.json"))
+    write_text_atomically(os.path.join(out_dir, "continuous.md"),
+                          continuous_table_markdown(run) + "\n" + per_episode_markdown(run))
+    return run
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=50,
@@ -127,6 +162,15 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="leap_nbv's episode continues through the graph up to this many moves (default 1)")
     parser.add_argument("--min-gain", type=float, default=0.02,
                         help="a further move is made only when the graph's pick scores this much above staying")
+    parser.add_argument("--continuous", action="store_true",
+                        help="continuous episodes: the robot drives while the graph plans from every frame")
+    parser.add_argument("--clock", choices=list(CLOCK_MODES), default="lockstep",
+                        help="continuous: lockstep (sim time advances once the graph answered: reproducible) or "
+                        "real_time (sim time follows the wall clock)")
+    parser.add_argument("--camera-rate", type=float, default=10.0, help="continuous: frames per second of sim time")
+    parser.add_argument("--time-limit", type=float, default=30.0, help="continuous: sim seconds per episode at most")
+    parser.add_argument("--commit-hold", type=float, default=1.0,
+                        help="continuous: arrival counts at a goal committed at least this many sim seconds")
     args = parser.parse_args(argv)
 
     options = EvaluationOptions(perception=args.perception, detector_backend=args.detector_backend,
@@ -136,13 +180,26 @@ def main(argv: Optional[List[str]] = None) -> int:
                                 set_parameters=list(args.set), frame_timeout_s=args.frame_timeout,
                                 room=args.room, obstacle_map=not args.no_obstacle_map,
                                 robot_motion=args.robot_motion, robot_head=args.robot_head,
-                                max_moves=args.max_moves, min_gain=args.min_gain)
+                                max_moves=args.max_moves, min_gain=args.min_gain, continuous=args.continuous,
+                                clock=args.clock, camera_rate_hz=args.camera_rate, time_limit_s=args.time_limit,
+                                commit_hold_s=args.commit_hold)
     try:
         if args.workers < 1:
             raise EvaluationError(f"--workers must be >= 1, got {args.workers}")
         if not 1 <= args.max_moves <= MAX_MOVES:
             raise EvaluationError(f"--max-moves must be in [1, {MAX_MOVES}], got {args.max_moves}")
+        if args.continuous and args.workers != 1:
+            raise EvaluationError("--continuous runs in one process (--workers 1)")
+        if args.continuous and not (0.5 <= args.camera_rate <= 60.0 and 0.0 < args.time_limit <= 600.0
+                                    and args.commit_hold >= 0.0):
+            raise EvaluationError("--camera-rate must be in [0.5, 60], --time-limit in (0, 600], --commit-hold >= 0")
         seeds = seeds_for(args.scenes, args.seed_offset, args.room)
+        if args.continuous:
+            continuous = run_continuous(seeds, args.out, options, domain_base=args.domain_base)
+            print(continuous_table_markdown(continuous), end="")
+            print(f"[evaluation] {len(seeds)} continuous episodes in {continuous.total_wall_s:.1f} s; outputs in "
+                  f"{args.out}")
+            return 0
         run = run_evaluation(seeds, args.out, options, workers=args.workers, domain_base=args.domain_base)
     except EvaluationError as exc:
         print(f"[evaluation] {exc}", file=sys.stderr)

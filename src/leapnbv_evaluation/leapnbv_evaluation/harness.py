@@ -7,7 +7,9 @@ publishes frames only when asked; a collector node files the graph's outputs und
 their stamp (:class:`~leapnbv_evaluation.frame_outputs.FrameOutputs`). The session publishes a frame
 and waits for the graph's answer (or for a certain failure), waits for goals and moves the robot;
 what an episode does with that (the frames of a scene, the methods, the moves and when to stop) is
-:mod:`leapnbv_evaluation.closed_loop`.
+:mod:`leapnbv_evaluation.closed_loop`. With ``options.continuous`` the simulator runs its motion stack and
+owns sim time (``/clock``; every graph node runs with ``use_sim_time`` and the deployed goal age limit) and
+the episodes are :mod:`leapnbv_evaluation.continuous`'s (:meth:`ClosedLoopEvaluator.evaluate_continuous`).
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
+from leapnbv_bringup.graph import node_names
 from leapnbv_bringup.graph_runner import (
     GraphError,
     GraphRunner,
@@ -28,6 +31,7 @@ from leapnbv_bringup.graph_runner import (
     parse_set_arguments,
     perception_overrides,
 )
+from leapnbv_bringup.runner_cli import sim_time_overrides
 from leapnbv_common.conversions import stamp_to_ns
 from leapnbv_common.power_monitor import PowerMonitor, start_power_monitor
 from leapnbv_common.topics import (
@@ -37,6 +41,7 @@ from leapnbv_common.topics import (
     GROUND_TRUTH_TOPIC,
     HUMAN_MESH,
     HUMAN_MESH_METRIC,
+    NAMESPACE,
     NEXT_BEST_VIEW_TOPIC,
     PERSON_MASK,
     TARGET_GEOMETRY,
@@ -45,16 +50,19 @@ from leapnbv_common.topics import (
 )
 from leapnbv_evaluation.benchmark_set import FAMILY_GRAPH_PARAMETERS, benchmark_scene
 from leapnbv_evaluation.closed_loop import ClosedLoopEpisodes, stay_where_the_graph_failed
+from leapnbv_evaluation.continuous import ContinuousEpisodes, StatusRecord
+from leapnbv_evaluation.continuous_results import ContinuousEpisode, ContinuousRun
 from leapnbv_evaluation.episode import DEFAULT_METHOD, SCENE_STAMP_SPACING_NS, EvaluationError
 from leapnbv_evaluation.frame_outputs import END_TO_END, STAGE_TOPICS, STAGES, FrameOutputs
 from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import EvaluationRun, SceneResult
-from leapnbv_msgs.msg import GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
+from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.nodes.simulator_node import SimulatorNode
 from leapnbv_sim.poses import CameraPose, RobotModel
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
+from leapnbv_sim.simulator import DrivenRobot
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
 # The names callers import from here (the frame record and the options have their own modules).
@@ -69,13 +77,18 @@ __all__ = [
 ]
 
 
-def simulator_parameters(publish_obstacle_map: bool = True, robot: Optional[RobotModel] = None) -> List[Parameter]:
-    """The in-process simulator's parameters: frames only when asked, goals reached at once, the robot's motion."""
+def simulator_parameters(publish_obstacle_map: bool = True, robot: Optional[RobotModel] = None,
+                         continuous: bool = False) -> List[Parameter]:
+    """The in-process simulator's parameters: frames only when asked, goals reached at once, the robot's motion.
+
+    ``continuous``: the motion stack drives the robot instead, and the simulator publishes /clock.
+    """
     robot = robot or RobotModel()
     return [Parameter("rate_hz", value=0.0), Parameter("move_speed_m_s", value=0.0),
             Parameter("publish_obstacle_map", value=bool(publish_obstacle_map)),
             Parameter("robot_motion", value=robot.motion), Parameter("robot_head", value=robot.head),
-            Parameter("robot_camera_height", value=float(robot.camera_height))]
+            Parameter("robot_camera_height", value=float(robot.camera_height)),
+            Parameter("motion_stack", value=bool(continuous)), Parameter("publish_clock", value=bool(continuous))]
 
 
 class ClosedLoopEvaluator:
@@ -91,6 +104,7 @@ class ClosedLoopEvaluator:
 
     def __init__(self, options: Optional[EvaluationOptions] = None) -> None:
         self.episodes = ClosedLoopEpisodes(self, options or EvaluationOptions())
+        self.continuous_episodes = ContinuousEpisodes(self, self.episodes.options)
         self._next_stamp_ns = int(self.options.stamp_base_ns)
         self._started = False
         self._owns_rclpy = False
@@ -113,6 +127,7 @@ class ClosedLoopEvaluator:
     @options.setter
     def options(self, options: EvaluationOptions) -> None:
         self.episodes.options = options
+        self.continuous_episodes.options = options
 
     @property
     def term_names(self) -> Optional[List[str]]:
@@ -151,11 +166,14 @@ class ClosedLoopEvaluator:
             raise EvaluationError("real perception needs --detector-model (unless --detector-backend ground_truth), "
                                   "--hmr-model and --body-model")
         map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
-        map_switch.append("nbv_node.max_goal_age_s=0.0")  # simulated stamps, not the clock's: no goal age limit
+        if not o.continuous:  # simulated stamps, not the clock's: no goal age limit
+            map_switch.append("nbv_node.max_goal_age_s=0.0")
+        # Continuous: the graph runs on the simulator's clock, with the deployed staleness rules.
+        sim_time = sim_time_overrides(node_names()) if o.continuous else {}
         robot = FAMILY_GRAPH_PARAMETERS.get(o.room, [])  # the family's robot (camera mounting), before --set
         detector = {"detector_node": {"backend": o.detector_backend}} if o.detector_backend else {}
-        return merge_overrides(perception_overrides(o.perception, o.detector_model, o.hmr_model, body), detector,
-                               parse_set_arguments(map_switch + robot + list(o.set_parameters)))
+        return merge_overrides(sim_time, perception_overrides(o.perception, o.detector_model, o.hmr_model, body),
+                               detector, parse_set_arguments(map_switch + robot + list(o.set_parameters)))
 
     def start(self) -> None:
         """Start the graph's processes and the in-process nodes; wait until all are connected.
@@ -177,7 +195,7 @@ class ClosedLoopEvaluator:
         except GraphError as exc:
             raise EvaluationError(f"the graph did not start: {exc}") from exc
         sim = self.sim = SimulatorNode(scene=first_scene, parameter_overrides=simulator_parameters(
-            self.options.obstacle_map, self.options.robot))
+            self.options.obstacle_map, self.options.robot, self.options.continuous))
         self._subscribe_outputs(collector)
         executor = self.executor = SingleThreadedExecutor()
         executor.add_node(sim)
@@ -341,7 +359,113 @@ class ClosedLoopEvaluator:
         """Where the simulator's camera was when it rendered the frame of ``stamp_ns`` (None: unknown)."""
         return self._simulator().camera_pose_at(stamp_ns)
 
+    # ------------------------------------------------------------------ continuous.ContinuousSession
+
+    def forget_committed_goal(self, timeout_s: float = 5.0) -> None:
+        """Make nbv_node forget its committed goal: a change of a score weight does (and is undone at once).
+
+        A new scene is another room with the person at the same fixed-frame place: a goal committed in the
+        last one must not be re-scored and kept in it.
+
+        Raises:
+            EvaluationError: nbv_node's parameter service did not answer.
+        """
+        from rcl_interfaces.msg import ParameterType
+        from rclpy.parameter_client import AsyncParameterClient
+
+        if self.collector is None or not self.term_names:
+            return
+        client = AsyncParameterClient(self.collector, NAMESPACE + "/nbv_node")
+        name = "weight_" + self.term_names[0]
+        got = client.get_parameters([name])
+        if not self._spin_until(got.done, timeout_s) or got.result() is None:
+            raise EvaluationError("nbv_node's parameters did not answer")
+        value = got.result().values[0]
+        if value.type != ParameterType.PARAMETER_DOUBLE:
+            raise EvaluationError(f"nbv_node's {name} is not a number")
+        weight = float(value.double_value)
+        for step in (weight + 0.5 if weight <= 0.5 else weight - 0.5, weight):
+            done = client.set_parameters([Parameter(name, value=step)])
+            if not self._spin_until(done.done, timeout_s):
+                raise EvaluationError(f"nbv_node did not take {name}={step}")
+
+    def settle_goal(self, stamp_ns: int, outputs: FrameOutputs, timeout_s: float = 2.0) -> None:
+        """Wait until the goal of the frame of ``stamp_ns`` (its status, and its path while CURRENT) has arrived.
+
+        nbv_node publishes the goal, its status and then its path around the view candidates; a frame whose plan
+        chose nothing gets at most a withdrawal, awaited briefly.
+        """
+        sim = self._simulator()
+        candidates = outputs.view_candidates
+        if outputs.failure is not None or candidates is None or candidates.chosen_index < 0:
+            self._spin_until(lambda: False, 0.05)
+            return
+
+        def arrived() -> bool:
+            status = sim.goal_status
+            if status is None or stamp_to_ns(status.goal_stamp) != stamp_ns:
+                return False
+            return status.state != GoalStatus.STATE_CURRENT or sim.last_path_msg_stamp_ns == stamp_ns
+
+        self._spin_until(arrived, timeout_s)
+
+    def driven_robot(self) -> DrivenRobot:
+        """The simulator's robot (continuous mode)."""
+        robot = self._simulator().robot
+        if robot is None:
+            raise EvaluationError("the simulator runs no motion stack (continuous mode is off)")
+        return robot
+
+    def goal_statuses(self) -> List[StatusRecord]:
+        """Every goal status the simulator received in this scene, in order."""
+        return [StatusRecord(state=int(s.state), goal_stamp_ns=stamp_to_ns(s.goal_stamp),
+                             goal_changed=bool(s.goal_changed), commitment=str(s.commitment),
+                             committed_since_ns=stamp_to_ns(s.committed_since))
+                for s in self._simulator().goal_statuses]
+
+    def last_path(self) -> Optional[Tuple[int, Any]]:
+        """(stamp, (P, 3) world points) of the latest base path the robot took in this scene."""
+        sim = self._simulator()
+        if sim.last_path_stamp_ns is None or sim.last_path_world is None:
+            return None
+        return sim.last_path_stamp_ns, sim.last_path_world
+
     # ------------------------------------------------------------------ evaluation
+
+    def evaluate_continuous(self, seeds: Sequence[int], first_index: int = 0,
+                            on_episode: Optional[Callable[[ContinuousEpisode], None]] = None) -> ContinuousRun:
+        """Run one continuous episode per scene (options.continuous must have been set when the graph started).
+
+        Args:
+            seeds: Scene seeds.
+            first_index: Scene index of the first seed (its stamps).
+            on_episode: Called with each episode as it is done (progress).
+
+        Returns:
+            The run.
+
+        Raises:
+            EvaluationError: Not started in continuous mode.
+        """
+        o = self.options
+        if not o.continuous or self.sim is None or self.sim.robot is None:
+            raise EvaluationError("continuous episodes need the evaluator started with options.continuous")
+        started = time.monotonic()
+        spacing = self.continuous_episodes.spacing_ns()
+        self._next_stamp_ns = max(self._next_stamp_ns, int(o.stamp_base_ns) + SCENE_STAMP_SPACING_NS)
+        base = self._next_stamp_ns
+        self._next_stamp_ns += (int(first_index) + len(seeds)) * spacing
+        episodes = []
+        for offset, seed in enumerate(seeds):
+            index = int(first_index) + offset
+            episodes.append(self.continuous_episodes.run(self._load_scene(seed), int(seed), index,
+                                                         base + index * spacing))
+            if on_episode is not None:
+                on_episode(episodes[-1])
+        return ContinuousRun(room=o.room, obstacle_map=o.obstacle_map, clock=o.clock,
+                             camera_rate_hz=float(o.camera_rate_hz), time_limit_s=float(o.time_limit_s),
+                             commit_hold_s=float(o.commit_hold_s), episodes=episodes,
+                             total_wall_s=round(time.monotonic() - started, 3))
 
     def evaluate(self, seeds: Sequence[int], first_index: int = 0,
                  on_scene: Optional[Callable[[SceneResult], None]] = None) -> EvaluationRun:

@@ -6,10 +6,13 @@ One options object serves both sides of the evaluation: the session that runs th
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 from leapnbv_evaluation.episode import DEFAULT_STAMP_BASE_NS
 from leapnbv_sim.poses import RobotModel
+
+#: The continuous episodes' clocks (EvaluationOptions.clock).
+CLOCK_MODES: Tuple[str, ...] = ("lockstep", "real_time")
 
 
 @dataclass
@@ -46,6 +49,14 @@ class EvaluationOptions:
         max_moves: leap_nbv's episode continues through the graph up to this many moves (1: one move, the
             table's), each planned on the view the previous one reached ...
         min_gain: ... while the graph's pick scores at least this much above staying (its predicted gain).
+        continuous: Run continuous episodes (:mod:`leapnbv_evaluation.continuous`): the simulator's motion
+            stack drives the robot while the graph plans from every frame, on sim time.
+        clock: Continuous episodes' clock: "lockstep" (sim time advances one camera period once the graph
+            answered the frame in flight: reproducible) or "real_time" (sim time follows the wall clock).
+        camera_rate_hz: Continuous episodes' camera rate (frames per second of sim time).
+        time_limit_s: A continuous episode ends at this sim time without arrival ...
+        commit_hold_s: ... or on arrival at a goal committed at least this long ...
+        no_plan_limit_s: ... or when no goal came within this time.
     """
 
     perception: str = "ground_truth"
@@ -67,6 +78,12 @@ class EvaluationOptions:
     robot_head: str = "pan_tilt"
     max_moves: int = 1
     min_gain: float = 0.02
+    continuous: bool = False
+    clock: str = "lockstep"
+    camera_rate_hz: float = 10.0
+    time_limit_s: float = 30.0
+    commit_hold_s: float = 1.0
+    no_plan_limit_s: float = 3.0
 
     @property
     def robot(self) -> RobotModel:

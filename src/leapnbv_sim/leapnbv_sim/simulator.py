@@ -3,19 +3,25 @@
 :class:`SimulatorParams` is the one source of the simulator node's parameters (names, defaults,
 ranges, read-only flags: ``leapnbv_common.params``). A goal is reached at once (speed 0) or along a
 straight line in sim time (:class:`CameraMotion`), the orientation slerped with the same progress
-(:func:`interpolate_camera_pose`).
+(:func:`interpolate_camera_pose`); or (``motion_stack``) a simulated motion stack follows the
+latest current goal's base path (:class:`DrivenRobot` over :class:`leapnbv_sim.motion_stack.MotionStack`):
+the continuous mode, in which the camera renders at camera rate while the robot drives.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
+from leapnbv_common.array_types import FloatArray
 from leapnbv_common.params import param
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
-from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS, CameraPose, RobotModel
+from leapnbv_sim.motion_stack import BaseLimits, MotionStack
+from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS, CameraPose, RobotModel, camera_pitch
 from leapnbv_sim.robot_frames import RobotFrameIds
 from leapnbv_sim.scene import Scene
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
@@ -58,6 +64,24 @@ class SimulatorParams:
     base_frame_id: str = param("base_link", "the robot's base frame of the published TF tree", read_only=True)
     camera_link_frame_id: str = param("camera_link", "the camera head's frame of the published TF tree (its "
                                       "optical frame is frame_id)", read_only=True)
+    motion_stack: bool = param(False, "continuous mode: a simulated motion stack follows the latest CURRENT goal's "
+                               "base_path at the base's and head's limits below while frames render (stops on a "
+                               "withdrawn goal); off: each goal moves the camera as move_speed_m_s says",
+                               read_only=True)
+    replan_kept_goals: bool = param(True, "motion stack: a kept goal's new path (planned from where the robot is "
+                                    "now) replaces the one followed; off: only a changed goal's path does "
+                                    "(goal_status.goal_changed)")
+    base_max_speed_m_s: float = param(0.5, "motion stack: the base's top speed", min=0.01, max=10.0)
+    base_max_accel_m_s2: float = param(0.5, "motion stack: the base's acceleration and braking limit", min=0.01,
+                                       max=20.0)
+    base_max_turn_rate_rad_s: float = param(1.0, "motion stack: the base's turn rate", min=0.01, max=20.0)
+    head_pan_rate_rad_s: float = param(1.5, "motion stack: the pan-tilt head's pan rate", min=0.01, max=20.0)
+    head_tilt_rate_rad_s: float = param(1.0, "motion stack: the pan-tilt head's tilt rate", min=0.01, max=20.0)
+    publish_clock: bool = param(False, "publish /clock (the simulator owns sim time): at each frame's stamp before "
+                                "the frame, and with rate_hz > 0 from the wall clock at clock_rate_hz (the "
+                                "real-time mode)", read_only=True)
+    clock_rate_hz: float = param(100.0, "real-time mode: how often /clock is published", min=1.0, max=1000.0,
+                                 read_only=True)
 
 
 def robot_model(params: SimulatorParams) -> RobotModel:
@@ -69,6 +93,13 @@ def robot_frame_ids(params: SimulatorParams) -> RobotFrameIds:
     """The frames of the TF tree the simulator publishes (world_frame_id down to frame_id)."""
     return RobotFrameIds(world=params.world_frame_id, odom=params.odom_frame_id, base=params.base_frame_id,
                          head=params.camera_link_frame_id, camera=params.frame_id)
+
+
+def base_limits(params: SimulatorParams) -> BaseLimits:
+    """The motion stack's limits the parameters give."""
+    return BaseLimits(max_speed_m_s=params.base_max_speed_m_s, max_accel_m_s2=params.base_max_accel_m_s2,
+                      max_turn_rate_rad_s=params.base_max_turn_rate_rad_s, pan_rate_rad_s=params.head_pan_rate_rad_s,
+                      tilt_rate_rad_s=params.head_tilt_rate_rad_s)
 
 
 def load_scene(params: SimulatorParams) -> Scene:
@@ -124,3 +155,94 @@ class CameraMotion:
 
     def pose_at(self, stamp_ns: int) -> CameraPose:
         return interpolate_camera_pose(self.start, self.goal, self.fraction_at(stamp_ns))
+
+
+def level_heading(rotation: FloatArray) -> float:
+    """Heading (rad about world z) of a level frame's x axis (a base pose of a nav_msgs/Path)."""
+    x_axis = np.asarray(rotation, dtype=np.float64).reshape(3, 3)[:, 0]
+    return float(math.atan2(x_axis[1], x_axis[0]))
+
+
+class DrivenRobot:
+    """The continuous mode's robot: what a motion stack does with the planner's goal topics, in sim time.
+
+    It follows the base path of the latest CURRENT goal (:meth:`take_path`, world frame) and stops on a
+    withdrawn one (:meth:`withdraw`). A changed goal's path always replaces the one followed; a kept goal's
+    path (the same goal, planned from where the robot is now) only with ``replan_kept``. The head (pan-tilt)
+    turns toward the target (the latest plan's ring centre, :meth:`look_at_target`) and tilts to the goal's
+    pitch (:meth:`take_view`); a fixed head keeps its pan at 0 and its mounting pitch.
+
+    Args:
+        camera: The camera's pose now (the robot stands under it).
+        limits: The base's and head's limits.
+        head: One of ``HEAD_MODES``.
+        replan_kept: Whether a kept goal's path replaces the one followed.
+    """
+
+    def __init__(self, camera: CameraPose, limits: BaseLimits, head: str = "pan_tilt", replan_kept: bool = True,
+                 ) -> None:
+        if head not in HEAD_MODES:
+            raise ValueError(f"head must be one of {HEAD_MODES}, got {head!r}")
+        self.stack = MotionStack.from_camera(camera, limits)
+        self.head = head
+        self.replan_kept = bool(replan_kept)
+        self.mounting_pitch = camera_pitch(camera)
+        self._pitch = self.mounting_pitch
+        self._target_xy: Optional[FloatArray] = None
+        #: Paths taken (replacing the one followed) and withdrawals, for the episode's record.
+        self.paths_taken = 0
+        self.withdrawals = 0
+
+    def camera_pose(self) -> CameraPose:
+        """T_world_camera now."""
+        return self.stack.camera_pose()
+
+    def advance(self, dt_s: float) -> CameraPose:
+        """Drive ``dt_s`` seconds on (the head re-aimed at the target from where the camera is), the camera then."""
+        self._aim()
+        self.stack.step(dt_s)
+        return self.stack.camera_pose()
+
+    def take_path(self, points_world: FloatArray, final_rotation_world: FloatArray, goal_changed: bool) -> bool:
+        """A CURRENT goal's base path (world (P, 3) points, the last pose's world rotation); whether it was taken.
+
+        Raises:
+            ValueError: No point, or a point not finite.
+        """
+        if self.stack.has_path and not goal_changed and not self.replan_kept:
+            return False
+        points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        self.stack.set_path(points[:, :2], level_heading(final_rotation_world))
+        self.paths_taken += 1
+        return True
+
+    def take_view(self, goal_camera_world: CameraPose) -> None:
+        """The goal's camera view: the head tilts to its pitch (a pan-tilt head)."""
+        if self.head == "pan_tilt":
+            self._pitch = camera_pitch(goal_camera_world)
+        self._aim()
+
+    def look_at_target(self, target_world: FloatArray) -> None:
+        """The target's floor point (world): a pan-tilt head pans toward it from wherever the camera is."""
+        self._target_xy = np.asarray(target_world, dtype=np.float64).reshape(-1)[:2].copy()
+        self._aim()
+
+    def withdraw(self) -> None:
+        """The goal was withdrawn (STALE, NONE, an empty path): brake to a stop, the head where it is."""
+        if self.stack.has_path:
+            self.withdrawals += 1
+        self.stack.clear_path()
+
+    def arrived(self) -> bool:
+        """At the path's end, facing its heading, standing, the head aligned."""
+        return self.stack.arrived()
+
+    def _aim(self) -> None:
+        if self.head != "pan_tilt":
+            return
+        s = self.stack.state
+        if self._target_xy is not None and float(np.hypot(self._target_xy[0] - s.x, self._target_xy[1] - s.y)) > 0.2:
+            heading = math.atan2(self._target_xy[1] - s.y, self._target_xy[0] - s.x)
+        else:
+            heading = s.yaw + s.pan
+        self.stack.look(heading, self._pitch)

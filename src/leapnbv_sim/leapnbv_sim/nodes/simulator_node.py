@@ -39,6 +39,21 @@ takes the goal's 6-DoF pose. The camera moves there:
 A goal whose stamp the node never published (or forgot), or in another frame, is rejected and
 counted on /diagnostics; the camera then stays where it is.
 
+Continuous mode (``motion_stack``, :class:`leapnbv_sim.simulator.DrivenRobot`): the goal does not move
+the camera itself; a simulated motion stack follows the base path of the latest CURRENT goal
+(``/leapnbv/base_path``, nav_msgs/Path in the observation's optical frame, taken to the world with
+that stamp's remembered pose) at the base's limits (``base_max_*``), and stops on a withdrawn goal
+(``/leapnbv/goal_status`` not CURRENT, or an empty path); a changed goal's path
+(``goal_status.goal_changed``) replaces the one followed, a kept goal's too with
+``replan_kept_goals``. The pan-tilt head turns toward the latest plan's ring centre
+(``/leapnbv/view_candidates``) and tilts to the goal's pitch (``next_best_view``) at its rates.
+Each frame is rendered from where the robot is at the frame's stamp: the motion stack advances by
+the time since the previous frame. With ``publish_clock`` the node owns sim time: it publishes
+``/clock`` at each frame's stamp just before the frame (the lockstep an in-process caller drives:
+:meth:`SimulatorNode.publish_frame` with the stamps it chooses), and with ``rate_hz`` > 0 also from
+the wall clock at ``clock_rate_hz`` (the real-time mode, in which the graph plans from whatever
+frames it keeps up with).
+
 Frames are rendered at ``rate_hz`` from a timer (stamp = the node clock, which follows /clock
 under use_sim_time), or, with ``rate_hz`` = 0, only when an in-process caller asks
 (:meth:`SimulatorNode.publish_frame`, which takes the stamp to use). An in-process caller may
@@ -60,13 +75,17 @@ from typing import OrderedDict as OrderedDictType
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 from leapnbv_common.conversions import (
     ConversionError,
+    path_to_numpy,
     pose_msg,
     pose_to_numpy,
     stamp_to_ns,
@@ -83,29 +102,51 @@ from leapnbv_common.qos import (
     tf_static_qos,
 )
 from leapnbv_common.topics import (
+    BASE_PATH,
     CAMERA_POSE_TOPIC,
     COLOR_IMAGE_TOPIC,
     COLOR_INFO_TOPIC,
     DEPTH_IMAGE_TOPIC,
     DEPTH_INFO_TOPIC,
+    GOAL_STATUS,
     GROUND_TRUTH_TOPIC,
     NEXT_BEST_VIEW_TOPIC,
     OBSTACLE_MAP_TOPIC,
     TF_STATIC_TOPIC,
     TF_TOPIC,
+    VIEW_CANDIDATES,
+    output_topic,
 )
-from leapnbv_msgs.msg import SceneGroundTruth
+from leapnbv_msgs.msg import GoalStatus, SceneGroundTruth, ViewCandidates
 from leapnbv_sim.frame_messages import camera_frame_messages, robot_static_tf_message, robot_tf_message
 from leapnbv_sim.poses import CameraPose, pose_in_world
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
-from leapnbv_sim.simulator import CameraMotion, SimulatorParams, load_scene, robot_frame_ids, robot_model
+from leapnbv_sim.simulator import (
+    CameraMotion,
+    DrivenRobot,
+    SimulatorParams,
+    base_limits,
+    load_scene,
+    robot_frame_ids,
+    robot_model,
+)
 
 DEFAULT_GOAL_TOPIC = NEXT_BEST_VIEW_TOPIC
 # Local remap of the relative goal topic applied unless the caller remaps it itself.
 DEFAULT_GOAL_REMAP = ["--ros-args", "-r", "goal:=" + DEFAULT_GOAL_TOPIC]
 # Camera drivers offer sensor-data QoS: best effort, keep the last 5 frames.
 CAMERA_QOS_DEPTH = 5
+CLOCK_TOPIC = "/clock"
+# The motion stack reads the latched goal topics with a deeper queue than the publisher's 1: a withdrawal and the
+# next goal can both arrive between two spins of an in-process caller, and neither may be lost.
+GOAL_READER_DEPTH = 10
+
+
+def goal_reader_qos() -> QoSProfile:
+    """The motion stack's subscriptions to the latched goal topics (reliable, transient-local, depth 10)."""
+    return QoSProfile(depth=GOAL_READER_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class SimulatorError(ValueError):
@@ -147,10 +188,26 @@ class SimulatorNode(Node):
         # Created before the first set_scene below, which publishes the first scene's map.
         self.map_pub = self.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
         self.create_subscription(PoseStamped, "goal", self.on_goal, latched_goal_qos())
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10) if p.publish_clock else None
+        if p.motion_stack:
+            self.create_subscription(GoalStatus, output_topic(GOAL_STATUS), self.on_goal_status, goal_reader_qos())
+            self.create_subscription(Path, output_topic(BASE_PATH), self.on_base_path, goal_reader_qos())
+            self.create_subscription(ViewCandidates, output_topic(VIEW_CANDIDATES), self.on_view_candidates,
+                                     stage_output_qos(10))
 
         self.scene: Optional[Scene] = None
         self.camera: Optional[CameraPose] = None
         self.motion: Optional[CameraMotion] = None
+        #: Continuous mode: the robot the motion stack drives (made with each scene).
+        self.robot: Optional[DrivenRobot] = None
+        #: Continuous mode: the latest goal status received, and every status of the current scene, in order.
+        self.goal_status: Optional[GoalStatus] = None
+        self.goal_statuses: List[GoalStatus] = []
+        #: Continuous mode: stamp of the frame the latest path taken was planned on, and its world points.
+        self.last_path_stamp_ns: Optional[int] = None
+        self.last_path_world: Optional[np.ndarray] = None
+        #: Continuous mode: stamp of the latest base path received (taken or not).
+        self.last_path_msg_stamp_ns: Optional[int] = None
         self.frame_count = 0
         self.last_stamp_ns: Optional[int] = None
         self.last_goal_stamp_ns: Optional[int] = None
@@ -161,6 +218,8 @@ class SimulatorNode(Node):
         self.set_scene(scene)
         if p.rate_hz > 0.0:
             self.create_timer(1.0 / p.rate_hz, self.on_timer)
+            if self.clock_pub is not None:  # the real-time mode: sim time follows the wall clock
+                self.create_timer(1.0 / p.clock_rate_hz, self.publish_wall_clock)
 
     @property
     def params(self) -> SimulatorParams:
@@ -191,6 +250,13 @@ class SimulatorNode(Node):
         self.frame_count = 0
         self._poses.clear()
         self.last_goal_stamp_ns = None
+        p = self.params
+        self.robot = DrivenRobot(start, base_limits(p), p.robot_head, p.replan_kept_goals) if p.motion_stack else None
+        self.goal_status = None
+        self.goal_statuses = []
+        self.last_path_stamp_ns = None
+        self.last_path_world = None
+        self.last_path_msg_stamp_ns = None
         if self.params.publish_obstacle_map:
             self.publish_obstacle_map()
 
@@ -209,6 +275,8 @@ class SimulatorNode(Node):
             resolution = self.params.obstacle_map_resolution
         centres = self.scene.obstacle_voxel_centres(resolution)
         header = Header(frame_id=self.params.world_frame_id, stamp=self.get_clock().now().to_msg())
+        if self.params.publish_clock:  # on sim time: the graph's clock is the frames' stamps, not the wall's
+            header.stamp.sec, header.stamp.nanosec = divmod(self.last_stamp_ns or 0, 1_000_000_000)
         msg = xyz_to_pointcloud2(centres, header)
         self.map_pub.publish(msg)
         return msg
@@ -267,11 +335,16 @@ class SimulatorNode(Node):
         stamp_ns = int(stamp_ns)
         if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns and self.frame_count > 0:
             raise SimulatorError(f"frame stamp {stamp_ns} ns is not after the previous {self.last_stamp_ns} ns")
-        if self.motion is not None:
+        if self.robot is not None:
+            elapsed_ns = stamp_ns - self.last_stamp_ns if self.last_stamp_ns is not None and self.frame_count else 0
+            self.camera = self.robot.advance(elapsed_ns * 1e-9)
+        elif self.motion is not None:
             self.camera = self.motion.pose_at(stamp_ns)
             if self.motion.fraction_at(stamp_ns) >= 1.0:
                 self.motion = None
         camera = self.camera
+        if self.clock_pub is not None:  # sim time reaches the frame's stamp before the frame
+            self.publish_clock(stamp_ns)
         frame = self.scene.render(camera, frame_index=self.frame_count)
         header = Header(frame_id=self.frame_id)
         header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
@@ -295,6 +368,18 @@ class SimulatorNode(Node):
         self.diagnostics.frame_out(header.stamp, (time.perf_counter() - started) * 1e3)
         return stamp_ns, frame
 
+    def publish_clock(self, stamp_ns: int) -> None:
+        """Publish /clock at ``stamp_ns`` (nothing without ``publish_clock``)."""
+        if self.clock_pub is None:
+            return
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        self.clock_pub.publish(msg)
+
+    def publish_wall_clock(self) -> None:
+        """The real-time mode's /clock: the node's (wall) clock now."""
+        self.publish_clock(self.get_clock().now().nanoseconds)
+
     # ------------------------------------------------------------------ goals
 
     @rejects_bad_input("bad_goal")
@@ -312,9 +397,62 @@ class SimulatorNode(Node):
         rotation, position = pose_to_numpy(msg.pose)
         if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(position))):
             raise ConversionError("goal pose is not finite")
-        self.move_to(robot_model(self.params).reach(observation, pose_in_world(observation, rotation, position)))
+        goal = pose_in_world(observation, rotation, position)
+        if self.robot is not None:
+            self.robot.take_view(goal)  # the motion stack drives the base path; the goal aims the head
+        else:
+            self.move_to(robot_model(self.params).reach(observation, goal))
         self.last_goal_stamp_ns = stamp
         self.goals_accepted += 1
+
+    @rejects_bad_input("bad_goal_status")
+    def on_goal_status(self, msg: GoalStatus) -> None:
+        """Continuous mode: a goal that is not CURRENT (withdrawn, aged out, none) stops the robot."""
+        self.goal_status = msg
+        self.goal_statuses.append(msg)
+        if self.robot is not None and msg.state != GoalStatus.STATE_CURRENT:
+            self.robot.withdraw()
+
+    @rejects_bad_input("bad_base_path")
+    def on_base_path(self, msg: Path) -> None:
+        """Continuous mode: the CURRENT goal's base path, in the observation's optical frame, to follow."""
+        if self.robot is None:
+            return
+        if not msg.header.frame_id or not msg.poses:
+            self.robot.withdraw()  # "no way to a current goal"
+            return
+        if msg.header.frame_id != self.frame_id:
+            raise ConversionError(f"base path in frame {msg.header.frame_id!r}, expected {self.frame_id!r}")
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.last_path_msg_stamp_ns = stamp
+        observation = self.camera_pose_at(stamp)
+        if observation is None:
+            self.diagnostics.reject("unknown_path_stamp",
+                                    f"base path stamped {stamp} ns: no frame with that stamp is remembered")
+            return
+        rotations, positions = path_to_numpy(msg)
+        if not (np.all(np.isfinite(rotations)) and np.all(np.isfinite(positions))):
+            raise ConversionError("base path is not finite")
+        points = positions @ observation.rotation.T + observation.position
+        final_rotation = observation.rotation @ rotations[-1]
+        status = self.goal_status
+        # The status of this path's goal comes first (nbv_node publishes it before the path); without it: a new goal.
+        changed = status is None or stamp_to_ns(status.goal_stamp) != stamp or bool(status.goal_changed)
+        if self.robot.take_path(points, final_rotation, changed):
+            self.last_path_stamp_ns = stamp
+            self.last_path_world = points
+
+    @rejects_bad_input("bad_view_candidates")
+    def on_view_candidates(self, msg: ViewCandidates) -> None:
+        """Continuous mode: the plan's ring centre (the target's floor point) is where the head looks."""
+        if self.robot is None or msg.header.frame_id != self.frame_id:
+            return
+        observation = self.camera_pose_at(stamp_to_ns(msg.header.stamp))
+        if observation is None:
+            return
+        centre = np.array([msg.ring_center.x, msg.ring_center.y, msg.ring_center.z], dtype=np.float64)
+        if np.all(np.isfinite(centre)) and msg.ring_radius > 0.0:
+            self.robot.look_at_target(observation.rotation @ centre + observation.position)
 
 
 def _global_args_remap_goal(args: Optional[List[str]]) -> bool:

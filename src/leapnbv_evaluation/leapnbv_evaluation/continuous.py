@@ -1,0 +1,202 @@
+"""The continuous episode: the robot drives while the graph plans from every frame it renders on the way.
+
+The one-shot episode (:mod:`leapnbv_evaluation.closed_loop`) stops the world: one frame, one move, one
+look. Here the simulator runs its motion stack (``SimulatorParams.motion_stack``,
+:class:`leapnbv_sim.simulator.DrivenRobot`): it follows the latest CURRENT goal's base path at the
+base's limits and renders a frame every camera period from where the robot is, and the graph plans
+from each frame; the goal commitment in nbv_node decides whether the goal stays.
+
+Clock (``EvaluationOptions.clock``):
+
+* ``lockstep`` (the default, for numbers): the simulator owns sim time (``/clock``; every graph node runs
+  with ``use_sim_time``). Sim time advances by one camera period only when the graph has answered the
+  frame in flight (its view candidates, or a certain failure) and that frame's goal topics have arrived;
+  the robot then drives on for one period with whatever goal it holds. So the goal of a frame takes
+  effect one camera period after the frame (the planning latency is one period, whatever this machine's
+  speed), every frame is planned, and two runs of the same seeds give the same episodes: nothing in
+  the loop reads a wall clock (a frame the graph has not answered within ``frame_timeout_s`` of wall time
+  is a failed frame and the clock moves on: the only wall-time guard, which a healthy graph never hits).
+  A fixed wall budget per sim step would instead make the episode depend on the machine's load.
+* ``real_time``: sim time follows the wall clock; frames go out at the camera rate whether or not the
+  graph kept up, and the graph plans from whatever frames it admits (its frame dropping and latencies
+  are the machine's). Not reproducible; for watching the loop as a robot runs it.
+
+An episode ends when the robot has arrived (base at the path's end, facing it, standing, the head
+aligned) at a goal that stayed committed at least ``commit_hold_s`` (``goal_status.committed_since``),
+at ``time_limit_s`` of sim time, or (``no_plan``) when no goal came within ``no_plan_limit_s``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Protocol, Tuple
+
+import numpy as np
+
+from leapnbv_common.array_types import FloatArray
+from leapnbv_common.conversions import ConversionError, image_to_numpy
+from leapnbv_common.topics import PERSON_MASK
+from leapnbv_evaluation.continuous_results import (
+    OUTCOME_ARRIVED,
+    OUTCOME_NO_PLAN,
+    OUTCOME_TIME_LIMIT,
+    ContinuousEpisode,
+    count_changes,
+    count_reversals,
+)
+from leapnbv_evaluation.episode import view_metrics
+from leapnbv_evaluation.frame_outputs import FrameOutputs
+from leapnbv_evaluation.options import EvaluationOptions
+from leapnbv_sim.motion_stack import path_length
+from leapnbv_sim.render import RenderedFrame
+from leapnbv_sim.scene import Scene
+from leapnbv_sim.simulator import DrivenRobot
+
+#: Sim time between two scenes' episodes beyond the time limit (the ground node's mask_max_age_s is 1 s).
+EPISODE_GAP_NS = 10_000_000_000
+#: goal_status.state CURRENT (leapnbv_msgs/GoalStatus), as the session's records carry it.
+STATE_CURRENT = 1
+
+
+@dataclass(frozen=True)
+class StatusRecord:
+    """One goal_status the simulator received (the fields the episode reads)."""
+
+    state: int
+    goal_stamp_ns: int
+    goal_changed: bool
+    commitment: str
+    committed_since_ns: int
+
+
+class ContinuousSession(Protocol):
+    """What a continuous episode needs of the running graph and the simulator with its motion stack."""
+
+    def set_scene(self, scene: Scene) -> None:
+        """Put the simulator in a scene, the robot standing at its start view."""
+
+    def forget_committed_goal(self) -> None:
+        """Make nbv_node forget its committed goal (a new scene is no place to keep the last one's)."""
+
+    def run_frame(self, stamp_ns: int) -> Tuple[RenderedFrame, FrameOutputs]:
+        """Advance the robot and sim time to ``stamp_ns``, render and publish; the graph's outputs of it."""
+
+    def settle_goal(self, stamp_ns: int, outputs: FrameOutputs) -> None:
+        """Wait until the goal topics of the frame of ``stamp_ns`` have reached the simulator."""
+
+    def driven_robot(self) -> DrivenRobot:
+        """The simulator's robot (continuous mode)."""
+
+    def goal_statuses(self) -> List[StatusRecord]:
+        """Every goal status the simulator received in this scene, in order."""
+
+    def last_path(self) -> Optional[Tuple[int, FloatArray]]:
+        """(stamp, (P, 3) world points) of the latest base path the robot took in this scene."""
+
+
+def person_ids(scene: Scene) -> List[int]:
+    """The object ids of the scene's people (objects named "person...")."""
+    return sorted(i for i, name in scene.object_names.items() if name.startswith("person"))
+
+
+def target_person(scene: Scene, rendered: RenderedFrame, outputs: FrameOutputs) -> Optional[int]:
+    """The person the graph's target is: the person object under most of the graph's person mask (None: no mask)."""
+    mask_msg = outputs.messages.get(PERSON_MASK)
+    if mask_msg is None:
+        return None
+    try:
+        mask = image_to_numpy(mask_msg) > 0
+    except ConversionError:
+        return None
+    ids = np.asarray(rendered.object_id)
+    if mask.shape != ids.shape or not mask.any():
+        return None
+    people = person_ids(scene)
+    counts = [int(np.count_nonzero(mask & (ids == person))) for person in people]
+    if not counts or max(counts) == 0:
+        return None
+    return people[int(np.argmax(counts))]
+
+
+class ContinuousEpisodes:
+    """The continuous episodes of an evaluation, one per scene, through one session.
+
+    Args:
+        session: The running graph and the simulator with its motion stack.
+        options: The run's options (camera rate, time limit, commitment hold).
+    """
+
+    def __init__(self, session: ContinuousSession, options: EvaluationOptions) -> None:
+        self.session = session
+        self.options = options
+
+    def spacing_ns(self) -> int:
+        """Sim time between the first frames of two consecutive scenes."""
+        return int(round(self.options.time_limit_s * 1e9)) + EPISODE_GAP_NS
+
+    def run(self, scene: Scene, seed: int, scene_index: int, start_stamp_ns: int) -> ContinuousEpisode:
+        """One scene's continuous episode from its first frame at ``start_stamp_ns``."""
+        o, session = self.options, self.session
+        started = time.monotonic()
+        session.set_scene(scene)
+        session.forget_committed_goal()
+        period_ns = int(round(1e9 / o.camera_rate_hz))
+        limit_ns = int(round(o.time_limit_s * 1e9))
+        hold_ns = int(round(o.commit_hold_s * 1e9))
+        no_plan_ns = int(round(o.no_plan_limit_s * 1e9))
+        coverages: List[float] = []
+        targets: List[Optional[int]] = []
+        track: List[FloatArray] = []
+        first_path_m: Optional[float] = None
+        first_goal_ns: Optional[int] = None
+        planned = failed = 0
+        outcome = OUTCOME_TIME_LIMIT
+        stamp = start_stamp_ns
+        for k in range(limit_ns // period_ns + 1):
+            stamp = start_stamp_ns + k * period_ns
+            rendered, outputs = session.run_frame(stamp)
+            session.settle_goal(stamp, outputs)
+            robot = session.driven_robot()
+            coverages.append(view_metrics(scene, rendered).surface_coverage)
+            targets.append(target_person(scene, rendered, outputs))
+            track.append(np.array([robot.stack.state.x, robot.stack.state.y]))
+            candidates = outputs.view_candidates
+            if outputs.failure is None and candidates is not None and candidates.chosen_index >= 0:
+                planned += 1
+            elif outputs.failure is not None:
+                failed += 1
+            path = session.last_path()
+            if first_path_m is None and path is not None:
+                first_path_m = path_length(path[1][:, :2])
+            statuses = session.goal_statuses()
+            latest = statuses[-1] if statuses else None
+            if first_goal_ns is None and latest is not None and latest.state == STATE_CURRENT:
+                first_goal_ns = stamp - start_stamp_ns
+            # The frame was rendered where the robot stood at ``stamp``; its plan has just kept or replaced the goal.
+            held = (latest is not None and latest.state == STATE_CURRENT and latest.committed_since_ns > 0
+                    and stamp - latest.committed_since_ns >= hold_ns)
+            if held and robot.arrived():
+                outcome = OUTCOME_ARRIVED
+                break
+            if first_goal_ns is None and stamp - start_stamp_ns >= no_plan_ns:
+                outcome = OUTCOME_NO_PLAN
+                break
+        statuses = session.goal_statuses()
+        current = [s for s in statuses if s.state == STATE_CURRENT]
+        reasons: Dict[str, int] = {}
+        for s in current:
+            reasons[s.commitment] = reasons.get(s.commitment, 0) + 1
+        robot = session.driven_robot()
+        changed = sum(1 for s in current if s.goal_changed)
+        return ContinuousEpisode(
+            seed=int(seed), scene_index=int(scene_index), start_stamp_ns=int(start_stamp_ns), outcome=outcome,
+            coverage_start=round(coverages[0], 6), coverage_end=round(coverages[-1], 6),
+            coverage_best=round(max(coverages), 6),
+            success=ContinuousEpisode.decide_success(coverages[0], coverages[-1]),
+            time_s=round((stamp - start_stamp_ns) * 1e-9, 6), distance_m=round(robot.stack.travelled_m, 6),
+            first_path_m=None if first_path_m is None else round(first_path_m, 6),
+            first_goal_s=None if first_goal_ns is None else round(first_goal_ns * 1e-9, 6),
+            goal_switches=max(0, changed - 1), withdrawals=int(robot.withdrawals),
+            reversals=count_reversals(np.array(track)), target_swaps=count_changes(targets), frames=len(coverages),
+            frames_planned=planned, frames_failed=failed, commit_reasons=reasons,
+            wall_s=round(time.monotonic() - started, 3))
