@@ -1,0 +1,138 @@
+"""The simulator node's continuous mode: the motion stack follows a CURRENT goal's base path.
+
+It stops on a withdrawn goal, renders each frame where the robot is at its stamp and publishes /clock before it.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from nav_msgs.msg import Path  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+
+from leapnbv_common.conversions import path_msg, set_stamp  # noqa: E402
+from leapnbv_msgs.msg import GoalStatus  # noqa: E402
+from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
+from leapnbv_sim.generation import SceneConfig, generate_scene  # noqa: E402
+from leapnbv_sim.nodes.simulator_node import SimulatorNode  # noqa: E402
+from leapnbv_sim.poses import camera_heading  # noqa: E402
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model  # noqa: E402
+
+pytestmark = pytest.mark.ros
+T0 = 7_000_000_000
+PERIOD = 100_000_000  # 10 Hz
+
+
+def _status(state: int, goal_stamp: int, changed: bool) -> GoalStatus:
+    msg = GoalStatus(state=state, goal_changed=changed, commitment="FIRST_GOAL" if changed else "KEPT")
+    set_stamp(msg.goal_stamp, goal_stamp)
+    set_stamp(msg.committed_since, goal_stamp)
+    return msg
+
+
+def _path_in_optical_frame(sim: SimulatorNode, stamp: int, world_points: np.ndarray, heading: float) -> Path:
+    """A base path as nbv_node publishes it: poses in the optical frame of the frame of ``stamp``."""
+    observation = sim.camera_pose_at(stamp)
+    assert observation is not None
+    positions = (world_points - observation.position) @ observation.rotation
+    level = np.array([[np.cos(heading), -np.sin(heading), 0.0], [np.sin(heading), np.cos(heading), 0.0],
+                      [0.0, 0.0, 1.0]])
+    rotations = np.repeat((observation.rotation.T @ level)[None], len(world_points), axis=0)
+    msg = path_msg(rotations, positions)
+    msg.header.frame_id = sim.frame_id
+    set_stamp(msg.header.stamp, stamp)
+    for pose in msg.poses:
+        pose.header = msg.header
+    return msg
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return generate_scene(SceneConfig(seed=1), SMPLXModel(build_stand_in_body_model("small"), source="stand_in_small"))
+
+
+def test_motion_stack_follows_the_path_stops_on_withdrawal_and_publishes_the_clock(scene) -> None:
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    nodes = []
+    try:
+        sim = SimulatorNode(scene=scene, context=context, parameter_overrides=[
+            Parameter("rate_hz", value=0.0), Parameter("motion_stack", value=True),
+            Parameter("publish_clock", value=True), Parameter("publish_obstacle_map", value=False),
+            Parameter("publish_tf", value=False)])
+        nodes.append(sim)
+        clocks = []
+        listener = rclpy.create_node("continuous_clock_listener", context=context)
+        nodes.append(listener)
+        listener.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
+                                     10)
+        executor.add_node(sim)
+        executor.add_node(listener)
+        deadline = time.monotonic() + 20.0
+        while sim.clock_pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+
+        start = scene.start_camera.copy()
+        sim.publish_frame(T0)
+        heading = camera_heading(start)
+        forward = np.array([np.cos(heading), np.sin(heading), 0.0])
+        base = np.array([start.position[0], start.position[1], 0.0])
+        goal_points = np.array([base, base + 1.0 * forward, base + 2.0 * forward])
+        # nbv_node's order: the status of the goal, then its path.
+        sim.on_goal_status(_status(GoalStatus.STATE_CURRENT, T0, True))
+        sim.on_base_path(_path_in_optical_frame(sim, T0, goal_points, heading))
+        assert sim.robot is not None and sim.robot.stack.has_path and sim.last_path_stamp_ns == T0
+        np.testing.assert_allclose(sim.last_path_world, goal_points, atol=1e-9)
+
+        # 1 s of frames from rest, straight ahead at 0.5 m/s^2: 0.25 m; the camera keeps its height and heading.
+        for k in range(1, 11):
+            _, frame = sim.publish_frame(T0 + k * PERIOD)
+        moved = frame.camera_pose.position - start.position
+        assert moved @ forward == pytest.approx(0.25, abs=1e-9)
+        assert np.linalg.norm(moved - (moved @ forward) * forward) < 1e-9
+        assert sim.robot.stack.state.v == pytest.approx(0.5)
+        np.testing.assert_allclose(sim.camera_pose_at(T0 + 10 * PERIOD).position, frame.camera_pose.position)
+
+        # A kept goal's path replaces the one followed (replan_kept_goals); its status says KEPT.
+        stamp = T0 + 10 * PERIOD
+        sim.on_goal_status(_status(GoalStatus.STATE_CURRENT, stamp, False))
+        sim.on_base_path(_path_in_optical_frame(sim, stamp, goal_points, heading))
+        assert sim.robot.paths_taken == 2 and sim.robot.stack.state.v == pytest.approx(0.5)
+
+        # Withdrawn (STALE): it brakes from 0.5 m/s at 0.5 m/s^2, 0.25 m in 1 s, and stands.
+        sim.on_goal_status(_status(GoalStatus.STATE_STALE, stamp, False))
+        assert not sim.robot.stack.has_path and sim.robot.withdrawals == 1
+        before = frame.camera_pose.position
+        for k in range(11, 26):
+            _, frame = sim.publish_frame(T0 + k * PERIOD)
+        assert (frame.camera_pose.position - before) @ forward == pytest.approx(0.25, abs=1e-9)
+        assert sim.robot.stack.state.v == 0.0
+
+        # A path of a stamp never rendered is refused; an empty path is a withdrawal.
+        sim.on_base_path(_path_in_optical_frame(sim, T0, goal_points, heading))
+        assert sim.robot.stack.has_path
+        unknown = _path_in_optical_frame(sim, T0, goal_points, heading)
+        set_stamp(unknown.header.stamp, T0 + 1)
+        sim.robot.withdraw()
+        sim.on_base_path(unknown)
+        assert not sim.robot.stack.has_path
+        sim.on_base_path(Path())
+        assert not sim.robot.stack.has_path
+
+        deadline = time.monotonic() + 10.0
+        while (not clocks or clocks[-1] != T0 + 25 * PERIOD) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert clocks and clocks[-1] == T0 + 25 * PERIOD  # /clock went out at each frame's stamp
+        assert clocks == sorted(clocks)
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
