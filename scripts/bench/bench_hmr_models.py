@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Benchmark exported HMR models (export-hmr ONNX files) on this CPU with onnxruntime.
 
-For each model: its variant and input size (from the export's metadata), file size, session load
-time, the engine alone (encoder + heads) at each thread count, and the whole estimate (crop +
+For each model: its variant and input size (from the export's metadata), file size (with its
+external data, ``<model>.data``), session load time (for an export with external data: reading the
+weights file too), the engine alone (encoder + heads) at each thread count, and the whole estimate (crop +
 engine + SMPL-X tail with the given body model) at the largest thread count; median and p95 in ms
 over --runs runs after --warmup, and each figure's ratio against the first model's at the same
 thread count (timed in the same process, so a busy machine shifts both alike). The machine's load
@@ -10,7 +11,7 @@ average is printed with the figures. The paper's deployed figure is printed besi
 32 M student in FP16 on TensorRT 8.5, Jetson Xavier NX: 12 ms for the engine.
 
     tools/run.sh python -m leapnbv_model_tools export-hmr --checkpoint smpler_x_s32.pth.tar \\
-        --variant s32 --out s32.onnx                     # (tools environment)
+        --variant s32 --out s32.onnx                     # (tools environment; smplest_x_h likewise)
     scripts/env.sh python scripts/bench/bench_hmr_models.py s32.onnx b32.onnx [--threads 1 2] [--runs 10]
         [--body-model models/stand_in/stand_in_smplx_dense.npz]
 
@@ -119,7 +120,10 @@ def main(argv=None) -> int:
                   f"x{median / reference[key]:5.2f} of the first model   CPU {cpu:6.1f}   "
                   f"(session load {load_s:.1f} s)")
             if threads == max(args.threads):
-                estimator = HumanMeshEstimator(backend, body)
+                # The tail's parameters the export was made for (SMPLest-X: box x 1.2, left hand not mirrored).
+                unmirror = meta.get("leapnbv.unmirror_left_hand", "true") == "true"
+                estimator = HumanMeshEstimator(backend, body, box_scale=float(meta.get("leapnbv.box_ratio", 1.25)),
+                                               unmirror_left_hand=unmirror)
                 median, p95, cpu = timed(functools.partial(estimator.estimate, frame, box), args.runs, args.warmup)
                 key = ("estimate", threads)
                 if index == 0:

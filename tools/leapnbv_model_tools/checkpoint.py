@@ -180,8 +180,9 @@ def check_state_dict(model: Network, weights: Dict[str, torch.Tensor], source: s
         hint = f" (its keys and shapes are those of {', '.join(fits)})" if fits else ""
         family = family_of(model.variant.name)
         found = family_of_keys(weights)
+        modules = ", ".join(sorted({k.split(".", 1)[0] for k in weights}))
         other = (f"{source} is a {FAMILY_NAMES[found]} checkpoint, not {FAMILY_NAMES[family]} (its modules: "
-                 f"{', '.join(sorted({k.split('.', 1)[0] for k in weights}))}); " if found not in (None, family) else "")
+                 f"{modules}); " if found not in (None, family) else "")
         first = (f"{other}{source if not other else 'it'} does not fit {FAMILY_NAMES[family]} {model.variant.name} "
                  f"(embed {model.variant.embed_dim}, depth {model.variant.depth}): {len(missing)} missing, "
                  f"{len(unexpected)} unexpected, {len(misshaped)} of the wrong shape{hint}")

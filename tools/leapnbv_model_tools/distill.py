@@ -428,7 +428,13 @@ def _mean_over_processes(value: float, world: int) -> float:
 
 
 def distill(config: DistillConfig) -> Dict[str, object]:
-    from leapnbv_model_tools.checkpoint import VARIANTS, CheckpointError, load_network, random_network, unmirrors_left_hand
+    from leapnbv_model_tools.checkpoint import (
+        VARIANTS,
+        CheckpointError,
+        load_network,
+        random_network,
+        unmirrors_left_hand,
+    )
     from leapnbv_model_tools.torch_smplx import (
         TorchSMPLX,
         centroid_relative,

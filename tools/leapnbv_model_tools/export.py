@@ -264,8 +264,8 @@ def checked_export(model: Network, path: str, input_hw: Tuple[int, int], metadat
                    opset: int = DEFAULT_OPSET, hands: bool = True, parity_crops: int = 2,
                    seed: int = 0) -> ParityReport:
     """export_onnx with the operator check (TENSORRT_OPERATORS), the engine contract check and the parity check
-    on the staged file: the file is moved to ``path`` only when all pass; otherwise ExportCheckError (with the parity report, if one was
-    made) and ``path`` is as it was."""
+    on the staged file: the file is moved to ``path`` only when all pass; otherwise ExportCheckError (with the
+    parity report, if one was made) and ``path`` is as it was."""
     from leapnbv_perception.backends.onnxruntime_backend import OnnxRuntimeBackend
     from leapnbv_perception.model_contracts import SMPLERX_CONTRACT, ModelContractError, check_backend_contract
 

@@ -104,7 +104,8 @@ def table_row(width: int, rms: float, work: Path, calib: int = 8, verify: int = 
     from leapnbv_model_tools.fp16 import fp16_check
 
     stem = f"overflow_vit_{width}" + (f"_decoder{decoder_depth}" if decoder_depth else "")
-    path = export_overflow_vit(OverflowViT(width, rms, seed=seed, decoder_depth=decoder_depth), str(work / f"{stem}.onnx"))
+    model = OverflowViT(width, rms, seed=seed, decoder_depth=decoder_depth)
+    path = export_overflow_vit(model, str(work / f"{stem}.onnx"))
     crops = np.random.default_rng(seed).uniform(0.0, 1.0, size=(calib, 3) + CROP_HW).astype(np.float32)
     started = time.perf_counter()
     result = fp16_check(path, crops, str(work / f"check_{stem[len('overflow_vit_'):]}"), verify=True,

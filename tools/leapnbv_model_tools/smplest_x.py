@@ -37,7 +37,7 @@ graph uses only operators TensorRT 8.5's ONNX parser takes: MatMul, Softmax, pri
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict
+from typing import Dict, Tuple
 
 import torch
 from torch import nn
@@ -139,6 +139,8 @@ class CrossAttention(nn.Module):
 
 
 class FeedForward(nn.Module):
+    """The decoder's feed-forward (width = feat_dim), indices as the reference's Sequential."""
+
     def __init__(self, dim: int, hidden: int) -> None:
         super().__init__()
         # net.0 Linear, net.1 GELU, net.2 Dropout, net.3 Linear, net.4 Dropout (identities in test mode)
@@ -150,6 +152,8 @@ class FeedForward(nn.Module):
 
 
 class PreNorm(nn.Module):
+    """LayerNorm (eps 1e-5) before the wrapped attention or feed-forward."""
+
     def __init__(self, dim: int, fn: nn.Module) -> None:
         super().__init__()
         self.norm = LayerNorm(dim, eps=DECODER_LAYER_NORM_EPS)
@@ -160,6 +164,8 @@ class PreNorm(nn.Module):
 
 
 class TransformerCrossAttn(nn.Module):
+    """The decoder's layers: [self-attention, cross-attention, feed-forward], each residual."""
+
     def __init__(self, variant: SmplestVariant) -> None:
         super().__init__()
         dim, heads, head_dim = variant.embed_dim, variant.decoder_heads, variant.decoder_head_dim
@@ -178,6 +184,8 @@ class TransformerCrossAttn(nn.Module):
 
 
 class TransformerDecoder(nn.Module):
+    """One learned vector added to every row, then the layers (to_token_embedding unused)."""
+
     def __init__(self, variant: SmplestVariant) -> None:
         super().__init__()
         dim = variant.embed_dim
@@ -190,6 +198,8 @@ class TransformerDecoder(nn.Module):
 
 
 class TransformerDecoderHead(nn.Module):
+    """The decoder, token_conv and the linear heads reading fixed token ranges."""
+
     def __init__(self, variant: SmplestVariant) -> None:
         super().__init__()
         self.transformer = TransformerDecoder(variant)
@@ -197,7 +207,8 @@ class TransformerDecoderHead(nn.Module):
         for name, (start, end) in TOKEN_RANGES.items():
             setattr(self, name, nn.Linear((end - start) * variant.decoder_out, HEAD_OUTPUTS[name]))
 
-    def forward(self, tokens: torch.Tensor, feature: torch.Tensor, heads=tuple(TOKEN_RANGES)) -> Dict[str, torch.Tensor]:
+    def forward(self, tokens: torch.Tensor, feature: torch.Tensor,
+                heads: Tuple[str, ...] = tuple(TOKEN_RANGES)) -> Dict[str, torch.Tensor]:
         """Raw head outputs by head name for tokens (B, 80, C) and the feature map (B, C, H, W)."""
         batch = feature.shape[0]
         context = feature.flatten(2).transpose(1, 2)  # b c h w -> b (h w) c

@@ -59,12 +59,14 @@ def test_the_full_size_structure_manifest_and_parameter_count() -> None:
     assert keys["encoder.blocks.31.attn.qkv.bias"] == [3840] and "encoder.blocks.32.norm1.weight" not in keys
     decoder = "decoder.transformer.transformer.layers"
     assert keys[f"{decoder}.5.0.fn.to_qkv.weight"] == [1536, 1280] and f"{decoder}.6.0.norm.weight" not in keys
-    assert keys[f"{decoder}.0.1.fn.to_kv.weight"] == [1024, 1280] and keys[f"{decoder}.0.1.fn.to_q.weight"] == [512, 1280]
+    assert keys[f"{decoder}.0.1.fn.to_kv.weight"] == [1024, 1280]
+    assert keys[f"{decoder}.0.1.fn.to_q.weight"] == [512, 1280]
     assert keys[f"{decoder}.0.2.fn.net.3.weight"] == [1280, 1280] and f"{decoder}.0.0.fn.to_qkv.bias" not in keys
     assert keys["decoder.transformer.pos_embedding"] == [1, 1, 1280]
     assert keys["decoder.transformer.to_token_embedding.weight"] == [1280, 80]
     assert keys["decoder.token_conv.weight"] == [512, 1280]
-    assert keys["decoder.dec_body_pose.weight"] == [126, 21 * 512] and keys["decoder.dec_hand_pose.weight"] == [180, 30 * 512]
+    assert keys["decoder.dec_body_pose.weight"] == [126, 21 * 512]
+    assert keys["decoder.dec_hand_pose.weight"] == [180, 30 * 512]
     assert keys["decoder.dec_body_shape.weight"] == [10, 10 * 512] and keys["decoder.dec_face_cam.weight"] == [3, 512]
     assert not any(k.startswith(("body_position_net", "box_net", "hand_roi_net")) for k in keys)  # no hand RoI branch
     assert 4 * count > export_module.EXTERNAL_DATA_ABOVE_BYTES  # its export writes external data, as h32's
@@ -99,14 +101,16 @@ def _reference_outputs(weights, image: torch.Tensor, heads: int, depth: int, dec
     for i in range(len({k.split(".")[4] for k in w if k.startswith("decoder.transformer.transformer.layers.")})):
         p = f"decoder.transformer.transformer.layers.{i}."
 
-        def norm(x, j):
+        def norm(x, j, p=p):
             return F.layer_norm(x, (dim,), w[f"{p}{j}.norm.weight"], w[f"{p}{j}.norm.bias"])  # eps 1e-5
 
         q, k, v = F.linear(norm(rows, 0), w[p + "0.fn.to_qkv.weight"]).chunk(3, dim=-1)
-        rows = F.linear(attention(q, k, v, decoder_heads), w[p + "0.fn.to_out.0.weight"], w[p + "0.fn.to_out.0.bias"]) + rows
+        rows = rows + F.linear(attention(q, k, v, decoder_heads), w[p + "0.fn.to_out.0.weight"],
+                               w[p + "0.fn.to_out.0.bias"])
         k, v = F.linear(image_feature, w[p + "1.fn.to_kv.weight"]).chunk(2, dim=-1)
         q = F.linear(norm(rows, 1), w[p + "1.fn.to_q.weight"])
-        rows = F.linear(attention(q, k, v, decoder_heads), w[p + "1.fn.to_out.0.weight"], w[p + "1.fn.to_out.0.bias"]) + rows
+        rows = rows + F.linear(attention(q, k, v, decoder_heads), w[p + "1.fn.to_out.0.weight"],
+                               w[p + "1.fn.to_out.0.bias"])
         h = F.gelu(F.linear(norm(rows, 2), w[p + "2.fn.net.0.weight"], w[p + "2.fn.net.0.bias"]))
         rows = F.linear(h, w[p + "2.fn.net.3.weight"], w[p + "2.fn.net.3.bias"]) + rows
     read = F.linear(rows, w["decoder.token_conv.weight"], w["decoder.token_conv.bias"])[:, :80]
@@ -160,7 +164,8 @@ def test_round_trip_and_the_wrong_family_in_one_line(checkpoint: str, tmp_path: 
     network["module.decoder.extra.weight"] = torch.zeros(1)
     network["module.decoder.token_conv.weight"] = torch.zeros(3, 3)
     torch.save({"network": network}, str(tmp_path / "broken.pth.tar"))
-    assert main(["export-hmr", "--checkpoint", str(tmp_path / "broken.pth.tar"), "--variant", VARIANT, "--out", out]) == 2
+    broken = str(tmp_path / "broken.pth.tar")
+    assert main(["export-hmr", "--checkpoint", broken, "--variant", VARIANT, "--out", out]) == 2
     err = capsys.readouterr().err
     assert ("does not fit SMPLest-X smplest_x_t32 (embed 32, depth 1): 1 missing, 1 unexpected, 1 of the wrong shape; "
             "first missing decoder.dec_face_cam.bias; first unexpected decoder.extra.weight; first wrong shape "
