@@ -84,6 +84,9 @@ class ContinuousSession(Protocol):
     def settle_goal(self, stamp_ns: int, outputs: FrameOutputs) -> None:
         """Wait until the goal topics of the frame of ``stamp_ns`` have reached the simulator."""
 
+    def ticked_between(self, first_ns: int, last_ns: int) -> int:
+        """How many frames stamped in [first_ns, last_ns] needed sim time to tick on before the graph answered."""
+
     def driven_robot(self) -> DrivenRobot:
         """The simulator's robot (continuous mode)."""
 
@@ -199,4 +202,5 @@ class ContinuousEpisodes:
             goal_switches=max(0, changed - 1), withdrawals=int(robot.withdrawals),
             reversals=count_reversals(np.array(track)), target_swaps=count_changes(targets), frames=len(coverages),
             frames_planned=planned, frames_failed=failed, commit_reasons=reasons,
+            frames_ticked=session.ticked_between(start_stamp_ns, stamp),
             wall_s=round(time.monotonic() - started, 3))

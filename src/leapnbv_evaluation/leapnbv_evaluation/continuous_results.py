@@ -98,6 +98,8 @@ class ContinuousEpisode:
         frames_planned: Frames whose plan chose a view (view_candidates.chosen_index >= 0).
         frames_failed: Frames the graph answered with no plan (no person, timeout ...).
         commit_reasons: goal_status.commitment of every CURRENT status, counted by name.
+        frames_ticked: Frames the graph answered only after sim time ticked on within their period (a companion
+            found by a stage's wait-check timer).
         wall_s: Wall seconds the episode took.
     """
 
@@ -121,6 +123,7 @@ class ContinuousEpisode:
     frames_planned: int
     frames_failed: int
     commit_reasons: Dict[str, int] = field(default_factory=dict)
+    frames_ticked: int = 0
     wall_s: float = 0.0
 
     @property

@@ -34,6 +34,7 @@ from leapnbv_bringup.graph_runner import (
 from leapnbv_bringup.runner_cli import sim_time_overrides
 from leapnbv_common.conversions import stamp_to_ns
 from leapnbv_common.power_monitor import PowerMonitor, start_power_monitor
+from leapnbv_common.stage import WAIT_CHECK_PERIOD_S
 from leapnbv_common.topics import (
     COLOR_INFO_TOPIC,
     DETECTIONS,
@@ -64,6 +65,11 @@ from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
 from leapnbv_sim.simulator import DrivenRobot
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
+
+#: Continuous lockstep: while a frame is in flight, sim time moves on by the stages' wait-check period (their timers
+#: run on sim time: a companion that came after its frame is found only when one fires) every this many wall
+#: seconds, but never to the next frame's stamp.
+CLOCK_TICK_WALL_S = 0.05
 
 # The names callers import from here (the frame record and the options have their own modules).
 __all__ = [
@@ -113,6 +119,8 @@ class ClosedLoopEvaluator:
         self.collector: Optional[Node] = None
         self.executor: Optional[SingleThreadedExecutor] = None
         self.frames: Dict[int, FrameOutputs] = {}
+        #: Continuous lockstep: how far sim time ticked on (ns past the stamp) while each frame was in flight.
+        self.clock_ticked_ns: Dict[int, int] = {}
         self._scene_body_model: Optional[SMPLXModel] = None
         self._subscriptions: Dict[str, Any] = {}
         self.ready_s: Optional[float] = None
@@ -317,10 +325,12 @@ class ClosedLoopEvaluator:
         _, rendered = self._simulator().publish_frame(stamp_ns)
         timeout = self.options.frame_timeout_s
         failure_seen_at: List[float] = []
+        ticks = self._clock_ticks(stamp_ns)
 
         def answered() -> bool:
             if frame.view_candidates is not None:
                 return True
+            ticks()
             if frame.early_failure() is not None:
                 if not failure_seen_at:
                     failure_seen_at.append(time.monotonic())
@@ -338,6 +348,33 @@ class ClosedLoopEvaluator:
             self._spin_until(lambda: frame.complete(real_models), 1.0)
         self.runner.check_alive()
         return rendered, frame
+
+    def _clock_ticks(self, stamp_ns: int) -> Callable[[], None]:
+        """Continuous lockstep: a callable that ticks sim time on while the frame of ``stamp_ns`` is in flight.
+
+        The graph's stages look for a companion that came after its frame (a pulled depth image) on a wait-check
+        timer, and their timers run on sim time: with the clock held at the frame's stamp that frame would wait
+        for ever. So every CLOCK_TICK_WALL_S of wall time the clock moves on by one wait-check period, up to one
+        tick before the next frame's stamp. Decisions do not depend on how far it got: every wait and age limit
+        of the graph is at least a camera period (a frame's stage waits are 0.2 s and more; the goal age 1 s), so
+        none runs out within the frame's period; only the re-checks fire.
+        """
+        o, sim = self.options, self._simulator()
+        if not (o.continuous and o.clock == "lockstep" and sim.clock_pub is not None):
+            return lambda: None
+        tick_ns = int(round(WAIT_CHECK_PERIOD_S * 1e9))
+        last_ns = stamp_ns + int(round(1e9 / o.camera_rate_hz)) - tick_ns
+        next_wall = [time.monotonic() + CLOCK_TICK_WALL_S]
+
+        def tick() -> None:
+            now_ns = sim.clock_ns if sim.clock_ns is not None else stamp_ns
+            if time.monotonic() < next_wall[0] or now_ns + tick_ns > last_ns:
+                return
+            sim.publish_clock(now_ns + tick_ns)
+            self.clock_ticked_ns[stamp_ns] = now_ns + tick_ns - stamp_ns
+            next_wall[0] = time.monotonic() + CLOCK_TICK_WALL_S
+
+        return tick
 
     def wait_goal(self, stamp_ns: int, timeout_s: float = 5.0) -> bool:
         """Wait until the simulator has the graph's goal planned on the frame of ``stamp_ns``; whether it came."""
@@ -408,6 +445,10 @@ class ClosedLoopEvaluator:
             return status.state != GoalStatus.STATE_CURRENT or sim.last_path_msg_stamp_ns == stamp_ns
 
         self._spin_until(arrived, timeout_s)
+
+    def ticked_between(self, first_ns: int, last_ns: int) -> int:
+        """How many frames stamped in [first_ns, last_ns] needed sim time to tick on before the graph answered."""
+        return sum(1 for stamp, ticked in self.clock_ticked_ns.items() if first_ns <= stamp <= last_ns and ticked)
 
     def driven_robot(self) -> DrivenRobot:
         """The simulator's robot (continuous mode)."""

@@ -189,6 +189,8 @@ class SimulatorNode(Node):
         self.map_pub = self.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
         self.create_subscription(PoseStamped, "goal", self.on_goal, latched_goal_qos())
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10) if p.publish_clock else None
+        #: The sim time last published on /clock (publish_clock), None before.
+        self.clock_ns: Optional[int] = None
         if p.motion_stack:
             self.create_subscription(GoalStatus, output_topic(GOAL_STATUS), self.on_goal_status, goal_reader_qos())
             self.create_subscription(Path, output_topic(BASE_PATH), self.on_base_path, goal_reader_qos())
@@ -375,6 +377,7 @@ class SimulatorNode(Node):
         msg = Clock()
         msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
         self.clock_pub.publish(msg)
+        self.clock_ns = int(stamp_ns)
 
     def publish_wall_clock(self) -> None:
         """The real-time mode's /clock: the node's (wall) clock now."""
