@@ -10,6 +10,7 @@ with the machine's load and the CPU's integer flags.
 Variants (default: all): ``u8s8`` (the recipe quantize-int8 writes on a VNNI CPU: transposed convolutions
 rewritten, onnxruntime's pre-processing, the engine's op set: int8_recipe.OP_SETS), ``u8s8-all-ops`` (the same
 with every operator onnxruntime can quantize), ``u8s8-no-rewrite`` (without the ConvTranspose rewrite),
+``u8s8-quantized-matmul-outputs`` (the MatMuls' outputs quantized too: int8_recipe.FLOAT_OUTPUTS),
 ``u8s8-no-softmax`` / ``u8s8-products`` (op sets: all but Softmax; the products only),
 ``u8s8-no-preprocess`` (neither rewrite nor pre-processing), ``u8s8-reduce-range`` (the AVX2 recipe),
 ``s8s8`` (symmetric int8 activations: the ARM / TensorRT recipe, and the old one), and ``fp32-rewritten``
@@ -28,7 +29,7 @@ from typing import Dict, List
 
 import numpy as np
 
-VARIANTS = ("u8s8", "u8s8-all-ops", "u8s8-no-softmax", "u8s8-products", "u8s8-no-rewrite", "u8s8-no-preprocess",
+VARIANTS = ("u8s8", "u8s8-quantized-matmul-outputs", "u8s8-all-ops", "u8s8-no-softmax", "u8s8-products", "u8s8-no-rewrite", "u8s8-no-preprocess",
             "u8s8-reduce-range", "s8s8", "fp32-rewritten")
 
 
@@ -75,8 +76,10 @@ def main(argv=None) -> int:
         op_set = {"u8s8-all-ops": "all", "u8s8-no-softmax": "no-softmax", "u8s8-products": "products"}.get(
             variant, int8_recipe.OP_SETS[args.kind])
         ops = int8_recipe.quantized_ops(op_set)
+        float_outputs = () if variant == "u8s8-quantized-matmul-outputs" else int8_recipe.FLOAT_OUTPUTS[args.kind]
         started = time.perf_counter()
-        int8_recipe.quantize(source, path, FeedReader(calibration), int8_recipe.recipe(name), op_types=ops)
+        int8_recipe.quantize(source, path, FeedReader(calibration), int8_recipe.recipe(name), op_types=ops,
+                             float_outputs=float_outputs)
         print(f"[int8_recipes] {variant}: quantized in {time.perf_counter() - started:.0f} s", flush=True)
         paths[variant] = path
     options = onnxruntime.SessionOptions()

@@ -49,6 +49,11 @@ PRODUCT_OPS = ("Conv", "MatMul", "Gemm", "Relu", "Clip", "MaxPool", "Resize", "C
 #: 123-128 ms) and keeps its residual additions, normalizations and GELUs in float
 OP_SETS = {"detector": "all", "hmr": "products"}
 
+#: operator types whose outputs stay float per engine: the HMR engine's MatMuls (onnxruntime then runs them as
+#: MatMulIntegerToFloat); a quantized attention-score output makes onnxruntime fuse the Softmax into a
+#: QLinearSoftmax, slower than the float Softmax it replaces (s32: 34 ms against 6 ms)
+FLOAT_OUTPUTS = {"detector": (), "hmr": ("MatMul",)}
+
 
 def quantized_ops(op_set: str) -> Optional[List[str]]:
     """The op_types_to_quantize of an op set.
@@ -186,7 +191,7 @@ def excluded_nodes(model, keep_fp32: str) -> List[str]:
 
 
 def metadata(recipe_: Recipe, why: str, cpu: CpuInfo, rewritten: int, kept_fp32: int, keep_fp32: str,
-             calibration_frames: int, op_set: str) -> Dict[str, str]:
+             calibration_frames: int, op_set: str, float_outputs: Sequence[str] = ()) -> Dict[str, str]:
     """The leapnbv.int8.* metadata of a written model."""
     return {
         f"{METADATA_PREFIX}recipe": recipe_.name,
@@ -200,6 +205,7 @@ def metadata(recipe_: Recipe, why: str, cpu: CpuInfo, rewritten: int, kept_fp32:
         f"{METADATA_PREFIX}keep_fp32": f"{keep_fp32} ({kept_fp32} nodes)",
         f"{METADATA_PREFIX}calibration": f"MinMax on {calibration_frames} rendered frames",
         f"{METADATA_PREFIX}quantized_ops": op_set,
+        f"{METADATA_PREFIX}float_outputs": ",".join(float_outputs) or "none",
     }
 
 
@@ -247,12 +253,19 @@ def conv_transpose_to_conv_checked(model) -> int:
 
 
 def quantize(model_path: str, out_path: str, reader, recipe_: Recipe, nodes_to_exclude: Optional[List[str]] = None,
-             op_types: Optional[Sequence[str]] = None) -> None:
-    """quantize_static of an already prepared model (``prepare``) with ``recipe_``."""
+             op_types: Optional[Sequence[str]] = None, float_outputs: Sequence[str] = ()) -> None:
+    """quantize_static of an already prepared model (``prepare``) with ``recipe_``.
+
+    ``float_outputs``: operator types whose outputs are not quantized (onnxruntime's
+    OpTypesToExcludeOutputQuantization).
+    """
     from onnxruntime.quantization import quantize_static
 
+    kwargs = recipe_.quantize_kwargs()
+    if float_outputs:
+        kwargs["extra_options"] = dict(kwargs["extra_options"], OpTypesToExcludeOutputQuantization=list(float_outputs))
     quantize_static(model_path, out_path, reader, op_types_to_quantize=list(op_types) if op_types else None,
-                    nodes_to_exclude=nodes_to_exclude or None, **recipe_.quantize_kwargs())
+                    nodes_to_exclude=nodes_to_exclude or None, **kwargs)
 
 
 def write_metadata(path: str, entries: Dict[str, str], keep_from: Optional[str] = None) -> None:

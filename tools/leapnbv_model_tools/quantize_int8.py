@@ -179,6 +179,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     chosen, why = int8_recipe.choose_recipe(args.recipe, target)
     keep_fp32 = args.keep_fp32 if args.keep_fp32 != "auto" else KEEP_FP32_DEFAULT[args.kind]
     op_set = args.op_set if args.op_set != "auto" else int8_recipe.OP_SETS[args.kind]
+    float_outputs = int8_recipe.FLOAT_OUTPUTS[args.kind]
     print(f"quantize-int8: recipe {chosen.name} (activations {chosen.activation_type}, weights {chosen.weight_type} "
           f"per-channel{', reduce-range' if chosen.reduce_range else ''}; {why}); this CPU: {cpu.describe()}; "
           f"FP32 layers: {keep_fp32}; operators quantized: {op_set}", flush=True)
@@ -201,9 +202,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         excluded = int8_recipe.excluded_nodes(onnx.load(prepared, load_external_data=False), keep_fp32)
         staged = os.path.join(work, os.path.basename(final))
         int8_recipe.quantize(prepared, staged, FeedReader(calibration), chosen, nodes_to_exclude=excluded,
-                             op_types=int8_recipe.quantized_ops(op_set))
+                             op_types=int8_recipe.quantized_ops(op_set), float_outputs=float_outputs)
         int8_recipe.write_metadata(staged, int8_recipe.metadata(chosen, why, target, rewritten, len(excluded),
-                                                                keep_fp32, len(calibration), op_set),
+                                                                keep_fp32, len(calibration), op_set, float_outputs),
                                    keep_from=args.model)
         os.replace(staged, final)
     print(f"{final}: INT8 QDQ {chosen.name}, {rewritten} transposed convolutions rewritten, {len(excluded)} nodes "

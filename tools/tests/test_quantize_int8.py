@@ -23,7 +23,7 @@ VNNI_FLAGS = ["fpu", "avx2", "avx512f", "avx512bw", "avx512_vnni"]
 
 
 def _upsampling_model(path: Path, seed: int = 0, with_norm: bool = True, bias: bool = False) -> Path:
-    """x (1, 8, 6, 5) -> Conv 3x3 -> Relu -> ConvTranspose(k4, s2, p1) [-> BatchNormalization] -> Relu -> Conv 1x1."""
+    """The input x (1, 8, 6, 5) -> Conv 3x3, Relu, ConvTranspose(k4, s2, p1) [, BatchNormalization], Relu, Conv 1x1."""
     rng = np.random.default_rng(seed)
     inits = [numpy_helper.from_array(rng.normal(0, 0.3, (16, 8, 3, 3)).astype(np.float32), "w0"),
              numpy_helper.from_array(rng.normal(0, 0.1, 16).astype(np.float32), "b0"),
@@ -171,7 +171,7 @@ def test_read_cpuinfo_takes_the_flags_and_model_name(tmp_path: Path) -> None:
 
 
 def _tiny_detector(path: Path) -> Path:
-    """images (1, 3, 32, 32) -> Conv stride 8 -> (1, 84, 16): a YOLO-shaped output (4 box rows, 80 scores)."""
+    """The input images (1, 3, 32, 32) -> Conv stride 8 -> (1, 84, 16): a YOLO-shaped output (4 box rows, 80 scores)."""
     rng = np.random.default_rng(3)
     inits = [numpy_helper.from_array(rng.normal(0, 0.2, (84, 3, 8, 8)).astype(np.float32), "w"),
              numpy_helper.from_array(np.full(84, 4.0, np.float32), "b"),
@@ -214,3 +214,29 @@ def test_the_command_prints_the_choice_and_writes_it_in_the_metadata(tmp_path: P
     assert quantize_int8.main(["detector", str(source), "--out", str(arm), "--calib", "3", "--eval", "1",
                                "--target-cpu", "arm64"]) == 0
     assert int8_recipe.read_int8_metadata(str(arm))["leapnbv.int8.recipe"] == "s8s8"
+
+
+def test_float_matmul_outputs_leave_the_attention_scores_unquantized(tmp_path: Path) -> None:
+    """The HMR engine's MatMul outputs stay float (no QLinearSoftmax fusion); its inputs are still uint8."""
+    rng = np.random.default_rng(5)
+    inits = [numpy_helper.from_array(rng.normal(0, 0.3, (8, 8)).astype(np.float32), "wq"),
+             numpy_helper.from_array(rng.normal(0, 0.3, (8, 8)).astype(np.float32), "wv")]
+    nodes = [helper.make_node("MatMul", ["x", "wq"], ["q"], name="/model/encoder/attn/MatMul"),
+             helper.make_node("Softmax", ["q"], ["p"], name="/model/encoder/attn/Softmax", axis=-1),
+             helper.make_node("MatMul", ["p", "wv"], ["y"], name="/model/encoder/attn/MatMul_1")]
+    graph = helper.make_graph(nodes, "attn", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4, 8])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 4, 8])], inits)
+    source = tmp_path / "attn.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(source))
+    feeds = [{"x": rng.normal(0, 1, (1, 4, 8)).astype(np.float32)} for _ in range(4)]
+    outputs = {}
+    for label, float_outputs in (("float", int8_recipe.FLOAT_OUTPUTS["hmr"]), ("quantized", ())):
+        out = tmp_path / f"{label}.onnx"
+        int8_recipe.quantize(str(source), str(out), quantize_int8.FeedReader(feeds), int8_recipe.recipe("u8s8"),
+                             op_types=int8_recipe.quantized_ops(int8_recipe.OP_SETS["hmr"]),
+                             float_outputs=float_outputs)
+        model = onnx.load(str(out))
+        outputs[label] = {n.input[0] for n in model.graph.node if n.op_type == "QuantizeLinear"}
+        assert set(quantized_tensor_types(model)["activations"]) == {"UINT8"}
+    assert "q" not in outputs["float"] and "p" in outputs["float"] and "x" in outputs["float"]
+    assert "q" in outputs["quantized"]
