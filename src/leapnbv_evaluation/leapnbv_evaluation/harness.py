@@ -427,22 +427,27 @@ class ClosedLoopEvaluator:
                 raise EvaluationError(f"nbv_node did not take {name}={step}")
 
     def settle_goal(self, stamp_ns: int, outputs: FrameOutputs, timeout_s: float = 2.0) -> None:
-        """Wait until the goal of the frame of ``stamp_ns`` (its status, and its path while CURRENT) has arrived.
+        """Wait until the goal topics of the frame of ``stamp_ns`` have reached the simulator's motion stack.
 
-        nbv_node publishes the goal, its status and then its path around the view candidates; a frame whose plan
-        chose nothing gets at most a withdrawal, awaited briefly.
+        nbv_node publishes the goal, its status, the view candidates and then the path, on separate topics: the
+        robot drives on only once it has every one of them that the frame gives (its view candidates; while the
+        goal is CURRENT its goal, status and path), in whatever order they came, so that each run drives the same.
+        A frame whose plan chose nothing gets at most a withdrawal, awaited briefly.
         """
         sim = self._simulator()
         candidates = outputs.view_candidates
         if outputs.failure is not None or candidates is None or candidates.chosen_index < 0:
+            self._spin_until(lambda: candidates is None or sim.last_view_candidates_stamp_ns == stamp_ns, timeout_s)
             self._spin_until(lambda: False, 0.05)
             return
 
         def arrived() -> bool:
             status = sim.goal_status
-            if status is None or stamp_to_ns(status.goal_stamp) != stamp_ns:
+            if sim.last_view_candidates_stamp_ns != stamp_ns or status is None or \
+                    stamp_to_ns(status.goal_stamp) != stamp_ns:
                 return False
-            return status.state != GoalStatus.STATE_CURRENT or sim.last_path_msg_stamp_ns == stamp_ns
+            return status.state != GoalStatus.STATE_CURRENT or (sim.last_path_msg_stamp_ns == stamp_ns
+                                                                 and sim.last_goal_stamp_ns == stamp_ns)
 
         self._spin_until(arrived, timeout_s)
 

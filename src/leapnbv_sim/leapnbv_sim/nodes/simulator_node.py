@@ -208,8 +208,9 @@ class SimulatorNode(Node):
         #: Continuous mode: stamp of the frame the latest path taken was planned on, and its world points.
         self.last_path_stamp_ns: Optional[int] = None
         self.last_path_world: Optional[np.ndarray] = None
-        #: Continuous mode: stamp of the latest base path received (taken or not).
+        #: Continuous mode: stamps of the latest base path and view candidates received (taken or not).
         self.last_path_msg_stamp_ns: Optional[int] = None
+        self.last_view_candidates_stamp_ns: Optional[int] = None
         self.frame_count = 0
         self.last_stamp_ns: Optional[int] = None
         self.last_goal_stamp_ns: Optional[int] = None
@@ -259,6 +260,7 @@ class SimulatorNode(Node):
         self.last_path_stamp_ns = None
         self.last_path_world = None
         self.last_path_msg_stamp_ns = None
+        self.last_view_candidates_stamp_ns = None
         if self.params.publish_obstacle_map:
             self.publish_obstacle_map()
 
@@ -410,7 +412,13 @@ class SimulatorNode(Node):
 
     @rejects_bad_input("bad_goal_status")
     def on_goal_status(self, msg: GoalStatus) -> None:
-        """Continuous mode: a goal that is not CURRENT (withdrawn, aged out, none) stops the robot."""
+        """Continuous mode: a goal that is not CURRENT (withdrawn, aged out, none) stops the robot.
+
+        A status about a goal planned on a frame this scene never rendered (a previous scene's, arriving late) is
+        not about the robot's goal: ignored.
+        """
+        if self.camera_pose_at(stamp_to_ns(msg.goal_stamp)) is None:
+            return
         self.goal_status = msg
         self.goal_statuses.append(msg)
         if self.robot is not None and msg.state != GoalStatus.STATE_CURRENT:
@@ -453,6 +461,7 @@ class SimulatorNode(Node):
         observation = self.camera_pose_at(stamp_to_ns(msg.header.stamp))
         if observation is None:
             return
+        self.last_view_candidates_stamp_ns = stamp_to_ns(msg.header.stamp)
         centre = np.array([msg.ring_center.x, msg.ring_center.y, msg.ring_center.z], dtype=np.float64)
         if np.all(np.isfinite(centre)) and msg.ring_radius > 0.0:
             self.robot.look_at_target(observation.rotation @ centre + observation.position)
