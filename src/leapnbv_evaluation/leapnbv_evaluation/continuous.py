@@ -16,10 +16,14 @@ Clock (``EvaluationOptions.clock``):
   speed), every frame is planned, and two runs of the same seeds give the same episodes: nothing in
   the loop reads a wall clock (a frame the graph has not answered within ``frame_timeout_s`` of wall time
   is a failed frame and the clock moves on: the only wall-time guard, which a healthy graph never hits).
-  A fixed wall budget per sim step would instead make the episode depend on the machine's load.
+  A fixed wall budget per sim step would instead make the episode depend on the machine's load. While a
+  frame is in flight the clock ticks on by the stages' wait-check period (their timers run on sim time: a
+  companion that came after its frame is found when one fires), never up to the next frame's stamp; every
+  wait and age limit of the graph is at least a camera period, so how far it ticked decides nothing.
 * ``real_time``: sim time follows the wall clock; frames go out at the camera rate whether or not the
   graph kept up, and the graph plans from whatever frames it admits (its frame dropping and latencies
-  are the machine's). Not reproducible; for watching the loop as a robot runs it.
+  are the machine's). Not reproducible; for watching the loop as a robot runs it. A frame's plan and mask
+  count when they came before the next frame went out (frames planned are counted at the episode's end).
 
 An episode ends when the robot has arrived (base at the path's end, facing it, standing, the head
 aligned) at a goal that stayed committed at least ``commit_hold_s`` (``goal_status.committed_since``),
@@ -83,6 +87,9 @@ class ContinuousSession(Protocol):
 
     def settle_goal(self, stamp_ns: int, outputs: FrameOutputs) -> None:
         """Wait until the goal topics of the frame of ``stamp_ns`` have reached the simulator."""
+
+    def run_frame_real_time(self, stamp_ns: int, until_wall_s: float) -> Tuple[RenderedFrame, FrameOutputs]:
+        """Publish the view at ``stamp_ns`` and let the graph work until the wall time ``until_wall_s``."""
 
     def ticked_between(self, first_ns: int, last_ns: int) -> int:
         """How many frames stamped in [first_ns, last_ns] needed sim time to tick on before the graph answered."""
@@ -155,19 +162,21 @@ class ContinuousEpisodes:
         planned = failed = 0
         outcome = OUTCOME_TIME_LIMIT
         stamp = start_stamp_ns
+        real_time = o.clock == "real_time"
+        wall0 = time.monotonic()
+        all_outputs: List[FrameOutputs] = []
         for k in range(limit_ns // period_ns + 1):
             stamp = start_stamp_ns + k * period_ns
-            rendered, outputs = session.run_frame(stamp)
-            session.settle_goal(stamp, outputs)
+            if real_time:
+                rendered, outputs = session.run_frame_real_time(stamp, wall0 + (k + 1) * period_ns * 1e-9)
+            else:
+                rendered, outputs = session.run_frame(stamp)
+                session.settle_goal(stamp, outputs)
+            all_outputs.append(outputs)
             robot = session.driven_robot()
             coverages.append(view_metrics(scene, rendered).surface_coverage)
             targets.append(target_person(scene, rendered, outputs))
             track.append(np.array([robot.stack.state.x, robot.stack.state.y]))
-            candidates = outputs.view_candidates
-            if outputs.failure is None and candidates is not None and candidates.chosen_index >= 0:
-                planned += 1
-            elif outputs.failure is not None:
-                failed += 1
             path = session.last_path()
             if first_path_m is None and path is not None:
                 first_path_m = path_length(path[1][:, :2])
@@ -184,6 +193,12 @@ class ContinuousEpisodes:
             if first_goal_ns is None and stamp - start_stamp_ns >= no_plan_ns:
                 outcome = OUTCOME_NO_PLAN
                 break
+        for outputs in all_outputs:  # (real time: what came by now, also after its frame's period)
+            candidates = outputs.view_candidates
+            if outputs.failure is None and candidates is not None and candidates.chosen_index >= 0:
+                planned += 1
+            elif outputs.failure is not None or (not real_time and candidates is None):
+                failed += 1
         statuses = session.goal_statuses()
         current = [s for s in statuses if s.state == STATE_CURRENT]
         reasons: Dict[str, int] = {}

@@ -376,6 +376,27 @@ class ClosedLoopEvaluator:
 
         return tick
 
+    def run_frame_real_time(self, stamp_ns: int, until_wall_s: float) -> Tuple[RenderedFrame, FrameOutputs]:
+        """Continuous real time: publish the view at ``stamp_ns`` and let the graph work until ``until_wall_s``.
+
+        Sim time follows the wall clock from the frame on (``/clock`` every CLOCK_TICK_WALL_S); what the graph
+        answers after the deadline still lands in the returned record (its callbacks fill it later).
+        """
+        if self.runner is None:
+            raise EvaluationError("the evaluation is not started")
+        sim = self._simulator()
+        frame = FrameOutputs(stamp_ns=stamp_ns, published_ns=time.monotonic_ns())
+        self.frames[stamp_ns] = frame
+        published = time.monotonic()
+        _, rendered = sim.publish_frame(stamp_ns)
+        while time.monotonic() < until_wall_s:
+            if self.executor is None:
+                raise EvaluationError("the evaluation is not started")
+            self.executor.spin_once(timeout_sec=min(CLOCK_TICK_WALL_S, max(0.0, until_wall_s - time.monotonic())))
+            sim.publish_clock(stamp_ns + int((time.monotonic() - published) * 1e9))
+        self.runner.check_alive()
+        return rendered, frame
+
     def wait_goal(self, stamp_ns: int, timeout_s: float = 5.0) -> bool:
         """Wait until the simulator has the graph's goal planned on the frame of ``stamp_ns``; whether it came."""
         sim = self._simulator()
