@@ -428,7 +428,7 @@ class ClosedLoopEvaluator:
         Raises:
             EvaluationError: nbv_node's parameter service did not answer.
         """
-        from rcl_interfaces.msg import ParameterType
+        from rclpy.parameter import parameter_value_to_python
         from rclpy.parameter_client import AsyncParameterClient
 
         if self.collector is None or not self.term_names:
@@ -438,10 +438,10 @@ class ClosedLoopEvaluator:
         got = client.get_parameters([name])
         if not self._spin_until(got.done, timeout_s) or got.result() is None:
             raise EvaluationError("nbv_node's parameters did not answer")
-        value = got.result().values[0]
-        if value.type != ParameterType.PARAMETER_DOUBLE:
-            raise EvaluationError(f"nbv_node's {name} is not a number")
-        weight = float(value.double_value)
+        value = parameter_value_to_python(got.result().values[0])
+        if not isinstance(value, float):
+            raise EvaluationError(f"nbv_node's {name} is not a number: {value!r}")
+        weight = value
         for step in (weight + 0.5 if weight <= 0.5 else weight - 0.5, weight):
             done = client.set_parameters([Parameter(name, value=step)])
             if not self._spin_until(done.done, timeout_s):
