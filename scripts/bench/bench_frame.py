@@ -104,7 +104,8 @@ INTEGER_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8", "asim
 
 def instruction_set() -> str:
     """The CPU's model name and integer instruction-set flags, from /proc/cpuinfo."""
-    flags, model = [], ""
+    flags: List[str] = []
+    model = ""
     try:
         with open("/proc/cpuinfo") as handle:
             for line in handle:

@@ -15,7 +15,7 @@ weights' zero-point types and the per-channel weight scales.
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -24,13 +24,13 @@ import numpy as np
 KERNEL_TAP = ((3, 1), (2, 0))
 
 
-def _attributes(node) -> Dict[str, object]:
+def _attributes(node) -> Dict[str, Any]:
     from onnx import helper
 
     return {a.name: helper.get_attribute_value(a) for a in node.attribute}
 
 
-def _rewritable(node, attributes: Dict[str, object], initializers: Dict[str, np.ndarray]) -> bool:
+def _rewritable(node, attributes: Dict[str, Any], initializers: Dict[str, np.ndarray]) -> bool:
     """A ConvTranspose of the SMPLer-X upsampling form: 2-D, kernel 4, stride 2, padding 1, one group."""
     if node.op_type != "ConvTranspose" or len(node.input) < 2 or node.input[1] not in initializers:
         return False

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import platform
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 #: CPU kinds and the recipe each gets (``auto``)
 CPU_KINDS = ("x86-vnni", "x86-avx2", "arm64", "other")
@@ -152,7 +152,7 @@ class Recipe:
     symmetric_activations: bool
     per_channel: bool = True
 
-    def quantize_kwargs(self) -> Dict[str, object]:
+    def quantize_kwargs(self) -> Dict[str, Any]:
         """Keyword arguments for onnxruntime.quantization.quantize_static."""
         from onnxruntime.quantization import QuantFormat, QuantType
 
