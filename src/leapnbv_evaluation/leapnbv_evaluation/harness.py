@@ -59,7 +59,7 @@ from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import EvaluationRun, SceneResult
 from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_sim.nodes.simulator_node import SimulatorNode
+from leapnbv_sim.nodes.simulator_node import SimulatorNode, clock_publisher
 from leapnbv_sim.poses import CameraPose, RobotModel
 from leapnbv_sim.render import RenderedFrame
 from leapnbv_sim.scene import Scene
@@ -199,7 +199,8 @@ class ClosedLoopEvaluator:
         self._started = True
         try:
             runner.start()
-            self.ready_s = runner.wait_ready(collector, timeout_s=self.options.ready_timeout_s)
+            self.ready_s = runner.wait_ready(collector, timeout_s=self.options.ready_timeout_s,
+                                             spin=self._start_up_spin(collector))
         except GraphError as exc:
             raise EvaluationError(f"the graph did not start: {exc}") from exc
         sim = self.sim = SimulatorNode(scene=first_scene, parameter_overrides=simulator_parameters(
@@ -218,6 +219,26 @@ class ClosedLoopEvaluator:
         self.episodes.learn_terms(warm_up.candidates())
         if warm_up.view_candidates is not None and warm_up.view_candidates.chosen_index >= 0:
             self.wait_goal(stamp)  # consumed here, not rejected as stale by the first scene
+
+    def _start_up_spin(self, collector: Node) -> Optional[Callable[[float], None]]:
+        """Continuous: the collector's spin while the graph starts, with sim time running on /clock meanwhile.
+
+        Every node's timers run on sim time; before the simulator's first frame no /clock would come, and a
+        node's /diagnostics (a timer: what the readiness check reads, e.g. which inputs still lack a publisher)
+        would stay at its first report. The clock runs with the wall clock, ending a second before the first
+        frame's stamp. None: not continuous (rclpy's default spin).
+        """
+        if not self.options.continuous:
+            return None
+        publish = clock_publisher(collector)
+        end_ns = int(self.options.stamp_base_ns) - 1_000_000_000
+        start_ns, started = end_ns - 600_000_000_000, time.monotonic()
+
+        def spin(timeout: float) -> None:
+            rclpy.spin_once(collector, timeout_sec=timeout)
+            publish(min(end_ns, start_ns + int((time.monotonic() - started) * 1e9)))
+
+        return spin
 
     def stop(self) -> None:
         """Stop the graph's processes and the in-process nodes (safe to call twice)."""

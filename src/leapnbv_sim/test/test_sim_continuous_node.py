@@ -76,7 +76,7 @@ def test_motion_stack_follows_the_path_stops_on_withdrawal_and_publishes_the_clo
         executor.add_node(sim)
         executor.add_node(listener)
         deadline = time.monotonic() + 20.0
-        while sim.clock_pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+        while sim.count_subscribers("/clock") < 1 and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
 
         start = scene.start_camera.copy()

@@ -70,7 +70,7 @@ from __future__ import annotations
 import sys
 import time
 from collections import OrderedDict
-from typing import Any, Dict, List, Optional, Set, Tuple
+from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 from typing import OrderedDict as OrderedDictType
 
 import numpy as np
@@ -143,6 +143,18 @@ CLOCK_TOPIC = "/clock"
 GOAL_READER_DEPTH = 10
 
 
+def clock_publisher(node: Node) -> Callable[[int], None]:
+    """A /clock publisher on ``node``: call it with a sim time (ns) to publish it."""
+    publisher = node.create_publisher(Clock, CLOCK_TOPIC, 10)
+
+    def publish(stamp_ns: int) -> None:
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        publisher.publish(msg)
+
+    return publish
+
+
 def goal_reader_qos() -> QoSProfile:
     """The motion stack's subscriptions to the latched goal topics (reliable, transient-local, depth 10)."""
     return QoSProfile(depth=GOAL_READER_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
@@ -188,7 +200,7 @@ class SimulatorNode(Node):
         # Created before the first set_scene below, which publishes the first scene's map.
         self.map_pub = self.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
         self.create_subscription(PoseStamped, "goal", self.on_goal, latched_goal_qos())
-        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10) if p.publish_clock else None
+        self.clock_pub = clock_publisher(self) if p.publish_clock else None
         #: The sim time last published on /clock (publish_clock), None before.
         self.clock_ns: Optional[int] = None
         if p.motion_stack:
@@ -376,9 +388,7 @@ class SimulatorNode(Node):
         """Publish /clock at ``stamp_ns`` (nothing without ``publish_clock``)."""
         if self.clock_pub is None:
             return
-        msg = Clock()
-        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-        self.clock_pub.publish(msg)
+        self.clock_pub(stamp_ns)
         self.clock_ns = int(stamp_ns)
 
     def publish_wall_clock(self) -> None:
