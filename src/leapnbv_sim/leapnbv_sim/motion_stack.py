@@ -65,8 +65,10 @@ class BaseLimits:
     pan_limit_rad: float = math.radians(170.0)
     lookahead_m: float = 0.3
     turn_in_place_rad: float = math.radians(45.0)
-    goal_tolerance_m: float = 0.05
-    heading_tolerance_rad: float = math.radians(3.0)
+    # Nav2's goal checker defaults are 0.25 m and 0.25 rad; tighter here, but wider than one camera period's
+    # travel (0.05-0.1 m): a goal planned on a frame the base has since driven past is reached, not driven back to.
+    goal_tolerance_m: float = 0.15
+    heading_tolerance_rad: float = math.radians(5.0)
 
     def __post_init__(self) -> None:
         for name in ("max_speed_m_s", "max_accel_m_s2", "max_turn_rate_rad_s", "pan_rate_rad_s", "tilt_rate_rad_s",
@@ -264,9 +266,11 @@ class MotionStack:
             self._progress_s = path.project(self.position_xy, self._progress_s, self._window_m())
             end = path.points[-1]
             to_end = float(np.linalg.norm(end - self.position_xy))
-            # Once at the end the base only turns (what it still rolls while braking stays within the tolerance).
-            self._at_end = self._at_end or (to_end <= lim.goal_tolerance_m
-                                            and self._progress_s >= path.length - lim.goal_tolerance_m)
+            # Once at the end the base brakes and turns; if braking carried it out of the tolerance, it comes back
+            # once it stands.
+            if self._at_end and s.v == 0.0 and to_end > lim.goal_tolerance_m:
+                self._at_end = False
+            self._at_end = self._at_end or to_end <= lim.goal_tolerance_m
             if self._at_end:
                 yaw_error = wrap_angle(path.final_yaw - s.yaw)
             else:

@@ -11,6 +11,8 @@ from leapnbv_sim.motion_stack import BaseLimits, BaseState, MotionStack, path_le
 from leapnbv_sim.poses import camera_heading, camera_pitch, camera_pose_from_base_goal
 
 DT = 0.01
+#: The tolerances these kinematics are checked at (tighter than the defaults, so the profiles show whole).
+TIGHT = BaseLimits(goal_tolerance_m=0.05, heading_tolerance_rad=math.radians(3.0))
 
 
 def drive(stack: MotionStack, until_s: float, dt: float = DT, stop_on_arrival: bool = True
@@ -28,7 +30,7 @@ def drive(stack: MotionStack, until_s: float, dt: float = DT, stop_on_arrival: b
 
 def test_straight_drive_is_a_trapezoid_at_the_limits() -> None:
     # 2 m at 0.5 m/s and 0.5 m/s^2: 1 s up (0.25 m), 3 s at speed (1.5 m), 1 s down (0.25 m) = 5 s.
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, TIGHT)
     stack.set_path(np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]), 0.0)
     took, trace = drive(stack, 20.0)
     assert took == pytest.approx(5.0, abs=0.03)
@@ -45,7 +47,7 @@ def test_straight_drive_is_a_trapezoid_at_the_limits() -> None:
 
 def test_a_short_drive_never_reaches_full_speed() -> None:
     # 0.18 m at 0.5 m/s^2: a triangle, peak sqrt(a d) = 0.3 m/s, 2 sqrt(d / a) = 1.2 s.
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, TIGHT)
     stack.set_path(np.array([[0.0, 0.0], [0.18, 0.0]]), 0.0)
     took, trace = drive(stack, 10.0)
     assert took == pytest.approx(1.2, abs=0.03)
@@ -55,7 +57,7 @@ def test_a_short_drive_never_reaches_full_speed() -> None:
 def test_turns_in_place_before_it_drives_and_at_the_turn_rate() -> None:
     # A goal 2 m to the left, to be faced to the left: it turns at 1 rad/s and rolls only once the carrot is
     # within 45 deg, at 0.785 s.
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, TIGHT)
     stack.set_path(np.array([[0.0, 0.0], [0.0, 2.0]]), math.pi / 2)
     drive(stack, 0.70, stop_on_arrival=False)
     assert stack.state.yaw == pytest.approx(0.70, abs=1e-6)
@@ -67,7 +69,7 @@ def test_turns_in_place_before_it_drives_and_at_the_turn_rate() -> None:
 
 
 def test_turning_to_the_final_heading_takes_angle_over_turn_rate() -> None:
-    limits = BaseLimits(max_turn_rate_rad_s=0.5)
+    limits = BaseLimits(max_turn_rate_rad_s=0.5, goal_tolerance_m=0.05, heading_tolerance_rad=math.radians(3.0))
     stack = MotionStack(BaseState(1.0, 1.0, 0.0), 1.2, limits)
     stack.set_path(np.array([[1.0, 1.0]]), math.pi * 0.9)  # standing on the goal: turn only
     took, _ = drive(stack, 20.0)
@@ -77,7 +79,7 @@ def test_turning_to_the_final_heading_takes_angle_over_turn_rate() -> None:
 
 
 def test_a_withdrawn_goal_brakes_to_a_stop_at_the_deceleration_limit() -> None:
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, TIGHT)
     stack.set_path(np.array([[0.0, 0.0], [10.0, 0.0]]), 0.0)
     drive(stack, 2.0, stop_on_arrival=False)
     assert stack.state.v == pytest.approx(0.5)
@@ -91,7 +93,7 @@ def test_a_withdrawn_goal_brakes_to_a_stop_at_the_deceleration_limit() -> None:
 
 
 def test_a_new_path_replaces_the_old_one_without_stopping() -> None:
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, TIGHT)
     stack.set_path(np.array([[0.0, 0.0], [4.0, 0.0]]), 0.0)
     drive(stack, 2.0, stop_on_arrival=False)
     here = stack.position_xy
@@ -106,7 +108,7 @@ def test_a_new_path_replaces_the_old_one_without_stopping() -> None:
 
 
 def test_follows_a_corner_without_cutting_more_than_the_lookahead() -> None:
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, TIGHT)
     points = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
     stack.set_path(points, math.pi / 2)
     took, trace = drive(stack, 30.0)
@@ -139,13 +141,34 @@ def test_head_pans_and_tilts_at_its_rates_and_within_its_limit() -> None:
 
 
 def test_head_holds_its_world_heading_while_the_base_turns() -> None:
-    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.0, BaseLimits(max_turn_rate_rad_s=0.5, pan_rate_rad_s=2.0))
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.0, BaseLimits(max_turn_rate_rad_s=0.5, pan_rate_rad_s=2.0,
+                                                                  heading_tolerance_rad=math.radians(3.0)))
     stack.look(0.0, 0.0)
     stack.set_path(np.array([[0.0, 0.0]]), 1.0)  # the base turns 1 rad in place
     drive(stack, 3.0)
     assert stack.state.yaw == pytest.approx(1.0, abs=math.radians(3.0))
     assert wrap_angle(stack.state.yaw + stack.state.pan) == pytest.approx(0.0, abs=0.02)
     assert stack.arrived()
+
+
+def test_a_goal_just_behind_is_reached_not_driven_back_to() -> None:
+    # Driving at 0.2 m/s, a goal planned one camera period ago 0.1 m behind (the view the plan was made from): within
+    # the default 0.15 m tolerance the base brakes (0.04 m) and turns, it does not turn back.
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2, BaseLimits(max_speed_m_s=0.2))
+    stack.set_path(np.array([[0.0, 0.0], [10.0, 0.0]]), 0.0)
+    drive(stack, 3.0, stop_on_arrival=False)
+    x = stack.state.x
+    stack.set_path(np.array([[x - 0.1, 0.0]]), 0.0)
+    drive(stack, 5.0)
+    assert stack.arrived() and stack.state.x == pytest.approx(x + 0.04, abs=0.002)
+    # At 0.5 m/s braking takes 0.25 m, out of the tolerance: once it stands it drives back to the goal.
+    stack = MotionStack(BaseState(0.0, 0.0, 0.0), 1.2)
+    stack.set_path(np.array([[0.0, 0.0], [10.0, 0.0]]), 0.0)
+    drive(stack, 3.0, stop_on_arrival=False)
+    x = stack.state.x
+    stack.set_path(np.array([[x - 0.1, 0.0]]), 0.0)
+    drive(stack, 20.0)
+    assert stack.arrived() and abs(stack.state.x - (x - 0.1)) <= 0.15
 
 
 def test_from_camera_stands_under_the_camera() -> None:
