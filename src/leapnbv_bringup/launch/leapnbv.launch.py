@@ -63,7 +63,8 @@ def _environment(context):
 def _nodes(context):
     """The Node actions, built once the launch arguments are known."""
     value = {name: LaunchConfiguration(name).perform(context) for name in
-             ("params_file", "respawn", "respawn_delay", "respawn_max_retries", "nodes", "monitor", "autostart")}
+             ("params_file", "respawn", "respawn_delay", "respawn_max_retries", "nodes", "monitor", "autostart",
+              "use_sim_time")}
     camera_topics = {k: LaunchConfiguration(_arg_name(k)).perform(context) for k in INPUT_TOPICS}
     wanted = [n.strip() for n in value["nodes"].split(",") if n.strip()]
     unknown = sorted(set(wanted) - set(node_names()))
@@ -72,12 +73,14 @@ def _nodes(context):
     respawn = dict(respawn=_true(value["respawn"]), respawn_delay=float(value["respawn_delay"]),
                    respawn_max_retries=int(value["respawn_max_retries"]))
     actions = []
+    # On sim time (use_sim_time:=true) only the graph's nodes: the manager's retries and the monitor keep the wall.
+    node_overrides = {"autostart": False, **({"use_sim_time": True} if _true(value["use_sim_time"]) else {})}
     for spec in graph_nodes(camera_topics):
         if spec.name not in wanted:
             continue
         # The lifecycle manager below drives the transitions: the node itself does not autostart.
         actions.append(LifecycleNode(package=spec.package, executable=spec.executable, name=spec.name,
-                                     namespace=NAMESPACE, parameters=[value["params_file"], {"autostart": False}],
+                                     namespace=NAMESPACE, parameters=[value["params_file"], node_overrides],
                                      remappings=list(spec.remaps.items()), output="screen", **respawn))
     manager = {"node_names": wanted, "autostart": _true(value["autostart"])}
     actions.append(Node(package=MANAGER_NODE.package, executable=MANAGER_NODE.executable, name=MANAGER_NODE.name,
@@ -103,6 +106,10 @@ def generate_launch_description():
                               description="the nodes this host runs (comma separated)"),
         DeclareLaunchArgument("monitor", default_value="true",
                               description="run graph_monitor: node starts and silence on /diagnostics"),
+        DeclareLaunchArgument("use_sim_time", default_value="false",
+                              description="the graph's nodes on simulated time (their clocks follow /clock: the "
+                                          "simulator with publish_clock); the lifecycle manager and the monitor "
+                                          "stay on the wall clock"),
         DeclareLaunchArgument("fastdds_profile", default_value=fastdds_profile_file(),
                               description="Fast DDS XML profile (two hosts: fastdds_two_hosts.xml; "
                                           "over Wi-Fi: fastdds_two_hosts_wifi.xml)"),
