@@ -169,6 +169,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                         "real_time (sim time follows the wall clock)")
     parser.add_argument("--camera-rate", type=float, default=10.0, help="continuous: frames per second of sim time")
     parser.add_argument("--time-limit", type=float, default=30.0, help="continuous: sim seconds per episode at most")
+    parser.add_argument("--obstacle-memory", action="store_true",
+                        help="continuous, with --no-obstacle-map: the planner gets the map built on the way from the "
+                        "frames' depth (leapnbv_planner.obstacle_memory)")
     parser.add_argument("--commit-hold", type=float, default=1.0,
                         help="continuous: arrival counts at a goal committed at least this many sim seconds")
     args = parser.parse_args(argv)
@@ -182,12 +185,14 @@ def main(argv: Optional[List[str]] = None) -> int:
                                 robot_motion=args.robot_motion, robot_head=args.robot_head,
                                 max_moves=args.max_moves, min_gain=args.min_gain, continuous=args.continuous,
                                 clock=args.clock, camera_rate_hz=args.camera_rate, time_limit_s=args.time_limit,
-                                commit_hold_s=args.commit_hold)
+                                commit_hold_s=args.commit_hold, obstacle_memory=args.obstacle_memory)
     try:
         if args.workers < 1:
             raise EvaluationError(f"--workers must be >= 1, got {args.workers}")
         if not 1 <= args.max_moves <= MAX_MOVES:
             raise EvaluationError(f"--max-moves must be in [1, {MAX_MOVES}], got {args.max_moves}")
+        if args.obstacle_memory and not (args.continuous and args.no_obstacle_map):
+            raise EvaluationError("--obstacle-memory needs --continuous and --no-obstacle-map")
         if args.continuous and args.workers != 1:
             raise EvaluationError("--continuous runs in one process (--workers 1)")
         if args.continuous and not (0.5 <= args.camera_rate <= 60.0 and 0.0 < args.time_limit <= 600.0

@@ -165,6 +165,7 @@ class ContinuousRun:
     commit_hold_s: float
     episodes: List[ContinuousEpisode]
     total_wall_s: float = 0.0
+    obstacle_memory: bool = False
 
     def to_json(self) -> Dict[str, Any]:
         data = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "episodes"}
@@ -180,7 +181,8 @@ class ContinuousRun:
                    camera_rate_hz=float(data["camera_rate_hz"]), time_limit_s=float(data["time_limit_s"]),
                    commit_hold_s=float(data["commit_hold_s"]),
                    episodes=[ContinuousEpisode.from_json(e) for e in data["episodes"]],
-                   total_wall_s=float(data.get("total_wall_s", 0.0)))
+                   total_wall_s=float(data.get("total_wall_s", 0.0)),
+                   obstacle_memory=bool(data.get("obstacle_memory", False)))
 
     def write(self, path: str) -> str:
         """Write the run's JSON (atomically); the path."""
@@ -232,7 +234,7 @@ def _fmt(value: float, digits: int = 2) -> str:
 def continuous_table_markdown(run: ContinuousRun) -> str:
     """The continuous results table (one row per run), beside the one-shot table's success and coverage."""
     a = aggregate_continuous(run)
-    mapping = "with map" if run.obstacle_map else "no map"
+    mapping = "with map" if run.obstacle_map else ("map from the obstacle memory" if run.obstacle_memory else "no map")
     lines = [
         f"Continuous closed loop: {run.room}, {mapping}, {run.clock} clock, camera {run.camera_rate_hz:g} Hz, "
         f"arrival at a goal committed >= {run.commit_hold_s:g} s, limit {run.time_limit_s:g} s",

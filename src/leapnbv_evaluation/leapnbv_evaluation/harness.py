@@ -16,6 +16,8 @@ from __future__ import annotations
 import time
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
+import cv2
+import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -32,7 +34,7 @@ from leapnbv_bringup.graph_runner import (
     perception_overrides,
 )
 from leapnbv_bringup.runner_cli import sim_time_overrides
-from leapnbv_common.conversions import stamp_to_ns
+from leapnbv_common.conversions import image_to_numpy, stamp_to_ns
 from leapnbv_common.power_monitor import PowerMonitor, start_power_monitor
 from leapnbv_common.stage import WAIT_CHECK_PERIOD_S
 from leapnbv_common.topics import (
@@ -59,6 +61,7 @@ from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import EvaluationRun, SceneResult
 from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
 from leapnbv_perception.smplx_layer import SMPLXModel
+from leapnbv_planner.obstacle_memory import ObstacleMemory, depth_points_in_fixed_frame
 from leapnbv_sim.nodes.simulator_node import SimulatorNode, clock_publisher
 from leapnbv_sim.poses import CameraPose, RobotModel
 from leapnbv_sim.render import RenderedFrame
@@ -66,6 +69,8 @@ from leapnbv_sim.scene import Scene
 from leapnbv_sim.simulator import DrivenRobot
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
+#: Obstacle memory: the graph's person mask grows by this many pixels before the depth is taken in (its edge).
+MASK_DILATION_PX = 4
 #: Continuous lockstep: while a frame is in flight, sim time moves on by the stages' wait-check period (their timers
 #: run on sim time: a companion that came after its frame is found only when one fires) every this many wall
 #: seconds, but never to the next frame's stamp.
@@ -119,6 +124,8 @@ class ClosedLoopEvaluator:
         self.collector: Optional[Node] = None
         self.executor: Optional[SingleThreadedExecutor] = None
         self.frames: Dict[int, FrameOutputs] = {}
+        #: Continuous with options.obstacle_memory: the map built on the way (one per scene).
+        self.memory: Optional[ObstacleMemory] = None
         #: Continuous lockstep: how far sim time ticked on (ns past the stamp) while each frame was in flight.
         self.clock_ticked_ns: Dict[int, int] = {}
         self._scene_body_model: Optional[SMPLXModel] = None
@@ -173,7 +180,8 @@ class ClosedLoopEvaluator:
         if o.real_models and not ((o.detector_model or not needs_detector) and o.hmr_model and o.body_model):
             raise EvaluationError("real perception needs --detector-model (unless --detector-backend ground_truth), "
                                   "--hmr-model and --body-model")
-        map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
+        # The map in use: the room's (the simulator publishes it), the obstacle memory's (this evaluator does), or none.
+        map_switch = [] if o.obstacle_map or o.obstacle_memory else ["nbv_node.use_obstacle_map=false"]
         if not o.continuous:  # simulated stamps, not the clock's: no goal age limit
             map_switch.append("nbv_node.max_goal_age_s=0.0")
         # Continuous: the graph runs on the simulator's clock, with the deployed staleness rules.
@@ -325,8 +333,10 @@ class ClosedLoopEvaluator:
     # ------------------------------------------------------------------ the session (closed_loop.GraphSession)
 
     def set_scene(self, scene: Scene) -> None:
-        """Put the simulator in a scene, its camera at the scene's start view."""
+        """Put the simulator in a scene, its camera at the scene's start view (and forget the obstacle memory)."""
         self._simulator().set_scene(scene)
+        if self.memory is not None:
+            self.memory.clear()
 
     def run_frame(self, stamp_ns: int) -> Tuple[RenderedFrame, FrameOutputs]:
         """Publish the simulator's current view at ``stamp_ns`` and collect the graph's outputs.
@@ -497,6 +507,31 @@ class ClosedLoopEvaluator:
         """How many frames stamped in [first_ns, last_ns] needed sim time to tick on before the graph answered."""
         return sum(1 for stamp, ticked in self.clock_ticked_ns.items() if first_ns <= stamp <= last_ns and ticked)
 
+    def remember_obstacles(self, stamp_ns: int, rendered: RenderedFrame, outputs: FrameOutputs) -> int:
+        """Obstacle memory: take the frame's depth in (the graph's person mask, dilated, left out) and publish the
+        memory as the obstacle map; how many voxels it holds. A frame without a mask is not taken in (its person
+        would become an obstacle)."""
+        o = self.options
+        if not (o.continuous and o.obstacle_memory):
+            return 0
+        if self.memory is None:
+            self.memory = ObstacleMemory()
+        mask_msg = outputs.messages.get(PERSON_MASK)
+        if mask_msg is None:
+            return len(self.memory)
+        mask = image_to_numpy(mask_msg) > 0
+        if mask.shape != rendered.depth_m.shape:
+            return len(self.memory)
+        kernel = np.ones((2 * MASK_DILATION_PX + 1,) * 2, np.uint8)
+        person = np.asarray(cv2.dilate(mask.astype(np.uint8), kernel), dtype=bool)
+        camera = rendered.camera_pose
+        points, distances = depth_points_in_fixed_frame(rendered.depth_m, rendered.K, camera.rotation,
+                                                        camera.position, exclude=person)
+        sim = self._simulator()
+        self.memory.add_points(points, distances, stamp_ns, sim.params.world_frame_id)
+        sim.publish_map_points(self.memory.occupied_centres(), stamp_ns)
+        return len(self.memory)
+
     def driven_robot(self) -> DrivenRobot:
         """The simulator's robot (continuous mode)."""
         robot = self._simulator().robot
@@ -550,7 +585,7 @@ class ClosedLoopEvaluator:
                                                          base + index * spacing))
             if on_episode is not None:
                 on_episode(episodes[-1])
-        return ContinuousRun(room=o.room, obstacle_map=o.obstacle_map, clock=o.clock,
+        return ContinuousRun(room=o.room, obstacle_map=o.obstacle_map, obstacle_memory=o.obstacle_memory, clock=o.clock,
                              camera_rate_hz=float(o.camera_rate_hz), time_limit_s=float(o.time_limit_s),
                              commit_hold_s=float(o.commit_hold_s), episodes=episodes,
                              total_wall_s=round(time.monotonic() - started, 3))

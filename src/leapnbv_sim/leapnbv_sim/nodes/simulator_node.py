@@ -297,6 +297,15 @@ class SimulatorNode(Node):
         self.map_pub.publish(msg)
         return msg
 
+    def publish_map_points(self, centres: np.ndarray, stamp_ns: int) -> PointCloud2:
+        """Publish other occupied voxel centres (world frame) as the obstacle map, at ``stamp_ns``: e.g. a map
+        built from the frames' depth (leapnbv_planner.obstacle_memory) in place of the scene's."""
+        header = Header(frame_id=self.params.world_frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        msg = xyz_to_pointcloud2(centres, header)
+        self.map_pub.publish(msg)
+        return msg
+
     @property
     def body_model_id(self) -> str:
         return self.scene.body_model_id if self.scene is not None else ""
