@@ -28,10 +28,11 @@ from leapnbv_common.conversions import (  # noqa: E402
     pose_msg,
     pose_to_numpy,
 )
-from leapnbv_common.qos import stage_output_qos  # noqa: E402
+from leapnbv_common.mesh_faces import mesh_faces_id  # noqa: E402
+from leapnbv_common.qos import latched_mesh_faces_qos, stage_output_qos  # noqa: E402
 from leapnbv_geometry.ground import floor_plane_from_camera_pose  # noqa: E402
 from leapnbv_geometry.params import MIN_RANGE_M  # noqa: E402
-from leapnbv_msgs.msg import GroundPlane, HumanMesh, TargetGeometry  # noqa: E402
+from leapnbv_msgs.msg import GroundPlane, HumanMesh, MeshFaces, TargetGeometry  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
 from leapnbv_sim.generation import SceneConfig, generate_scene  # noqa: E402
 from leapnbv_stand_ins.files import ensure_stand_in_body_model  # noqa: E402
@@ -91,6 +92,8 @@ def graph(scene, tmp_path_factory):
             "targets": probe.collect(TargetGeometry, f"{NS}/target_geometry"),
             "planes": probe.collect(GroundPlane, f"{NS}/ground_plane"),
             "masks": probe.collect(Image, f"{NS}/person_mask"),
+            "metric_meshes": probe.collect(HumanMesh, f"{NS}/human_mesh_metric"),
+            "faces_pub": probe.node.create_publisher(MeshFaces, f"{NS}/mesh_faces", latched_mesh_faces_qos()),
         }
         harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: g["depth_pub"].get_subscription_count() >= 2
@@ -203,6 +206,43 @@ def test_raster_survives_nan_zero_and_out_of_range_depth(graph, scene):
     assert not by_stamp(graph["planes"], (201, 0))[0].valid
     for proc in graph["procs"].values():
         assert proc.poll() is None
+
+
+def test_raster_takes_the_triangles_a_mesh_names_from_mesh_faces(graph, scene):
+    probe, frame = graph["probe"], scene["frames"][0]
+    faces_id = mesh_faces_id(scene["faces"])
+
+    def named_mesh(header: Header) -> HumanMesh:
+        msg = mesh_message(frame, scene["faces"], header)
+        msg.faces, msg.faces_id = [], faces_id  # as hmr_node sends them: named, not carried
+        return msg
+
+    def frame_of(stamp_s: int) -> Callable[[], None]:
+        header = make_header(stamp_s, 0)
+        return lambda: (send_depth(graph, numpy_to_image(frame.depth_mm, "16UC1", header)), probe.spin_for(0.05),
+                        graph["mesh_pub"].publish(named_mesh(header)))
+
+    # Before its triangles came: refused with the reason, no output from it.
+    before = diag(graph, "raster_node", "rejected.mesh_faces_unknown")
+    frame_of(250)()
+    assert probe.spin_until(lambda: diag(graph, "raster_node", "rejected.mesh_faces_unknown") >= before + 1, 6.0)
+    assert not by_stamp(graph["targets"], (250, 0))
+    # Triangles that are not those their id names are refused; the mesh stays unknown.
+    bad_before = diag(graph, "raster_node", "rejected.bad_mesh_faces")
+    graph["faces_pub"].publish(MeshFaces(faces_id=faces_id, faces=(scene["faces"][:, ::-1]).ravel().tolist()))
+    assert probe.spin_until(lambda: diag(graph, "raster_node", "rejected.bad_mesh_faces") >= bad_before + 1, 6.0)
+    # Once sent (latched), the meshes that name them are served, and the metric mesh names them too.
+    graph["faces_pub"].publish(MeshFaces(faces_id=faces_id, faces=scene["faces"].ravel().tolist(), model_id="gt"))
+    assert send_until(probe, frame_of(251), lambda: by_stamp(graph["targets"], (251, 0)), 15.0)
+    assert_target_on_body(by_stamp(graph["targets"], (251, 0))[0], frame)
+    assert probe.spin_until(lambda: by_stamp(graph["metric_meshes"], (251, 0)), 5.0)
+    metric = by_stamp(graph["metric_meshes"], (251, 0))[0]
+    assert len(metric.faces) == 0 and metric.faces_id == faces_id
+    # A mesh that carries its triangles gets a metric mesh that carries them.
+    header = make_header(252, 0)
+    assert send_frame(graph, numpy_to_image(frame.depth_mm, "16UC1", header),
+                      mesh_message(frame, scene["faces"], header), lambda: by_stamp(graph["metric_meshes"], (252, 0)))
+    assert len(by_stamp(graph["metric_meshes"], (252, 0))[0].faces) == scene["faces"].size
 
 
 def test_raster_drops_a_mesh_without_depth_and_never_mismatches_it(graph, scene):

@@ -14,8 +14,9 @@ from sensor_msgs.msg import Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from leapnbv_common.conversions import detection_to_box, human_mesh_to_arrays, numpy_to_image  # noqa: E402
-from leapnbv_common.qos import stage_output_qos  # noqa: E402
-from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth  # noqa: E402
+from leapnbv_common.mesh_faces import KnownMeshFaces, mesh_faces_id  # noqa: E402
+from leapnbv_common.qos import latched_mesh_faces_qos, stage_output_qos  # noqa: E402
+from leapnbv_msgs.msg import HumanMesh, MeshFaces, PersonDetection, PersonDetections, SceneGroundTruth  # noqa: E402
 from leapnbv_perception.hmr_tail import depth_scale, virtual_intrinsics  # noqa: E402
 from leapnbv_perception.smplx_layer import SMPLXModel  # noqa: E402
 from leapnbv_stand_ins.files import ensure_contract_models, ensure_stand_in_body_model  # noqa: E402
@@ -93,10 +94,21 @@ def graph(models, tmp_path_factory):
         image_pub = probe.node.create_publisher(Image, f"{NS}/image", stage_output_qos(5))
         detections = probe.collect(PersonDetections, f"{NS}/detections")
         meshes = probe.collect(HumanMesh, f"{NS}/human_mesh")
+        mesh_faces = probe.collect(MeshFaces, f"{NS}/mesh_faces", latched_mesh_faces_qos())
         harness.wait_ready(probe, procs)
         assert probe.spin_until(lambda: image_pub.get_subscription_count() >= 2, 10.0)
         yield {"probe": probe, "procs": procs, "image_pub": image_pub, "detections": detections,
-               "meshes": meshes, "body": SMPLXModel.load(models["body"]), "models": models}
+               "meshes": meshes, "mesh_faces": mesh_faces, "body": SMPLXModel.load(models["body"]), "models": models}
+
+
+def known_faces(graph) -> KnownMeshFaces:
+    """The triangle sets hmr_node sent on mesh_faces, as a reader keeps them (DDS does not order topics: the
+    mesh that named them may be taken first)."""
+    assert graph["probe"].spin_until(lambda: graph["mesh_faces"], 5.0), "no MeshFaces on mesh_faces"
+    known = KnownMeshFaces()
+    for msg in graph["mesh_faces"]:
+        known.add(msg.faces_id, np.frombuffer(msg.faces, np.uint32))
+    return known
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -142,7 +154,9 @@ def test_every_frame_gets_detections_and_mesh_with_its_header(graph):
 
         mesh_msg = by_stamp(graph["meshes"], key)[0]
         assert mesh_msg.header.frame_id == FRAME_ID
-        mesh = human_mesh_to_arrays(mesh_msg)  # raises on non-finite vertices / bad faces
+        # The triangles are not in the mesh: it names those hmr_node sent once on mesh_faces.
+        assert len(mesh_msg.faces) == 0 and mesh_msg.faces_id == mesh_faces_id(body.faces)
+        mesh = human_mesh_to_arrays(mesh_msg, known_faces(graph))  # raises on non-finite vertices / bad faces
         assert mesh.vertices.shape == (body.num_vertices, 3)
         assert np.array_equal(mesh.faces, body.faces.reshape(-1, 3))
         assert np.all(np.isfinite(mesh.vertices)) and np.all(mesh.vertices[:, 2] > 0)
@@ -163,6 +177,9 @@ def test_every_frame_gets_detections_and_mesh_with_its_header(graph):
         body_only = mesh.vertices - mesh.cam_translation
         assert 1.0 < np.ptp(body_only[:, 1]) < 2.5 and np.all(np.abs(body_only) < 2.0)
     assert len({stamp_key(m.header) for m in graph["meshes"]}) >= 5
+    # Sent once for every mesh of the model (and latched), not once a frame.
+    assert [m.faces_id for m in graph["mesh_faces"]] == [mesh_faces_id(body.faces)]
+    assert graph["mesh_faces"][0].model_id == "contract_smplerx.onnx"
 
 
 def test_bad_images_are_rejected_and_the_next_frame_is_served(graph):
@@ -244,7 +261,7 @@ def test_hmr_waits_briefly_for_an_image_that_comes_after_its_detections(graph):
     # then answers the image with its own detections of the stamp: dropped, the first ones wait)
     pub.publish(numpy_to_image(person_blob_image(150, 90)[0], "rgb8", make_header(3500)))
     assert probe.spin_until(lambda: by_stamp(graph["meshes"], (3500, 0)), 10.0), "no mesh for the late image"
-    mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (3500, 0))[0])
+    mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (3500, 0))[0], known_faces(graph))
     np.testing.assert_allclose(mesh.detection[:4], (140.0, 80.0, 260.0, 400.0), atol=1e-4)  # these detections
 
     def refused() -> int:
@@ -341,8 +358,8 @@ def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(gr
     # threshold, above 0.1.
     results = set_parameters(probe, detector, score_threshold=0.1, max_detections=3)
     assert all(r.successful for r in results), [r.reason for r in results]
-    (crop,) = set_parameters(probe, hmr, box_scale=1.5)
-    assert crop.successful, crop.reason
+    crop, inline = set_parameters(probe, hmr, box_scale=1.5, inline_mesh_faces=True)
+    assert crop.successful and inline.successful, (crop.reason, inline.reason)
     try:
         rgb, _ = person_blob_image(200, 80)
         good = numpy_to_image(rgb, "rgb8", make_header(6000))
@@ -350,13 +367,17 @@ def test_thresholds_and_crop_change_at_runtime_and_the_engine_settings_do_not(gr
                           and by_stamp(graph["meshes"], (6000, 0)), 24.0)
         det = by_stamp(graph["detections"], (6000, 0))[0]
         assert len(det.detections) == 3 and det.detections[0].score > 0.9 > det.detections[2].score > 0.1
-        mesh = human_mesh_to_arrays(by_stamp(graph["meshes"], (6000, 0))[0])
+        mesh_msg = by_stamp(graph["meshes"], (6000, 0))[0]
+        # inline_mesh_faces: the triangles in the mesh itself (still named), readable with nothing received.
+        assert len(mesh_msg.faces) == graph["body"].faces.size and mesh_msg.faces_id
+        mesh = human_mesh_to_arrays(mesh_msg)
         box = mesh.detection
         np.testing.assert_allclose(mesh.processed_box[3],
                                    1.5 * max(box[3] - box[1] - 1, (box[2] - box[0] - 1) * 4 / 3), rtol=1e-5)
     finally:
         results = set_parameters(probe, detector, score_threshold=0.25, max_detections=20)
-        assert all(r.successful for r in results) and set_parameters(probe, hmr, box_scale=1.25)[0].successful
+        assert all(r.successful for r in results)
+        assert all(r.successful for r in set_parameters(probe, hmr, box_scale=1.25, inline_mesh_faces=False))
     (out_of_range,) = set_parameters(probe, detector, iou_threshold=1.5)
     assert not out_of_range.successful and "iou_threshold" in out_of_range.reason
     (engine,) = set_parameters(probe, detector, backend="tensorrt")

@@ -502,9 +502,13 @@ def kinds_of_meshes() -> List[Kind]:
         m.vertices = array.array("f", v.tobytes())
 
     def face_out_of_range(m):
-        f = np.frombuffer(m.faces, np.uint32).copy()
-        f[5] = 10_000_000
-        m.faces = array.array("I", f.tobytes())
+        m.faces = array.array("I", [0, 1, 2, 3, 10_000_000, 4])  # carried in the message (which wins over an id)
+
+    def unknown_faces(m):
+        m.faces_id = "20908:0123456789abcdef"  # named, never sent on mesh_faces
+
+    def malformed_faces_id(m):
+        m.faces_id = "triangles"
 
     def ragged(m):
         m.vertices = array.array("f", np.frombuffer(m.vertices, np.float32)[:-1].tobytes())
@@ -522,6 +526,8 @@ def kinds_of_meshes() -> List[Kind]:
     return [
         Kind("mesh: NaN vertex", mesh(nan_vertex), bad),
         Kind("mesh: face index out of range", mesh(face_out_of_range), bad),
+        Kind("mesh: triangles named by an id never sent", mesh(unknown_faces), ((ras, "mesh_faces_unknown"),)),
+        Kind("mesh: faces_id that is no id", mesh(malformed_faces_id), ((ras, "bad_mesh_faces"),)),
         Kind("mesh: vertex floats not a multiple of 3", mesh(ragged), bad),
         Kind("mesh: zero virtual focal length", mesh(focal), bad),
         Kind("mesh: NaN camera translation", mesh(translation), bad),

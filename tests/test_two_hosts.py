@@ -59,6 +59,9 @@ PACE_MBIT = os.environ.get("LEAPNBV_TWO_HOSTS_PACE_MBIT", "")
 # LEAPNBV_TWO_HOSTS_MIN_PLANNED: the share of published frames that must become goals (CPU-bound on a loaded
 # machine: the link's own share is asserted apart, see the end of the test).
 MIN_PLANNED = float(os.environ.get("LEAPNBV_TWO_HOSTS_MIN_PLANNED", "0.3"))
+# LEAPNBV_TWO_HOSTS_BODY: the stand-in body model's resolution: small (2707 vertices, the default) or full
+# (SMPL-X's 10,475 vertices and 20,908 triangles: the mesh a real model sends).
+BODY = os.environ.get("LEAPNBV_TWO_HOSTS_BODY", "small")
 # LEAPNBV_TWO_HOSTS_SET: more parameter overrides for both runners, space-separated NODE.PARAM=VALUE.
 EXTRA_SET = os.environ.get("LEAPNBV_TWO_HOSTS_SET", "").split()
 # LEAPNBV_TWO_HOSTS_IN_FLIGHT: detector_node's max_frames_in_flight. With the planner on host B a frame in
@@ -239,7 +242,7 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
         pytest.skip(why_not)
     from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
-    body = ensure_stand_in_body_model("small")
+    body = ensure_stand_in_body_model(BODY)
     domain = os.environ.get("ROS_DOMAIN_ID", "0")
     tag = uuid.uuid4().hex[:4]
     hosts = Namespaces(tag, 200 + int(domain) % 50)

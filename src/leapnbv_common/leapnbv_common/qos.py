@@ -8,6 +8,8 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
+from leapnbv_common.mesh_faces import KNOWN_FACES_CAPACITY
+
 
 def _keep_last(depth: int, reliability: ReliabilityPolicy, durability: DurabilityPolicy) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=reliability, durability=durability)
@@ -40,6 +42,12 @@ def latched_map_qos() -> QoSProfile:
     """Maps (e.g. the obstacle map): reliable and transient-local with depth 1, so a node that
     starts late still gets the current map, and only the latest map is kept."""
     return _keep_last(1, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def latched_mesh_faces_qos() -> QoSProfile:
+    """A body model's triangles (mesh_faces): reliable and transient-local, one sample per model kept, so a
+    reader that starts late (or on another host) still gets the triangles its meshes name."""
+    return _keep_last(KNOWN_FACES_CAPACITY, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def tf_qos(depth: int = 100) -> QoSProfile:

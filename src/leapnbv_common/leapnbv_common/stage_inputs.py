@@ -7,7 +7,7 @@ its bytes until a frame uses it).
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Optional, Sequence
 
 from sensor_msgs.msg import CameraInfo
 
@@ -21,9 +21,10 @@ from leapnbv_common.conversions import (
     check_image,
     human_mesh_to_arrays,
 )
+from leapnbv_common.mesh_faces import KnownMeshFaces, faces_id_count
 
 __all__ = ["checked_serialized_image", "checked_depth_image", "checked_colour_image", "checked_camera_info",
-           "checked_human_mesh"]
+           "checked_human_mesh", "human_mesh_face_count"]
 
 
 def checked_serialized_image(cdr: bytes, encodings: Sequence[str], what: str) -> SerializedImage:
@@ -65,12 +66,24 @@ def checked_camera_info(msg: CameraInfo) -> CameraInfo:
     return msg
 
 
-def checked_human_mesh(msg: Any) -> HumanMeshArrays:
-    """A HumanMesh's arrays, once its size passed the limit (checked on the counts, before the arrays are read).
+def human_mesh_face_count(msg: Any) -> int:
+    """The triangles a HumanMesh has: its own, or those its faces_id states (before they are looked up).
 
     Raises:
-        ContractError: more than MAX_MESH_VERTICES vertices or MAX_MESH_FACES faces (``mesh_too_large``).
+        ContractError: a faces_id that is not an id (``bad_mesh_faces``).
+    """
+    return len(msg.faces) // 3 if len(msg.faces) or not msg.faces_id else faces_id_count(msg.faces_id)
+
+
+def checked_human_mesh(msg: Any, known_faces: Optional[KnownMeshFaces] = None) -> HumanMeshArrays:
+    """A HumanMesh's arrays, once its size passed the limit (checked on the counts, before the arrays are read).
+
+    known_faces: the triangle sets received on mesh_faces, for a mesh that names its triangles by id.
+
+    Raises:
+        ContractError: more than MAX_MESH_VERTICES vertices or MAX_MESH_FACES faces (``mesh_too_large``);
+            triangles named by an id not received (``mesh_faces_unknown``).
         ConversionError: a mesh that breaks the HumanMesh contract (human_mesh_to_arrays).
     """
-    check_mesh_size("HumanMesh", len(msg.vertices) // 3, len(msg.faces) // 3)
-    return human_mesh_to_arrays(msg)
+    check_mesh_size("HumanMesh", len(msg.vertices) // 3, human_mesh_face_count(msg))
+    return human_mesh_to_arrays(msg, known_faces)

@@ -64,6 +64,11 @@ MARKERS = "markers"
 # OUTPUT_TOPICS (not every frame has one).
 BASE_PATH = "base_path"
 
+# leapnbv_msgs/MeshFaces, latched, once per body model (not per frame: not in OUTPUT_TOPICS): the triangles that
+# the HumanMesh messages on human_mesh and human_mesh_metric name by faces_id (leapnbv_common.mesh_faces).
+MESH_FACES = "mesh_faces"
+MESH_FACES_TOPIC = NAMESPACE + "/" + MESH_FACES
+
 # Every output of the graph (absolute names), with its message type.
 OUTPUT_TOPICS: Dict[str, str] = {
     NAMESPACE + "/" + DETECTIONS: "leapnbv_msgs/msg/PersonDetections",

@@ -115,6 +115,9 @@ class HmrParams(EngineParams):
     unmirror_left_hand: bool = param(True, "un-mirror the left hand (SMPLer-X: true, SMPLest-X: false)")
     track_previous_target: bool = param(True, "follow the person who overlaps the last target, else the best score")
     min_track_iou: float = param(0.3, "overlap with the last target needed to keep following it", min=0.0, max=1.0)
+    # SMPL-X's triangles are 251 KB of its 377 KB mesh and the same in every frame (docs/TWO_HOSTS.md).
+    inline_mesh_faces: bool = param(False, "send the triangles in every HumanMesh instead of once per model on "
+                                           "mesh_faces (for a consumer that does not read mesh_faces)")
     # A detector on a CPU takes 0.3-0.6 s a frame (docs/ARCHITECTURE.md, "Timing"): with 10 images at
     # 30 FPS, every frame's image was gone when its detections came (rejected.no_matching_image).
     cache_size: int = param(45, "images kept while waiting for their detections (45: 1.5 s of a 30 FPS camera)",

@@ -41,7 +41,8 @@ def test_engine_choices() -> None:
 
 def test_hmr_runtime_settings() -> None:
     runtime = {spec.name for spec in param_specs(HmrParams) if not spec.read_only}
-    assert runtime == {"box_scale", "unmirror_left_hand", "track_previous_target", "min_track_iou", "max_stamp_ahead_s"}
+    assert runtime == {"box_scale", "unmirror_left_hand", "track_previous_target", "min_track_iou", "max_stamp_ahead_s",
+                       "inline_mesh_faces"}
     with pytest.raises(ParamsError, match="box_scale = 0.5 is below its minimum 1.0"):
         replace_params(HmrParams(), {"box_scale": 0.5})
 

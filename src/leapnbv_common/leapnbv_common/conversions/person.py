@@ -15,6 +15,7 @@ from leapnbv_common.conversions.base import (
     uint32_sequence,
 )
 from leapnbv_common.conversions.stamps import input_stamp_msgs
+from leapnbv_common.mesh_faces import KnownMeshFaces, faces_id_count
 from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth
 
 if TYPE_CHECKING:
@@ -56,9 +57,10 @@ def detections_to_boxes(msg: PersonDetections) -> npt.NDArray[np.float32]:
 class HumanMeshArrays:
     """The arrays of a HumanMesh message.
 
-    vertices (V, 3) float32 in the virtual crop camera, faces (F, 3) uint32, virtual intrinsics
-    (fx, fy, cx, cy), the body parameters as axis-angle, and the camera translation (float32 when
-    read from a message; any float array when written).
+    vertices (V, 3) float32 in the virtual crop camera, faces (F, 3) uint32 (from the message, or the
+    MeshFaces its faces_id names), virtual intrinsics (fx, fy, cx, cy), the body parameters as
+    axis-angle, and the camera translation (float32 when read from a message; any float array when
+    written). faces_id: the id the message named its triangles by ("" when it carried them only).
     """
 
     vertices: npt.NDArray[Any]
@@ -76,6 +78,7 @@ class HumanMeshArrays:
     expression: npt.NDArray[Any]
     cam_translation: npt.NDArray[Any]
     model_id: str = ""
+    faces_id: str = ""
 
 
 # SMPL-X body parameters (axis-angle poses, shape, expression) carried by HumanMesh and SceneGroundTruth.
@@ -102,22 +105,38 @@ def _write_float32_fields(msg: Any, values: Any, sizes: Mapping[str, int]) -> No
         setattr(msg, name, np.asarray(getattr(values, name), dtype=np.float32).reshape(size))
 
 
-def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
+def human_mesh_to_arrays(msg: HumanMesh, known_faces: Optional[KnownMeshFaces] = None,
+                         without_faces: bool = False) -> HumanMeshArrays:
     """Arrays from a HumanMesh, checking that vertices and faces are consistent.
+
+    The triangles are the message's own, or, when it has none, those its faces_id names in
+    ``known_faces`` (the MeshFaces received: leapnbv_common.mesh_faces). ``without_faces``: for a reader
+    of the vertices only (the detector's box carrying): faces (0, 3), not looked up nor checked.
 
     Raises:
         ConversionError: vertex or face counts not multiples of 3, a face index out of range,
             non-finite vertices, or non-positive virtual focal lengths.
+        ContractError: no triangles in the message and its faces_id not among ``known_faces``
+            (``mesh_faces_unknown``), or not an id (``bad_mesh_faces``).
     """
     vertices = np.frombuffer(msg.vertices, dtype=np.float32) if len(msg.vertices) else np.zeros(0, np.float32)
-    faces = np.frombuffer(msg.faces, dtype=np.uint32) if len(msg.faces) else np.zeros(0, np.uint32)
+    faces: npt.NDArray[Any]
+    if without_faces:
+        faces = np.zeros(0, np.uint32)
+    elif len(msg.faces):
+        faces = np.frombuffer(msg.faces, dtype=np.uint32)
+    elif msg.faces_id:
+        faces_id_count(msg.faces_id)  # a malformed id is bad_mesh_faces, not unknown
+        faces = (known_faces if known_faces is not None else KnownMeshFaces()).get(msg.faces_id).reshape(-1)
+    else:
+        faces = np.zeros(0, np.uint32)
     if vertices.size == 0 or vertices.size % 3:
         raise ConversionError(f"HumanMesh has {vertices.size} vertex floats (need a non-zero multiple of 3)")
-    if faces.size == 0 or faces.size % 3:
+    if (faces.size == 0 and not without_faces) or faces.size % 3:
         raise ConversionError(f"HumanMesh has {faces.size} face indices (need a non-zero multiple of 3)")
     vertices = vertices.reshape(-1, 3)
     faces = faces.reshape(-1, 3)
-    if int(faces.max()) >= vertices.shape[0]:
+    if faces.size and int(faces.max()) >= vertices.shape[0]:
         raise ConversionError(
             f"HumanMesh face index {int(faces.max())} out of range for {vertices.shape[0]} vertices"
         )
@@ -140,19 +159,28 @@ def human_mesh_to_arrays(msg: HumanMesh) -> HumanMeshArrays:
         image_size=(int(msg.image_width), int(msg.image_height)),
         detection=detection_to_box(msg.detection),
         model_id=msg.model_id,
+        faces_id=msg.faces_id,
         **params,
     )
 
 
 def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
-                         compute_time_ms: float = 0.0, inputs: Sequence[Tuple[Any, ...]] = ()) -> HumanMesh:
-    """A HumanMesh message from arrays (the inverse of human_mesh_to_arrays); ``inputs``: see input_stamp_msgs."""
+                         compute_time_ms: float = 0.0, inputs: Sequence[Tuple[Any, ...]] = (),
+                         inline_faces: bool = True) -> HumanMesh:
+    """A HumanMesh message from arrays (the inverse of human_mesh_to_arrays); ``inputs``: see input_stamp_msgs.
+
+    inline_faces: the triangles go into the message; else only ``mesh.faces_id`` names them (the producer
+    sends them on mesh_faces), which must then be set.
+    """
     msg = HumanMesh(inputs=input_stamp_msgs(inputs))
     if header is not None:
         msg.header = header
     msg.detection = box_to_detection(mesh.detection)
     msg.vertices = float32_sequence(mesh.vertices)
-    msg.faces = uint32_sequence(mesh.faces)
+    if not inline_faces and not mesh.faces_id:
+        raise ValueError("a HumanMesh without its triangles needs the faces_id that names them")
+    msg.faces = uint32_sequence(mesh.faces if inline_faces else np.zeros(0, np.uint32))
+    msg.faces_id = mesh.faces_id
     msg.fx, msg.fy, msg.cx, msg.cy = (float(v) for v in mesh.virtual_intrinsics)
     msg.image_width, msg.image_height = (int(v) for v in mesh.image_size)
     _write_float32_fields(msg, mesh, _MESH_PARAM_SIZES)

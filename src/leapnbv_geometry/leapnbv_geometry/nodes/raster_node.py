@@ -11,6 +11,10 @@ its depth frame or its plane is superseded by a newer one; a mesh older than a f
 published is dropped; depth frames older than a published frame are dropped from the cache.
 Every drop is counted on /diagnostics (``dropped.<reason>``).
 
+A mesh that names its triangles by id takes them from mesh_faces (latched, once per model); one whose
+triangles have not come is refused (``rejected.mesh_faces_unknown``). The metric mesh goes out in the
+form its input came in: triangles named by the same id, or in the message.
+
 Parameters: :class:`leapnbv_geometry.params.RasterParams`; all but the depth cache size change at
 runtime (``ros2 param set``).
 """
@@ -34,6 +38,7 @@ from leapnbv_common.conversions import (
     numpy_to_image,
 )
 from leapnbv_common.managed_node import ManagedNode, managed_node_main
+from leapnbv_common.mesh_faces_topic import MeshFacesInput
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Stage
 from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image, checked_human_mesh
@@ -53,11 +58,13 @@ class RasterNode(ManagedNode):
         self.target_pub = self.create_lifecycle_publisher(TargetGeometry, TARGET_GEOMETRY, stage_output_qos())
         self.mask_pub = self.create_lifecycle_publisher(Image, PERSON_MASK, stage_output_qos())
         self.mesh_pub = self.create_lifecycle_publisher(HumanMesh, HUMAN_MESH_METRIC, stage_output_qos())
+        self.mesh_faces = MeshFacesInput(self)
         warm_up()  # compile the rasterizer before subscribing: the graph is ready only after it
         # The mesh starts the work (the newest only). Depth frames and camera infos are pulled when a mesh
         # comes (they do not wake the node at 30 Hz) and depth frames stay serialized until one pairs; the
         # frame's plane (ground_node stamps it with the frame's, the mesh's, stamp) is waited for briefly.
-        self.stage = Stage(self, KeyInput("human_mesh", HumanMesh, HUMAN_MESH, checked_human_mesh,
+        self.stage = Stage(self, KeyInput("human_mesh", HumanMesh, HUMAN_MESH,
+                                          lambda msg: checked_human_mesh(msg, self.mesh_faces.known),
                                           stage_input_qos(1)), [
             Companion("depth", Image, "depth", checked_depth_image, camera_input_qos(p.depth_cache_size),
                       match=NEAREST, slop_s=lambda f: self.params.value.slop_s,
@@ -82,6 +89,7 @@ class RasterNode(ManagedNode):
         ], self.on_frame, capacity=p.depth_cache_size)
 
     def activate_stage(self) -> None:
+        self.mesh_faces.subscribe()
         self.stage.start()
         self.diagnostics.await_publishers(HUMAN_MESH, GROUND_PLANE)  # ready once the stages before are connected
 
@@ -137,7 +145,8 @@ class RasterNode(ManagedNode):
         self.mask_pub.publish(numpy_to_image(result.mask.astype(np.uint8) * 255, "mono8", header))
         mesh.vertices = result.metric_vertices.astype(np.float32)
         mesh.virtual_intrinsics = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-        self.mesh_pub.publish(arrays_to_human_mesh(mesh, header, compute_time_ms, inputs=inputs))
+        self.mesh_pub.publish(arrays_to_human_mesh(mesh, header, compute_time_ms, inputs=inputs,
+                                                   inline_faces=len(mesh_msg.faces) > 0))
         self.diagnostics.frame_out(header.stamp, compute_time_ms)
 
 

@@ -19,6 +19,7 @@ from leapnbv_common.conversions import HumanMeshArrays, SerializedImage, human_m
 from leapnbv_common.diagnostics import rejects_bad_input
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import stage_input_qos
+from leapnbv_common.stage_inputs import human_mesh_face_count
 from leapnbv_common.topics import CAMERA_POSE, HUMAN_MESH_METRIC
 from leapnbv_msgs.msg import HumanMesh, InputStamp
 from leapnbv_perception.box_tracking import CarriedBox, DetectionSchedule, camera_motion, carry_box
@@ -67,10 +68,10 @@ class BoxCarrier:
         if refused(self.diagnostics, "bad_human_mesh", check_stamp_not_ahead, "human_mesh_metric", stamp,
                    self.node.get_clock().now().nanoseconds, self.node.params.value.max_stamp_ahead_s) or \
                 refused(self.diagnostics, "bad_human_mesh", check_mesh_size, "human_mesh_metric",
-                        len(msg.vertices) // 3, len(msg.faces) // 3):
+                        len(msg.vertices) // 3, human_mesh_face_count(msg)):
             return
-        if self.last_mesh is None or stamp > self.last_mesh[0]:
-            self.last_mesh = (stamp, msg.header.frame_id, human_mesh_to_arrays(msg))
+        if self.last_mesh is None or stamp > self.last_mesh[0]:  # the box comes from the vertices alone
+            self.last_mesh = (stamp, msg.header.frame_id, human_mesh_to_arrays(msg, without_faces=True))
 
     def _carry(self, image: SerializedImage, stamp: int) -> Tuple[Optional[CarriedBox], str]:
         """The box carried from the newest mesh (or None) and, for None, why it was not."""

@@ -11,8 +11,12 @@ is counted on /diagnostics (``dropped.<reason>``). Once the engine is loaded, /d
 it estimates the hands (``info.hands``: ``estimated``, or ``not_estimated`` for a body-only export,
 whose meshes all have the SMPL-X hand mean pose; that is also logged once).
 
-Parameters: :class:`leapnbv_perception.params.HmrParams`. The crop scale, the hand un-mirroring
-and the target tracking change at runtime; the engine, the models and the cache are set at start-up.
+The body model's triangles go out once per model on the latched mesh_faces topic and each mesh names
+them by id (``faces_id``; leapnbv_common.mesh_faces), unless ``inline_mesh_faces`` puts them in every mesh.
+
+Parameters: :class:`leapnbv_perception.params.HmrParams`. The crop scale, the hand un-mirroring,
+the target tracking and inline_mesh_faces change at runtime; the engine, the models and the cache are
+set at start-up.
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ from leapnbv_common.conversions import (
     image_to_rgb,
 )
 from leapnbv_common.managed_node import ManagedNode, managed_node_main
+from leapnbv_common.mesh_faces_topic import MeshFacesPublisher
 from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_qos
 from leapnbv_common.stage import REJECT, Companion, Frame, KeyInput, Stage
 from leapnbv_common.topics import DETECTIONS, HUMAN_MESH
@@ -61,6 +66,7 @@ class HmrNode(ManagedNode):
         self.engine = load_in_configure(self, f"HMR engine {p.model_file_path!r} with body model "
                                                        f"{p.body_model_path!r}", self.load_engine)
         self.publisher = self.create_lifecycle_publisher(HumanMesh, HUMAN_MESH, stage_output_qos())
+        self.mesh_faces = MeshFacesPublisher(self)
         if self.ground_truth:
             companions = GroundTruthMeshBackend.companions(p.cache_size)
         else:
@@ -139,8 +145,10 @@ class HmrNode(ManagedNode):
         else:
             mesh = self.engine_mesh(box, frame["image"])
         self.previous_box = box[:4]
+        self.mesh_faces.name(mesh)  # its triangles on mesh_faces before the first mesh that names them
         out = arrays_to_human_mesh(mesh, header=detections.header,
-                                   compute_time_ms=(time.perf_counter() - started) * 1e3, inputs=frame.inputs)
+                                   compute_time_ms=(time.perf_counter() - started) * 1e3, inputs=frame.inputs,
+                                   inline_faces=p.inline_mesh_faces)
         self.publisher.publish(out)
         self.diagnostics.frame_out(detections.header.stamp, out.compute_time_ms)
 

@@ -21,6 +21,7 @@ from leapnbv_common.camera_pose import CameraPoseSource, StampedCameraPose
 from leapnbv_common.contracts import ContractError, check_same_frame, refused
 from leapnbv_common.conversions import GroundPlaneArrays, obstacle_map_to_points, stamp_to_ns
 from leapnbv_common.diagnostics import rejects_bad_input
+from leapnbv_common.mesh_faces import KnownMeshFaces
 from leapnbv_common.qos import latched_map_qos
 from leapnbv_common.stage import Frame
 from leapnbv_common.stage_inputs import checked_human_mesh
@@ -34,14 +35,16 @@ __all__ = ["body_mesh_arrays", "FrameFloor", "ObstacleMapInput"]
 Floor = Tuple[GroundPlaneArrays, List[tuple]]
 
 
-def body_mesh_arrays(msg: HumanMesh) -> Tuple[FloatArray, IntArray]:
+def body_mesh_arrays(msg: HumanMesh, known_faces: Optional[KnownMeshFaces] = None) -> Tuple[FloatArray, IntArray]:
     """(vertices (V, 3) float64, faces (F, 3)) of a metric body mesh, checked (what BODY_MESH terms read).
 
+    known_faces: the triangle sets received on mesh_faces, for a mesh that names its triangles by id.
+
     Raises:
-        ContractError: a mesh above MAX_MESH_VERTICES / MAX_MESH_FACES (``mesh_too_large``), or one that breaks
-            the HumanMesh contract.
+        ContractError: a mesh above MAX_MESH_VERTICES / MAX_MESH_FACES (``mesh_too_large``), triangles named by an
+            id not received (``mesh_faces_unknown``), or one that breaks the HumanMesh contract.
     """
-    mesh = checked_human_mesh(msg)
+    mesh = checked_human_mesh(msg, known_faces)
     faces: IntArray = mesh.faces.reshape(-1, 3)
     return mesh.vertices.astype(np.float64), faces
 

@@ -45,6 +45,7 @@ from leapnbv_common import topics
 from leapnbv_common.camera_pose import create_camera_pose_source
 from leapnbv_common.conversions import arrays_to_view_candidates, ground_plane_to_arrays, target_geometry_to_arrays
 from leapnbv_common.managed_node import ManagedNode, managed_node_main
+from leapnbv_common.mesh_faces_topic import MeshFacesInput
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import stage_input_qos, stage_output_qos
 from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
@@ -80,6 +81,7 @@ class NbvNode(ManagedNode):
         # Optional: the robot's map of static obstacles and the camera's pose in that map per frame. Without
         # them the planner sees only what the frame shows.
         self.obstacle_map = ObstacleMapInput(self)
+        self.mesh_faces = MeshFacesInput(self)  # the triangles the metric meshes name by id
         self.commitment = NodeCommitment(self)
         # The target starts the work (the newest only); it takes the plane of its own frame (waited for),
         # its camera pose while a map or the commitment is in use (DDS does not order topics: waited for briefly)
@@ -94,7 +96,8 @@ class NbvNode(ManagedNode):
                       needed=lambda f: self.commitment.needs_pose(self.obstacle_map.in_use()),
                       wait_s=lambda f: self.commitment.pose_wait_s(self.obstacle_map.in_use()),
                       expect=lambda f: self.camera_poses.expect(f.stamp_ns, f.header.frame_id)),
-            Companion(topics.HUMAN_MESH_METRIC, HumanMesh, topics.HUMAN_MESH_METRIC, body_mesh_arrays,
+            Companion(topics.HUMAN_MESH_METRIC, HumanMesh, topics.HUMAN_MESH_METRIC,
+                      lambda msg: body_mesh_arrays(msg, self.mesh_faces.known),
                       stage_input_qos(5), needed=lambda f: self.terms_need(BODY_MESH),
                       wait_s=self.body_mesh_wait_s, missing_reason="no_body_mesh",
                       missing_detail=lambda f: "no metric body mesh of this frame: body_occlusion scored the observed"
@@ -111,6 +114,7 @@ class NbvNode(ManagedNode):
     def activate_stage(self) -> None:
         if self.params.value.use_obstacle_map:
             self.obstacle_map.subscribe()
+        self.mesh_faces.subscribe()
         self.stage.start()
         self.diagnostics.await_publishers(topics.TARGET_GEOMETRY, topics.GROUND_PLANE)
         self.goal.start()
