@@ -14,6 +14,7 @@ pytest.importorskip("rclpy")
 from leapnbv_bags.bag_io import read_bag, validate_bag_crcs  # noqa: E402
 from leapnbv_bringup.graph import OUTPUT_TOPICS  # noqa: E402
 from leapnbv_common.conversions import pose_to_numpy, stamp_to_ns  # noqa: E402
+from leapnbv_common.topics import MODEL_OUTPUT_TOPICS  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 BAGS = ("bags/sample_a", "bags/sample_b")
@@ -90,12 +91,18 @@ def test_graph_output_matches_golden_for_every_frame(repo_root, tmp_path):
     assert "PASS: 0 problems over 10 frames x 10 topics" in result.stdout
     # The recorded output bag: each topic has one message per input frame, with that frame's header.
     stamps = input_stamps(repo_root, bag)
-    per_topic = {}
+    per_topic, faces_ids, mesh_names = {}, [], set()
     for topic, _, _, msg in read_bag(tmp_path / "outputs"):
+        if topic in MODEL_OUTPUT_TOPICS:  # once per model: the triangles the meshes name
+            faces_ids.append(msg.faces_id)
+            continue
+        if topic.endswith(("human_mesh", "human_mesh_metric")):
+            mesh_names.add((msg.faces_id, len(msg.faces)))
         header = msg.markers[0].header if topic.endswith("markers") else msg.header
         assert header.frame_id == "camera_color_optical_frame", topic
         per_topic.setdefault(topic, []).append(stamp_to_ns(header.stamp))
     assert set(per_topic) == set(OUTPUT_TOPICS)
+    assert len(faces_ids) == 1 and mesh_names == {(faces_ids[0], 0)}  # every mesh names them, none carries them
     for topic, got in per_topic.items():
         assert sorted(got) == stamps, topic
     # The goal commitment: the plan's own choice alternates between candidates 34 and 35 (0.95 m apart, 5 times

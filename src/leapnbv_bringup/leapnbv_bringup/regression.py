@@ -158,6 +158,8 @@ def collect_frame_values(decoded: List[Tuple[str, int, Any]]) -> Dict[str, Dict[
     """
     out: Dict[str, Dict[int, Dict[str, np.ndarray]]] = {}
     for topic, _, msg in decoded:
+        if topic not in OUTPUT_TOPICS:
+            continue  # sent once per model (mesh_faces): no frame of its own
         if short_topic(topic) == "markers":
             if not msg.markers:
                 continue

@@ -23,6 +23,7 @@ from typing import Any, Dict, Iterator, List, Optional, Set, Tuple, cast
 
 from leapnbv_bags.bag_io import EXIT_OK, EXIT_UNREADABLE_BAG, BagError, check_bag
 from leapnbv_bringup.graph import CAMERA_TOPICS, FINAL_OUTPUT_TOPIC, OUTPUT_TOPICS
+from leapnbv_common.topics import MODEL_OUTPUT_TOPICS
 
 COLOUR_TOPIC = CAMERA_TOPICS["image"]
 
@@ -227,15 +228,19 @@ def _message_class(msgtype: str):
 
 
 class OutputRecorder:
-    """Subscribes to every output topic of the graph and keeps the raw messages in arrival order."""
+    """Subscribes to every output topic of the graph and keeps the raw messages in arrival order.
+
+    The default topics are every frame's outputs and those sent once per model (the mesh triangles the
+    meshes name), so that a bag written from the recording is complete.
+    """
 
     def __init__(self, node, topics: Optional[Dict[str, str]] = None) -> None:
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-        self.topics = dict(topics or OUTPUT_TOPICS)
+        self.topics = dict(topics or {**OUTPUT_TOPICS, **MODEL_OUTPUT_TOPICS})
         self.messages: List[Tuple[str, int, bytes]] = []
         for topic, msgtype in self.topics.items():
-            durable = topic.endswith(("next_best_view", "base_goal"))
+            durable = topic.endswith(("next_best_view", "base_goal")) or topic in MODEL_OUTPUT_TOPICS
             qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL if durable else DurabilityPolicy.VOLATILE)
             node.create_subscription(_message_class(msgtype), topic,

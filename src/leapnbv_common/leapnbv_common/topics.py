@@ -68,6 +68,8 @@ BASE_PATH = "base_path"
 # the HumanMesh messages on human_mesh and human_mesh_metric name by faces_id (leapnbv_common.mesh_faces).
 MESH_FACES = "mesh_faces"
 MESH_FACES_TOPIC = NAMESPACE + "/" + MESH_FACES
+# Outputs sent once per model, latched (a recording of the outputs keeps them: its meshes need them).
+MODEL_OUTPUT_TOPICS: Dict[str, str] = {MESH_FACES_TOPIC: "leapnbv_msgs/msg/MeshFaces"}
 
 # Every output of the graph (absolute names), with its message type.
 OUTPUT_TOPICS: Dict[str, str] = {
