@@ -43,6 +43,19 @@ class RasterParams(StageParams):
     background_stride: int = param(4, "px: pixel stride of the background point set", min=1, max=64)
     ground_inlier_threshold: float = param(0.03, "metres: background points this close to the ground plane are "
                                            "dropped", min=0.0, max=1.0)
+    # Mesh registration to the depth (mesh_registration): the registered mesh makes the mask and the target.
+    registration_enabled: bool = param(False, "scale the mesh about the camera centre to the depth inside its box "
+                                       "before the mask and the target; a mesh that cannot be registered gives no "
+                                       "target (rejected.mesh_not_registered)")
+    registration_inlier_band: float = param(0.15, "metres: |depth - registered mesh depth| within which a pixel is "
+                                            "an inlier of the registration", min=MIN_RANGE_M, max=10.0)
+    registration_min_inlier_share: float = param(0.1, "smallest share of the silhouette's valid-depth pixels that "
+                                                 "must be inliers", min=0.0, max=1.0)
+    registration_max_residual: float = param(0.1, "metres: largest RMS residual of the registration's inliers",
+                                             min=MIN_RANGE_M, max=10.0)
+    registration_max_spill: float = param(0.5, "largest share of the ring just outside the silhouette at a "
+                                          "candidate's depth (more: an occluder or background, not the person)",
+                                          min=0.0, max=1.0)
 
     def check(self) -> None:
         check_depth_range(self.min_depth, self.max_depth)

@@ -296,6 +296,8 @@ def compute_target_geometry(
     background_stride: int = 4,
     ground_plane: Optional[Tuple[FloatArray, float]] = None,
     ground_inlier_threshold: float = 0.03,
+    depth_offset: Optional[float] = None,
+    refused_reason: str = "",
 ) -> TargetGeometryResult:
     """Person mask, target points and background points of one frame (docs/ALGORITHMS.md §4).
 
@@ -330,6 +332,10 @@ def compute_target_geometry(
         ground_plane: optional (n (3,), d) with n.x + d = 0 the ground.
         ground_inlier_threshold: metres from the plane within which background points are
             ground and left out.
+        depth_offset: the depth offset to use instead of step 4's estimate (0.0 for a mesh already
+            registered to the depth, ``mesh_registration``), or None to estimate it.
+        refused_reason: when not empty, the mesh was refused before this stage: no target point
+            (``valid`` False with this reason), every valid pixel is background.
 
     Returns:
         TargetGeometryResult; ``valid`` is False (with a reason) instead of raising when the
@@ -373,7 +379,9 @@ def compute_target_geometry(
     offset = 0.0
     reason = ""
     region = _dilated_box(box_xyxy, float(box_dilation_px), width, height)
-    if silhouette_pixel_count == 0:
+    if refused_reason:
+        reason = refused_reason
+    elif silhouette_pixel_count == 0:
         reason = "mesh silhouette is empty (mesh behind the camera or outside the image)"
     elif region is None:
         reason = "person box lies outside the image"
@@ -389,7 +397,8 @@ def compute_target_geometry(
             observed = depth[row0:row1, col0:col1][rows, cols].astype(np.float64)
             rendered = mesh_depth[row0:row1, col0:col1][rows, cols].astype(np.float64)
             differences = observed - rendered
-            offset = _robust_depth_offset(differences, float(depth_tolerance))
+            offset = _robust_depth_offset(differences, float(depth_tolerance)) if depth_offset is None \
+                else float(depth_offset)
             agree = np.abs(differences - offset) <= depth_tolerance
             # Row-major within the box is row-major in the image: same order as np.nonzero(mask).
             kept_rows = rows[agree] + row0

@@ -43,6 +43,7 @@ from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_q
 from leapnbv_common.stage import NEAREST, REJECT, SAME_OR_LATEST, Companion, Frame, KeyInput, Stage
 from leapnbv_common.stage_inputs import checked_camera_info, checked_depth_image, checked_human_mesh
 from leapnbv_common.topics import GROUND_PLANE, HUMAN_MESH, HUMAN_MESH_METRIC, PERSON_MASK, TARGET_GEOMETRY
+from leapnbv_geometry.mesh_registration import register_for_frame
 from leapnbv_geometry.params import RasterParams
 from leapnbv_geometry.raster import warm_up
 from leapnbv_geometry.target_geometry import compute_target_geometry, place_mesh_metric
@@ -123,23 +124,30 @@ class RasterNode(ManagedNode):
         depth = depth_to_metres(depth_msg)
         vertices = place_mesh_metric(mesh.vertices, mesh.virtual_intrinsics, k, mesh.cam_translation,
                                      mesh.image_size, (depth.shape[1], depth.shape[0]))
+        # Registered to the depth inside the box (when on): the registered mesh makes the mask, target and mesh.
+        registration = register_for_frame(vertices, mesh.faces, depth, k, mesh.detection[:4], p)
         floor = None if ground is None else ground.value
         result = compute_target_geometry(
-            vertices, mesh.faces, depth, k, mesh.detection[:4], box_dilation_px=p.box_dilation_px,
+            registration.vertices, mesh.faces, depth, k, mesh.detection[:4], box_dilation_px=p.box_dilation_px,
             depth_tolerance=p.depth_tolerance, min_depth=p.min_depth, max_depth=p.max_depth,
             background_stride=p.background_stride,
             ground_plane=(floor.normal, floor.offset) if floor is not None and floor.valid else None,
-            ground_inlier_threshold=p.ground_inlier_threshold)
+            ground_inlier_threshold=p.ground_inlier_threshold, depth_offset=registration.depth_offset,
+            refused_reason=registration.refused_reason)
         header = depth_msg.header
         header.stamp = mesh_msg.header.stamp  # outputs carry the stamp of the frame the mesh came from
         target = TargetGeometryArrays(
             target_points=result.target_points, background_points=result.background_points,
             centroid=result.centroid, bbox_min=result.bbox_min, bbox_max=result.bbox_max,  # zeros when not valid
             mask_pixel_count=result.mask_pixel_count, visible_fraction=result.visible_fraction,
-            depth_offset=result.depth_offset, valid=result.valid, k=k, width=depth.shape[1], height=depth.shape[0])
+            depth_offset=result.depth_offset + registration.depth_shift, valid=result.valid, k=k,
+            width=depth.shape[1], height=depth.shape[0])
         compute_time_ms = (time.perf_counter() - started) * 1e3
         if not result.valid:
-            self.diagnostics.reject("empty_target", result.invalid_reason)
+            self.diagnostics.reject("mesh_not_registered" if registration.refused_reason else "empty_target",
+                                    result.invalid_reason)
+        if p.registration_enabled:  # the last frame's fit: info.registration on /diagnostics
+            self.diagnostics.set_info("registration", registration.summary)
         inputs = frame.inputs
         self.target_pub.publish(arrays_to_target_geometry(target, header, compute_time_ms, inputs=inputs))
         self.mask_pub.publish(numpy_to_image(result.mask.astype(np.uint8) * 255, "mono8", header))
