@@ -34,7 +34,7 @@ import numpy as np
 
 from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray, IntArray
 
-from .raster import rasterize_mesh
+from .raster import RasterResult, rasterize_mesh
 
 __all__ = ["MIN_INLIERS", "FrameRegistration", "RegistrationResult", "register_for_frame", "register_mesh_to_depth"]
 
@@ -60,6 +60,7 @@ class RegistrationResult:
         pixel_count: silhouette pixels with valid depth inside the box.
         spill: the chosen candidate's share of the ring outside the silhouette at its depth.
         depth_shift: metres the vertex mean moved in z ((s - 1) * its z).
+        raster: the render of ``vertices`` (the input's, depth scaled by s: the silhouette is the same).
     """
 
     ok: bool
@@ -72,6 +73,7 @@ class RegistrationResult:
     pixel_count: int
     spill: float
     depth_shift: float
+    raster: Optional[RasterResult] = None
 
 
 def _dilate(mask: BoolArray, radius: int) -> BoolArray:
@@ -221,7 +223,8 @@ def register_mesh_to_depth(
         return refused(f"residual {residual:.3f} m > {max_residual} m", residual, share, count, n_pixels, spill)
     registered = vertices * scale
     shift = float((scale - 1.0) * vertices[:, 2].mean())
-    return RegistrationResult(True, "", scale, registered, residual, share, count, n_pixels, spill, shift)
+    scaled = RasterResult(depth=rendered_full.depth * np.float32(scale), face_index=rendered_full.face_index)
+    return RegistrationResult(True, "", scale, registered, residual, share, count, n_pixels, spill, shift, scaled)
 
 
 @dataclass
@@ -235,6 +238,7 @@ class FrameRegistration:
         refused_reason: '' unless the registration refused the mesh.
         depth_shift: metres the registration moved the vertex mean in z.
         summary: 'off', or the scale, residual and inlier share for /diagnostics.
+        raster: the registered mesh's render (``compute_target_geometry``'s mesh_raster), or None.
     """
 
     vertices: FloatArray
@@ -242,6 +246,7 @@ class FrameRegistration:
     refused_reason: str
     depth_shift: float
     summary: str
+    raster: Optional[RasterResult] = None
 
 
 def register_for_frame(vertices: FloatArray, faces: IntArray, depth: FloatingArray, K: FloatArray,
@@ -270,4 +275,4 @@ def register_for_frame(vertices: FloatArray, faces: IntArray, depth: FloatingArr
                f"spill={result.spill:.3f} ok={result.ok}")
     if not result.ok:
         return FrameRegistration(vertices, None, f"mesh not registered: {result.reason}", 0.0, summary)
-    return FrameRegistration(result.vertices, 0.0, "", result.depth_shift, summary)
+    return FrameRegistration(result.vertices, 0.0, "", result.depth_shift, summary, result.raster)

@@ -9,7 +9,7 @@ import numpy as np
 
 from leapnbv_common.array_types import BoolArray, Float32Array, FloatArray, FloatingArray, IntArray
 
-from .raster import rasterize_mesh
+from .raster import RasterResult, rasterize_mesh
 
 __all__ = [
     "TargetGeometryError",
@@ -298,6 +298,7 @@ def compute_target_geometry(
     ground_inlier_threshold: float = 0.03,
     depth_offset: Optional[float] = None,
     refused_reason: str = "",
+    mesh_raster: Optional[RasterResult] = None,
 ) -> TargetGeometryResult:
     """Person mask, target points and background points of one frame (docs/ALGORITHMS.md §4).
 
@@ -336,6 +337,8 @@ def compute_target_geometry(
             registered to the depth, ``mesh_registration``), or None to estimate it.
         refused_reason: when not empty, the mesh was refused before this stage: no target point
             (``valid`` False with this reason), every valid pixel is background.
+        mesh_raster: the render of ``vertices_metric`` under K at the depth's size when already
+            made (the registration's, scaled), or None to render it here.
 
     Returns:
         TargetGeometryResult; ``valid`` is False (with a reason) instead of raising when the
@@ -362,7 +365,7 @@ def compute_target_geometry(
     _intrinsics(K)
     height, width = depth.shape
 
-    raster = rasterize_mesh(vertices_metric, faces, K, width, height)
+    raster = mesh_raster if mesh_raster is not None else rasterize_mesh(vertices_metric, faces, K, width, height)
     silhouette = raster.silhouette
     mesh_depth = raster.depth
     silhouette_pixel_count = int(np.count_nonzero(silhouette))

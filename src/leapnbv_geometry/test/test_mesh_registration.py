@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from leapnbv_geometry.mesh_registration import register_mesh_to_depth
+from leapnbv_geometry.mesh_registration import register_for_frame, register_mesh_to_depth
 from leapnbv_geometry.raster import rasterize_mesh
+from leapnbv_geometry.target_geometry import compute_target_geometry
 
 WIDTH, HEIGHT = 640, 480
 K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -123,3 +124,47 @@ def test_registration_timing():
         register_mesh_to_depth(person.vertices * 1.3, person.faces, depth, K, box)
         times.append((time.perf_counter() - start) * 1e3)
     print(f"register_mesh_to_depth: median {np.median(times):.2f} ms, max {max(times):.2f} ms (small mesh)")
+
+
+class _Params:
+    registration_enabled = True
+    box_dilation_px = 10.0
+    registration_inlier_band = 0.15
+    registration_min_inlier_share = 0.1
+    registration_max_residual = 0.1
+    registration_max_spill = 0.5
+    min_depth = 0.1
+    max_depth = 10.0
+
+
+def test_registered_mesh_makes_the_target_and_a_refused_one_none():
+    depth, object_id, person = render(occluder_top=-0.2)
+    box = silhouette_box(person.vertices, person.faces)
+    estimate = person.vertices * 1.4
+    frame = register_for_frame(estimate, person.faces, depth, K, box, _Params())
+    assert frame.refused_reason == "" and frame.depth_offset == 0.0
+    target = compute_target_geometry(frame.vertices, person.faces, depth, K, box, depth_offset=frame.depth_offset,
+                                     mesh_raster=frame.raster)
+    assert target.valid and target.depth_offset == 0.0
+    # The mask is the person's visible pixels: none of the occluder's, nor the wall's.
+    assert np.all(object_id[target.mask] == PERSON)
+    assert abs(target.centroid[2] - Z_PERSON) < 0.15
+    assert abs(frame.depth_shift - (Z_PERSON - estimate[:, 2].mean())) < 0.05
+    # The scaled render is the render of the registered mesh.
+    fresh = rasterize_mesh(frame.vertices, person.faces, K, WIDTH, HEIGHT)
+    np.testing.assert_array_equal(fresh.silhouette, frame.raster.silhouette)
+    np.testing.assert_allclose(fresh.depth, frame.raster.depth, atol=1e-4)
+
+    nobody = person_mesh(x=1.6)
+    refused = register_for_frame(nobody.vertices, nobody.faces, depth, K, silhouette_box(nobody.vertices, nobody.faces),
+                                 _Params())
+    assert refused.refused_reason.startswith("mesh not registered")
+    empty = compute_target_geometry(refused.vertices, nobody.faces, depth, K, box,
+                                    refused_reason=refused.refused_reason)
+    assert not empty.valid and empty.invalid_reason == refused.refused_reason
+    assert empty.target_points.shape == (0, 3) and empty.background_points.shape[0] > 0
+
+    off = _Params()
+    off.registration_enabled = False
+    unchanged = register_for_frame(estimate, person.faces, depth, K, box, off)
+    assert unchanged.vertices is estimate and unchanged.depth_offset is None and unchanged.summary == "off"

@@ -133,7 +133,7 @@ class RasterNode(ManagedNode):
             background_stride=p.background_stride,
             ground_plane=(floor.normal, floor.offset) if floor is not None and floor.valid else None,
             ground_inlier_threshold=p.ground_inlier_threshold, depth_offset=registration.depth_offset,
-            refused_reason=registration.refused_reason)
+            refused_reason=registration.refused_reason, mesh_raster=registration.raster)
         header = depth_msg.header
         header.stamp = mesh_msg.header.stamp  # outputs carry the stamp of the frame the mesh came from
         target = TargetGeometryArrays(
