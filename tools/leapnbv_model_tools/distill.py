@@ -60,9 +60,10 @@ Validation (each epoch, process 0): PA-MPVPE (mm, Procrustes-aligned mean vertex
 the student to the teacher's mesh, and to the ground-truth mesh where the manifest gives it.
 Outputs in --out: checkpoint.pt, history.json, curves.png (loss and PA-MPVPE), and (unless
 --no-export) student.pth.tar (the official structure) and student.onnx (export-hmr's exporter,
-its parity check and metadata).
+its checks and metadata: written only when the operators, the engine contract and the parity
+pass; a failed export leaves any earlier student.onnx as it was).
 
-Exit codes: 0 trained (and exported); 1 the export's parity check failed; 2 bad input (a
+Exit codes: 0 trained (and exported); 1 an export check failed (student.onnx not written); 2 bad input (a
 manifest, image, box, checkpoint or body model that cannot be used; a --out holding a run of
 another configuration; a batch size that the processes do not divide).
 """
@@ -618,18 +619,23 @@ def distill(config: DistillConfig) -> Dict[str, object]:
 
 def export_student(student: nn.Module, config: DistillConfig, out: Path, input_hw: Tuple[int, int]) -> Dict:
     from leapnbv_model_tools.checkpoint import save_official
-    from leapnbv_model_tools.export import export_metadata, export_onnx, parity_report
+    from leapnbv_model_tools.export import ExportCheckError, checked_export, export_metadata
     from leapnbv_perception.hmr_crop import DEFAULT_BOX_SCALE
 
     student.eval()
     checkpoint = save_official(student, str(out / "student.pth.tar"))
     onnx_path = str(out / "student.onnx")
     # The box ratio it was trained on (distill's crops), whatever its family's own; the un-mirroring is the family's.
-    export_onnx(student, onnx_path, input_hw, export_metadata(config.student_variant, sha256_of(checkpoint),
-                                                               input_hw, box_ratio=DEFAULT_BOX_SCALE))
-    crops = np.random.default_rng(0).uniform(0.0, 1.0, size=(1, 3) + input_hw).astype(np.float32)
-    report = parity_report(student, onnx_path, crops)  # export-hmr's limit: each output's own FP32 noise
-    return {"onnx": onnx_path, "checkpoint": checkpoint, "parity": report.worst_difference, "parity_ok": report.ok}
+    metadata = export_metadata(config.student_variant, sha256_of(checkpoint), input_hw, box_ratio=DEFAULT_BOX_SCALE)
+    # export-hmr's checks (operators, engine contract, parity within each output's own FP32 noise) on the staged
+    # file: student.onnx is written only when they pass, so a failed export never leaves an engine to deploy.
+    try:
+        report = checked_export(student, onnx_path, input_hw, metadata, parity_crops=1)
+    except ExportCheckError as error:
+        print(f"distill: student.onnx not written: {error}", file=sys.stderr)
+        worst = error.report.worst_difference if error.report is not None else float("nan")
+        return {"onnx": None, "checkpoint": checkpoint, "parity": worst, "parity_ok": False}
+    return {"onnx": onnx_path, "checkpoint": checkpoint, "parity": report.worst_difference, "parity_ok": True}
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -242,3 +242,28 @@ def test_unusable_checkpoints_and_resume_state_are_one_line(setup, tmp_path: Pat
                  "t32", "--student-variant", "t32", "--body-model", setup[2], "--out", str(tmp_path / "cli")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"distill: checkpoint '{truncated}' is truncated") and err.count("\n") == 1, err
+
+
+def test_a_student_whose_export_fails_parity_leaves_no_engine(setup, tmp_path: Path, monkeypatch, capsys) -> None:
+    """distill exports through export-hmr's checks: a parity failure keeps student.onnx from being written (the
+    checkpoint stays), the result says so and the CLI's exit is 1; a good student.onnx from an earlier run stays."""
+    from leapnbv_model_tools import export
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "student.onnx").write_bytes(b"an earlier run's good engine")
+    real = export.parity_report
+
+    def off_by_far(*args, **kwargs):
+        report = real(*args, **kwargs)
+        first = report.outputs[0]
+        return export.ParityReport((export.OutputParity(first.name, 1.0, first.noise, first.scale),)
+                                   + report.outputs[1:])
+
+    monkeypatch.setattr(export, "parity_report", off_by_far)
+    result = distill(_config(setup, str(out), export=True, epochs=1))
+    assert not result["parity_ok"] and result["onnx"] is None and result["parity"] == 1.0
+    assert (out / "student.onnx").read_bytes() == b"an earlier run's good engine"
+    assert Path(result["checkpoint"]).stat().st_size > 0
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".export-hmr-")]  # no staged leftovers
+    assert "student.onnx not written: parity onnxruntime vs PyTorch over the limit in" in capsys.readouterr().err
