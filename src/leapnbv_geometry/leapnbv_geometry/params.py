@@ -41,6 +41,8 @@ class RasterParams(StageParams):
     min_depth: float = param(0.1, "metres: nearer depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
     max_depth: float = param(10.0, "metres: farther depth readings are invalid", min=MIN_RANGE_M, max=MAX_RANGE_M)
     background_stride: int = param(4, "px: pixel stride of the background point set", min=1, max=64)
+    target_stride: int = param(1, "px: target points of every n-th row and column (1: every person pixel; 2 for a "
+                                  "planner over a Wi-Fi link, docs/TWO_HOSTS.md)", min=1, max=8)
     ground_inlier_threshold: float = param(0.03, "metres: background points this close to the ground plane are "
                                            "dropped", min=0.0, max=1.0)
     # Mesh registration to the depth (mesh_registration): the registered mesh makes the mask and the target.

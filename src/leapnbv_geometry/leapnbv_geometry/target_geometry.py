@@ -36,12 +36,13 @@ class TargetGeometryResult:
     Attributes:
         valid: True when at least one target point was found.
         invalid_reason: '' when valid, otherwise a short human-readable reason.
-        target_points: (N, 3) float32 back-projected person pixels, metres.
-        centroid: (3,) float64 per-axis median of ``target_points``.
-        bbox_min: (3,) float64 per-axis minimum of ``target_points``.
-        bbox_max: (3,) float64 per-axis maximum of ``target_points``.
+        target_points: (N, 3) float32 back-projected person pixels, metres (with ``target_stride`` s > 1
+            those of every s-th row and column).
+        centroid: (3,) float64 per-axis median of every person pixel's point.
+        bbox_min: (3,) float64 per-axis minimum of every person pixel's point.
+        bbox_max: (3,) float64 per-axis maximum of every person pixel's point.
         mask: (H, W) bool final person mask: silhouette ∩ dilated box ∩ valid depth ∩ depth
-            agreement with the aligned mesh. ``target_points`` are exactly its pixels.
+            agreement with the aligned mesh. ``target_points`` are exactly its pixels (stride 1).
         silhouette: (H, W) bool mesh silhouette under the real K (before the box and depth).
         box_mask: (H, W) bool silhouette ∩ dilated box (the paper's M, before depth).
         mask_pixel_count: pixels in ``mask`` (reconstructed area).
@@ -294,6 +295,7 @@ def compute_target_geometry(
     min_depth: float = 0.1,
     max_depth: float = 10.0,
     background_stride: int = 4,
+    target_stride: int = 1,
     ground_plane: Optional[Tuple[FloatArray, float]] = None,
     ground_inlier_threshold: float = 0.03,
     depth_offset: Optional[float] = None,
@@ -330,6 +332,9 @@ def compute_target_geometry(
         min_depth: nearest valid depth, metres.
         max_depth: farthest valid depth, metres.
         background_stride: pixel stride of the background points.
+        target_stride: keep the target points of every n-th image row and column (1: every person pixel).
+            What crosses a slow link to the planner (docs/TWO_HOSTS.md); the centroid, box, mask and
+            visible fraction are of every person pixel whatever the stride.
         ground_plane: optional (n (3,), d) with n.x + d = 0 the ground.
         ground_inlier_threshold: metres from the plane within which background points are
             ground and left out.
@@ -360,6 +365,8 @@ def compute_target_geometry(
         raise TargetGeometryError(f"vertices_metric must be (V, 3), got {vertices_metric.shape}")
     if not depth_tolerance > 0.0:
         raise TargetGeometryError(f"depth_tolerance must be > 0, got {depth_tolerance}")
+    if int(target_stride) < 1:
+        raise TargetGeometryError(f"target_stride must be >= 1, got {target_stride}")
     if int(background_stride) < 1:
         raise TargetGeometryError(f"background_stride must be >= 1, got {background_stride}")
     _intrinsics(K)
@@ -448,6 +455,10 @@ def compute_target_geometry(
         centroid = np.zeros(3)
         bbox_min = np.zeros(3)
         bbox_max = np.zeros(3)
+    if int(target_stride) > 1 and valid:
+        on_grid = (kept_rows % int(target_stride) == 0) & (kept_cols % int(target_stride) == 0)
+        if np.any(on_grid):  # a person smaller than the grid keeps its pixels: never a valid target without points
+            target_points = target_points[on_grid]
     return TargetGeometryResult(
         valid=valid,
         invalid_reason=reason if not valid else "",

@@ -104,6 +104,26 @@ def test_occluder_and_background_through_gap_are_excluded():
     assert np.median(np.abs(aligned.depth[visible_person] - depth[visible_person])) < 0.02
 
 
+def test_target_stride_keeps_the_grid_pixels_and_every_pixels_summary():
+    depth, object_id, true_person = render_scene()
+    true_alone = rasterize_mesh(true_person.vertices, true_person.faces, K_REAL, WIDTH, HEIGHT)
+    box = silhouette_box(true_alone.silhouette)
+    full = compute_target_geometry(true_person.vertices, true_person.faces, depth, K_REAL, box)
+    strided = compute_target_geometry(true_person.vertices, true_person.faces, depth, K_REAL, box, target_stride=2)
+    # The points of the person pixels on the even rows and columns, in the same order.
+    grid = np.zeros_like(full.mask)
+    grid[::2, ::2] = True
+    np.testing.assert_allclose(strided.target_points, backproject(depth, K_REAL, mask=full.mask & grid))
+    assert 0.2 < strided.target_points.shape[0] / full.target_points.shape[0] < 0.3
+    # Mask, counts and the summaries are of every person pixel, as without the stride.
+    np.testing.assert_array_equal(strided.mask, full.mask)
+    assert strided.mask_pixel_count == full.mask_pixel_count and strided.visible_fraction == full.visible_fraction
+    np.testing.assert_array_equal(strided.centroid, full.centroid)
+    np.testing.assert_array_equal(strided.bbox_min, full.bbox_min)
+    with pytest.raises(TargetGeometryError, match="target_stride must be >= 1"):
+        compute_target_geometry(true_person.vertices, true_person.faces, depth, K_REAL, box, target_stride=0)
+
+
 def test_background_points_hold_occluder_and_wall_minus_ground():
     depth, object_id, true_person = render_scene()
     true_alone = rasterize_mesh(true_person.vertices, true_person.faces, K_REAL, WIDTH, HEIGHT)

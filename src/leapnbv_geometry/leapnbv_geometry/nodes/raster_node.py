@@ -130,7 +130,7 @@ class RasterNode(ManagedNode):
         result = compute_target_geometry(
             registration.vertices, mesh.faces, depth, k, mesh.detection[:4], box_dilation_px=p.box_dilation_px,
             depth_tolerance=p.depth_tolerance, min_depth=p.min_depth, max_depth=p.max_depth,
-            background_stride=p.background_stride,
+            background_stride=p.background_stride, target_stride=p.target_stride,
             ground_plane=(floor.normal, floor.offset) if floor is not None and floor.valid else None,
             ground_inlier_threshold=p.ground_inlier_threshold, depth_offset=registration.depth_offset,
             refused_reason=registration.refused_reason, mesh_raster=registration.raster)
