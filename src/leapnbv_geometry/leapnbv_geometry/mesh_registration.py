@@ -43,6 +43,7 @@ SCALE_RANGE = (0.25, 4.0)  # depth scales outside this are no HMR depth error bu
 MAX_CANDIDATES = 6
 RING_FRACTION = 0.04  # ring width around the silhouette, share of the box's larger side
 MIN_RING_PX = 3
+SPILL_BAND_SHARE = 0.5  # a surface going on past the silhouette is continuous: half the inlier band
 
 
 @dataclass
@@ -90,6 +91,40 @@ def _dilate(mask: BoolArray, radius: int) -> BoolArray:
                 grown[:, :-step] |= out[:, step:]
         out = grown
     return out
+
+
+def _extreme_filter(values: FloatArray, radius: int, take_max: bool) -> FloatArray:
+    """Square running max (or min) over a (2 radius + 1) window (separable; edges see fewer pixels)."""
+    pick = np.maximum if take_max else np.minimum
+    out = values
+    for axis in (0, 1):
+        grown = out.copy()
+        for step in range(1, radius + 1):
+            if axis == 0:
+                pick(grown[step:], out[:-step], out=grown[step:])
+                pick(grown[:-step], out[step:], out=grown[:-step])
+            else:
+                pick(grown[:, step:], out[:, :-step], out=grown[:, step:])
+                pick(grown[:, :-step], out[:, step:], out=grown[:, :-step])
+        out = grown
+    return out
+
+
+def _contact_spill(inlier_depth: FloatArray, ring: BoolArray, measured: FloatArray, radius: int, band: float) -> float:
+    """Share of the ring pixels next to a candidate's inliers that see the same surface go on.
+
+    ``inlier_depth`` is the measured depth at the candidate's inlier pixels and NaN elsewhere. A ring
+    pixel touches the candidate when an inlier lies within ``radius``; it continues it when its depth
+    is within ``band`` of the depths of the inliers around it.
+    """
+    highest = _extreme_filter(np.where(np.isnan(inlier_depth), -np.inf, inlier_depth), radius, True)
+    lowest = _extreme_filter(np.where(np.isnan(inlier_depth), np.inf, inlier_depth), radius, False)
+    touching = ring & np.isfinite(highest)
+    if not np.any(touching):
+        return 0.0
+    depth = measured[touching]
+    continued = (depth >= lowest[touching] - band) & (depth <= highest[touching] + band)
+    return float(np.mean(continued))
 
 
 def _box_region(box_xyxy: Sequence[float], dilation: float, width: int, height: int
@@ -187,7 +222,12 @@ def register_mesh_to_depth(
 
     ring_px = max(MIN_RING_PX, int(round(RING_FRACTION * max(row1 - row0, col1 - col0))))
     ring = _dilate(silhouette, ring_px) & ~silhouette & valid
-    ring_depth = measured[ring].astype(np.float64)
+    # The spill test runs on a grid of about three samples across the ring: its cost does not grow with the box.
+    grid = max(1, ring_px // 3)
+    grid_radius = int(np.ceil(ring_px / grid))
+    ring_grid = ring[::grid, ::grid]
+    measured_grid = measured[::grid, ::grid].astype(np.float32)
+    pixel_grid = pixels[::grid, ::grid]
 
     ratio = observed / rendered
     bin_width = inlier_band / float(np.median(rendered))
@@ -203,9 +243,10 @@ def register_mesh_to_depth(
         count = int(np.count_nonzero(inliers))
         if count < MIN_INLIERS:
             continue
-        near, far = np.percentile(observed[inliers], [5.0, 95.0])
-        spill = float(np.mean((ring_depth >= near - inlier_band) & (ring_depth <= far + inlier_band))) \
-            if ring_depth.size else 0.0
+        inlier_depth = np.full(silhouette.shape, np.nan, dtype=np.float32)
+        inlier_depth[pixels] = np.where(inliers, observed, np.nan)
+        spill = _contact_spill(np.where(pixel_grid, inlier_depth[::grid, ::grid], np.nan), ring_grid, measured_grid,
+                               grid_radius, SPILL_BAND_SHARE * inlier_band)
         if spill > max_spill:
             spilling += 1
             continue
