@@ -68,6 +68,9 @@ EXTRA_SET = os.environ.get("LEAPNBV_TWO_HOSTS_SET", "").split()
 # flight is mostly on the link or on B's CPU, not A's: 2 lets A work on the next frame meanwhile
 # (docs/TWO_HOSTS.md); the other split keeps the parameter file's value unless this is set.
 IN_FLIGHT = os.environ.get("LEAPNBV_TWO_HOSTS_IN_FLIGHT", "2" if SPLIT == "planner" else "")
+# LEAPNBV_TWO_HOSTS_TARGET_STRIDE: raster_node's target_stride. With the planner on host B the target points
+# cross the link: 2 (a quarter of them) fits SMPL-X-size meshes into 30 Mbit/s (docs/TWO_HOSTS.md).
+TARGET_STRIDE = os.environ.get("LEAPNBV_TWO_HOSTS_TARGET_STRIDE", "2" if SPLIT == "planner" else "")
 SIM_RATE_HZ = 5.0
 RECORD_S = 50.0  # seconds the camera runs
 DEPTH_FRAME_BYTES = 640 * 480 * 2
@@ -272,6 +275,8 @@ def test_graph_split_over_two_network_namespaces(tmp_path):
               "--body-model", body, "--no-restart", "--ready-timeout", "120"]
     if IN_FLIGHT:
         runner += ["--set", f"detector_node.max_frames_in_flight={IN_FLIGHT}"]
+    if TARGET_STRIDE:
+        runner += ["--set", f"raster_node.target_stride={TARGET_STRIDE}"]
     for override in EXTRA_SET:
         runner += ["--set", override]
     try:
