@@ -93,7 +93,7 @@ def _dilate(mask: BoolArray, radius: int) -> BoolArray:
     return out
 
 
-def _extreme_filter(values: FloatArray, radius: int, take_max: bool) -> FloatArray:
+def _extreme_filter(values: FloatingArray, radius: int, take_max: bool) -> FloatingArray:
     """Square running max (or min) over a (2 radius + 1) window (separable; edges see fewer pixels)."""
     pick = np.maximum if take_max else np.minimum
     out = values
@@ -110,7 +110,8 @@ def _extreme_filter(values: FloatArray, radius: int, take_max: bool) -> FloatArr
     return out
 
 
-def _contact_spill(inlier_depth: FloatArray, ring: BoolArray, measured: FloatArray, radius: int, band: float) -> float:
+def _contact_spill(inlier_depth: FloatingArray, ring: BoolArray, measured: FloatingArray, radius: int,
+                   band: float) -> float:
     """Share of the ring pixels next to a candidate's inliers that see the same surface go on.
 
     ``inlier_depth`` is the measured depth at the candidate's inlier pixels and NaN elsewhere. A ring
@@ -154,8 +155,11 @@ def _refine(scale: float, observed: FloatArray, rendered: FloatArray, band: floa
 def _candidates(ratio: FloatArray, bin_width: float, min_count: int) -> List[float]:
     """Ratios at the peaks of the 3-bin smoothed histogram holding at least ``min_count`` values."""
     low, high = SCALE_RANGE
-    edges = np.arange(low, high + bin_width, bin_width)
-    counts = np.histogram(ratio, bins=edges)[0]
+    bins = int(np.ceil((high - low) / bin_width))
+    index = np.floor((ratio - low) / bin_width)
+    index = index[(index >= 0) & (index < bins)].astype(np.int64)
+    counts = np.bincount(index, minlength=bins)
+    edges = low + bin_width * np.arange(bins + 1)
     smooth = np.convolve(counts, np.ones(3), mode="same")
     padded = np.concatenate(([-1.0], smooth, [-1.0]))
     peaks = np.nonzero((smooth >= padded[:-2]) & (smooth > padded[2:]) & (smooth >= min_count))[0]
@@ -221,13 +225,15 @@ def register_mesh_to_depth(
         return refused(f"{n_pixels} silhouette pixels with valid depth in the box (< {MIN_INLIERS})", pixels=n_pixels)
 
     ring_px = max(MIN_RING_PX, int(round(RING_FRACTION * max(row1 - row0, col1 - col0))))
-    ring = _dilate(silhouette, ring_px) & ~silhouette & valid
     # The spill test runs on a grid of about three samples across the ring: its cost does not grow with the box.
     grid = max(1, ring_px // 3)
     grid_radius = int(np.ceil(ring_px / grid))
-    ring_grid = ring[::grid, ::grid]
+    silhouette_grid = silhouette[::grid, ::grid]
+    ring_grid = _dilate(silhouette_grid, grid_radius) & ~silhouette_grid & valid[::grid, ::grid]
     measured_grid = measured[::grid, ::grid].astype(np.float32)
-    pixel_grid = pixels[::grid, ::grid]
+    pixel_rows, pixel_cols = np.nonzero(pixels)  # the order of observed / rendered
+    on_grid = (pixel_rows % grid == 0) & (pixel_cols % grid == 0)
+    grid_index = (pixel_rows[on_grid] // grid, pixel_cols[on_grid] // grid)
 
     ratio = observed / rendered
     bin_width = inlier_band / float(np.median(rendered))
@@ -243,10 +249,9 @@ def register_mesh_to_depth(
         count = int(np.count_nonzero(inliers))
         if count < MIN_INLIERS:
             continue
-        inlier_depth = np.full(silhouette.shape, np.nan, dtype=np.float32)
-        inlier_depth[pixels] = np.where(inliers, observed, np.nan)
-        spill = _contact_spill(np.where(pixel_grid, inlier_depth[::grid, ::grid], np.nan), ring_grid, measured_grid,
-                               grid_radius, SPILL_BAND_SHARE * inlier_band)
+        inlier_depth = np.full(ring_grid.shape, np.nan, dtype=np.float32)
+        inlier_depth[grid_index] = np.where(inliers[on_grid], observed[on_grid], np.nan)
+        spill = _contact_spill(inlier_depth, ring_grid, measured_grid, grid_radius, SPILL_BAND_SHARE * inlier_band)
         if spill > max_spill:
             spilling += 1
             continue
