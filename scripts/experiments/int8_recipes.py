@@ -29,8 +29,8 @@ from typing import Dict, List
 
 import numpy as np
 
-VARIANTS = ("u8s8", "u8s8-quantized-matmul-outputs", "u8s8-all-ops", "u8s8-no-softmax", "u8s8-products", "u8s8-no-rewrite", "u8s8-no-preprocess",
-            "u8s8-reduce-range", "s8s8", "fp32-rewritten")
+VARIANTS = ("u8s8", "u8s8-quantized-matmul-outputs", "u8s8-all-ops", "u8s8-no-softmax", "u8s8-products",
+            "u8s8-no-rewrite", "u8s8-no-preprocess", "u8s8-reduce-range", "s8s8", "fp32-rewritten")
 
 
 def main(argv=None) -> int:
