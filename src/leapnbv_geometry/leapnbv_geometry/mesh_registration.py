@@ -27,7 +27,7 @@ than the person.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -62,6 +62,7 @@ class RegistrationResult:
         spill: the chosen candidate's share of the ring outside the silhouette at its depth.
         depth_shift: metres the vertex mean moved in z ((s - 1) * its z).
         raster: the render of ``vertices`` (the input's, depth scaled by s: the silhouette is the same).
+        candidates: (scale, inliers, spill) of every candidate tried, for diagnosis.
     """
 
     ok: bool
@@ -75,6 +76,7 @@ class RegistrationResult:
     spill: float
     depth_shift: float
     raster: Optional[RasterResult] = None
+    candidates: List[Tuple[float, int, float]] = field(default_factory=list)
 
 
 def _dilate(mask: BoolArray, radius: int) -> BoolArray:
@@ -203,10 +205,12 @@ def register_mesh_to_depth(
     vertices = np.asarray(vertices, dtype=np.float64)
     depth = np.asarray(depth)
     height, width = depth.shape
+    tried: List[Tuple[float, int, float]] = []
 
     def refused(reason: str, residual: float = 0.0, share: float = 0.0, inliers: int = 0, pixels: int = 0,
                 spill: float = 0.0) -> RegistrationResult:
-        return RegistrationResult(False, reason, 1.0, vertices, residual, share, inliers, pixels, spill, 0.0)
+        return RegistrationResult(False, reason, 1.0, vertices, residual, share, inliers, pixels, spill, 0.0,
+                                  candidates=tried)
 
     region = _box_region(box_xyxy, float(box_dilation_px), width, height)
     if region is None or vertices.shape[0] == 0:
@@ -252,9 +256,12 @@ def register_mesh_to_depth(
         inlier_depth = np.full(ring_grid.shape, np.nan, dtype=np.float32)
         inlier_depth[grid_index] = np.where(inliers[on_grid], observed[on_grid], np.nan)
         spill = _contact_spill(inlier_depth, ring_grid, measured_grid, grid_radius, SPILL_BAND_SHARE * inlier_band)
+        tried.append((scale, count, spill))
         if spill > max_spill:
             spilling += 1
             continue
+        # A product such as count * (1 - spill) lets a big occluder that spills 0.65 beat a visible person that
+        # does not: the spill is a test, not a weight.
         if best is None or count > best[0]:
             best = (count, scale, inliers, spill)
     if best is None:
@@ -270,7 +277,8 @@ def register_mesh_to_depth(
     registered = vertices * scale
     shift = float((scale - 1.0) * vertices[:, 2].mean())
     scaled = RasterResult(depth=rendered_full.depth * np.float32(scale), face_index=rendered_full.face_index)
-    return RegistrationResult(True, "", scale, registered, residual, share, count, n_pixels, spill, shift, scaled)
+    return RegistrationResult(True, "", scale, registered, residual, share, count, n_pixels, spill, shift, scaled,
+                              tried)
 
 
 @dataclass
