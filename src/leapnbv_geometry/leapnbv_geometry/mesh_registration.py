@@ -11,18 +11,19 @@ nearer) and background behind (D much farther):
    mesh depth); each refined by the median r of its inliers with a shrinking band (3, 2, 1 x band).
    Inliers of s: |D - s D_mesh| <= band.
 3. Occluders and background are surfaces that go on past the silhouette; the person's surface ends at
-   it. A candidate's spill is the share of the ring of pixels just outside S (inside the dilated box,
-   valid depth) whose depth lies in its inliers' depth range widened by the band. Candidates with a
-   spill above ``max_spill`` are surfaces (occluder, wall), not the person.
+   it. A candidate's spill: of the ring pixels just outside S (inside the dilated box, valid depth) that
+   lie next to its inliers, the share whose depth is within half the band of those inliers' depths
+   (on a grid of about three samples across the ring). Candidates that spill more than ``max_spill``
+   are surfaces (occluder, wall), not the person.
 4. The chosen candidate: the one with most inliers among those that do not spill. Refused when none is
    left, or its inlier share of P is under ``min_inlier_share``, or it has fewer than ``MIN_INLIERS``
    pixels, or its residual (RMS of D - s D_mesh over its inliers) is above ``max_residual``.
 
-Limits: a person touching a surface that spans the silhouette at their own depth (back against a wall
-within the band, lying on a bed) spills and is refused (no plan, never a plan around the wall); a
-person whose visible part is under ``min_inlier_share`` of the silhouette is refused; an occluder the
-size of the silhouette's own outline and no bigger is taken for a person only if it has more inliers
-than the person.
+Limits: only the depth scale is registered, and the spill test assumes the mesh is placed well in the
+image: a mesh 10-20 % of the box off the person sees the person go on past its outline, spills like an
+occluder and is mostly refused (no plan, never a plan around the wall; docs/ALGORITHMS.md §4b). A person
+whose visible part is under ``min_inlier_share`` of the silhouette is refused; an occluder that ends at
+the body's outline does not spill and wins if it has more inliers than the visible person.
 """
 
 from __future__ import annotations
