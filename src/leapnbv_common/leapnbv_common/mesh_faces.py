@@ -10,6 +10,7 @@ that the triangles it received are the ones their id names.
 from __future__ import annotations
 
 import hashlib
+import typing
 from collections import OrderedDict
 from typing import Optional
 
@@ -75,7 +76,7 @@ class KnownMeshFaces:
 
     def __init__(self, capacity: int = KNOWN_FACES_CAPACITY) -> None:
         self.capacity = capacity
-        self._faces: OrderedDict[str, IntArray] = OrderedDict()
+        self._faces: typing.OrderedDict[str, IntArray] = OrderedDict()
 
     def add(self, faces_id: str, faces: npt.ArrayLike) -> IntArray:
         """Keep the triangles of one MeshFaces message; returns them as (F, 3) uint32.

@@ -6,6 +6,7 @@ and look a mesh's triangles up by its faces_id (leapnbv_common.mesh_faces, the R
 """
 from __future__ import annotations
 
+import typing
 from collections import OrderedDict
 from typing import Any
 
@@ -35,7 +36,7 @@ class MeshFacesPublisher:
         self.node = node
         self.publisher = node.create_lifecycle_publisher(MeshFaces, MESH_FACES, latched_mesh_faces_qos())
         self.memo = FacesIdMemo()
-        self.sent: OrderedDict[str, None] = OrderedDict()
+        self.sent: typing.OrderedDict[str, None] = OrderedDict()
 
     def name(self, mesh: HumanMeshArrays) -> None:
         """Set ``mesh.faces_id``, publishing its triangles first if this publisher has not yet."""
