@@ -133,6 +133,7 @@ ROS_GLUE: Dict[str, str] = {
     "leapnbv_common.camera_pose": "the camera-pose sources: pose and TF messages in, poses out",
     "leapnbv_common.managed_node": "the lifecycle (managed) node every stage node is",
     "leapnbv_common.stage_inputs": "the stage helper's per-input converters: messages in, arrays out",
+    "leapnbv_common.mesh_faces_topic": "the mesh_faces topic: a model's triangles published once and kept by id",
     "leapnbv_perception.backends.ground_truth": "reads the simulator's ground-truth messages in place of engines",
     "leapnbv_sim.frame_messages": "the messages a camera driver publishes for a rendered frame (node and bags)",
     "leapnbv_bringup": "starts, supervises and replays the graph: all of it talks to ROS",
