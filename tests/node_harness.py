@@ -228,7 +228,8 @@ def lifecycle_get(probe: Probe, node: str, timeout_s: float = 10.0) -> str:
     """``ros2 lifecycle get <node>`` over DDS: the label of its state (e.g. "unconfigured")."""
     from lifecycle_msgs.srv import GetState
 
-    return _lifecycle_call(probe, GetState, f"{node}/get_state", GetState.Request(), timeout_s).current_state.label
+    return _lifecycle_call(probe, GetState, f"{node}/get_state", GetState.Request(), timeout_s,
+                           query=True).current_state.label
 
 
 def lifecycle_transitions(probe: Probe, node: str, timeout_s: float = 10.0) -> List[str]:
@@ -236,7 +237,7 @@ def lifecycle_transitions(probe: Probe, node: str, timeout_s: float = 10.0) -> L
     from lifecycle_msgs.srv import GetAvailableTransitions
 
     response = _lifecycle_call(probe, GetAvailableTransitions, f"{node}/get_available_transitions",
-                               GetAvailableTransitions.Request(), timeout_s)
+                               GetAvailableTransitions.Request(), timeout_s, query=True)
     return [t.transition.label for t in response.available_transitions]
 
 
@@ -249,13 +250,22 @@ def lifecycle_set(probe: Probe, node: str, transition: str, timeout_s: float = 6
     return bool(_lifecycle_call(probe, ChangeState, f"{node}/change_state", request, timeout_s).success)
 
 
-def _lifecycle_call(probe: Probe, srv_type, service: str, request, timeout_s: float):
+def _lifecycle_call(probe: Probe, srv_type, service: str, request, timeout_s: float, query: bool = False):
+    """One service call; ``query`` (a read-only service): asked again once when no answer came.
+
+    A client whose request reader matched may still lack the server's response writer (DDS matches the two
+    topics of a service one by one), and on a loaded machine the one answer is then lost; asking a state
+    twice changes nothing.
+    """
     client = probe.node.create_client(srv_type, service)
     try:
         assert probe.spin_until(client.service_is_ready, 10.0), f"no {service} service"
-        future = client.call_async(request)
-        assert probe.spin_until(future.done, timeout_s), f"{service}: no answer within {timeout_s} s"
-        return future.result()
+        for _ in range(2 if query else 1):
+            future = client.call_async(request)
+            if probe.spin_until(future.done, timeout_s):
+                return future.result()
+        raise AssertionError(f"{service}: no answer within {timeout_s} s"
+                             + (" (asked twice)" if query else ""))
     finally:
         probe.node.destroy_client(client)
 
