@@ -8,19 +8,12 @@ Exit 0; 2 when a run is missing.
 """
 from __future__ import annotations
 
-import math
 import os
 import sys
 from typing import List
 
-from leapnbv_evaluation.results import EvaluationRun
-from leapnbv_evaluation.task_report import aggregate_task_results
-
-METHODS = ("leap_nbv", "random", "oracle")
-
-
-def _fmt(value: float, digits: int = 1) -> str:
-    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from learned_perception_table import print_table  # noqa: E402
 
 
 def main(argv: List[str]) -> int:
@@ -28,28 +21,8 @@ def main(argv: List[str]) -> int:
     if len(argv) != 1:
         print("usage: int8_closed_loop_table.py OUT", file=sys.stderr)
         return 2
-    lines = ["| HMR engine | method | scenes | success (%) | coverage before -> after (%) | area before -> after "
-             "(k px) | PA-MPVPE before -> after (mm) |", "|---|---|---:|---:|---:|---:|---:|"]
-    failures = []
-    for variant in ("fp32", "int8"):
-        path = os.path.join(argv[0], variant, "run.json")
-        if not os.path.exists(path):
-            print(f"int8_closed_loop_table: run not found: '{path}'", file=sys.stderr)
-            return 2
-        run = EvaluationRun.read(path)
-        failures.append(f"{variant}: {sum(1 for s in run.scenes if s.graph_failure)} of {len(run.scenes)}")
-        per_method = aggregate_task_results(run)["per_method"]
-        for method in METHODS:
-            if method not in per_method:
-                continue
-            row = per_method[method]
-            lines.append(f"| {variant.upper()} | {method} | {row['scenes']} | {_fmt(row['success_rate_pct'])} | "
-                         f"{_fmt(row['coverage_before_pct'])} -> {_fmt(row['coverage_after_pct'])} | "
-                         f"{_fmt(row['area_before_kpx'])} -> {_fmt(row['area_after_kpx'])} | "
-                         f"{_fmt(row['pa_mpvpe_before_mm'])} -> {_fmt(row['pa_mpvpe_mm'])} |")
-    print("\n".join(lines))
-    print(f"\ngraph failures: {'; '.join(failures)}")
-    return 0
+    return print_table(argv[0], ("fp32", "int8"), "HMR engine", "int8_closed_loop_table",
+                       lambda variant, run: variant.upper(), missing_error=None)
 
 
 if __name__ == "__main__":

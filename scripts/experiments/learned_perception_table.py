@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 import sys
-from typing import List
+from typing import Callable, List, Optional, Sequence
 
 from leapnbv_evaluation.results import EvaluationRun
 from leapnbv_evaluation.task_report import aggregate_task_results
@@ -23,17 +23,20 @@ def _fmt(value: float, digits: int = 1) -> str:
     return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def main(argv: List[str]) -> int:
-    if len(argv) != 1:
-        print("usage: learned_perception_table.py OUT", file=sys.stderr)
-        return 2
-    lines = ["| perception | method | scenes | success (%) | coverage before -> after (%) | area before -> after "
-             "(k px) | PA-MPVPE before -> after (mm) |", "|---|---|---:|---:|---:|---:|---:|"]
+def print_table(out_dir: str, variants: Sequence[str], first_column: str, program: str,
+                label: Callable[[str, EvaluationRun], str], missing_error: Optional[str] = "n/a") -> int:
+    """Print the table of OUT_DIR/<variant>/run.json for each variant; returns the exit code (2: a run missing).
+
+    label: the first column's text of a variant's rows; missing_error: the PA-MPVPE cell of a method without a
+    graph mesh (None: its before -> after as they are).
+    """
+    lines = [f"| {first_column} | method | scenes | success (%) | coverage before -> after (%) | area before -> "
+             "after (k px) | PA-MPVPE before -> after (mm) |", "|---|---|---:|---:|---:|---:|---:|"]
     failures = []
-    for variant in ("truth", "learned"):
-        path = os.path.join(argv[0], variant, "run.json")
+    for variant in variants:
+        path = os.path.join(out_dir, variant, "run.json")
         if not os.path.exists(path):
-            print(f"learned_perception_table: run not found: '{path}'", file=sys.stderr)
+            print(f"{program}: run not found: '{path}'", file=sys.stderr)
             return 2
         run = EvaluationRun.read(path)
         failures.append(f"{variant}: {sum(1 for s in run.scenes if s.graph_failure)} of {len(run.scenes)}")
@@ -43,13 +46,22 @@ def main(argv: List[str]) -> int:
                 continue
             row = per_method[method]
             error = (f"{_fmt(row['pa_mpvpe_before_mm'])} -> {_fmt(row['pa_mpvpe_mm'])}"
-                     if math.isfinite(row["pa_mpvpe_mm"]) else "n/a")
-            lines.append(f"| {run.perception} | {method} | {row['scenes']} | {_fmt(row['success_rate_pct'])} | "
+                     if missing_error is None or math.isfinite(row["pa_mpvpe_mm"]) else missing_error)
+            lines.append(f"| {label(variant, run)} | {method} | {row['scenes']} | {_fmt(row['success_rate_pct'])} | "
                          f"{_fmt(row['coverage_before_pct'])} -> {_fmt(row['coverage_after_pct'])} | "
                          f"{_fmt(row['area_before_kpx'])} -> {_fmt(row['area_after_kpx'])} | {error} |")
     print("\n".join(lines))
     print(f"\ngraph failures: {'; '.join(failures)}")
     return 0
+
+
+def main(argv: List[str]) -> int:
+    """Print the table; returns the exit code."""
+    if len(argv) != 1:
+        print("usage: learned_perception_table.py OUT", file=sys.stderr)
+        return 2
+    return print_table(argv[0], ("truth", "learned"), "perception", "learned_perception_table",
+                       lambda variant, run: run.perception)
 
 
 if __name__ == "__main__":
