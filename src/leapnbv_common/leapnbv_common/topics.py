@@ -51,6 +51,8 @@ GROUND_TRUTH_TOPIC = NAMESPACE + "/sim/ground_truth"
 # Stage outputs: relative names, published inside NAMESPACE.
 DETECTIONS = "detections"
 HUMAN_MESH = "human_mesh"
+# leapnbv_msgs/TargetTrack, one per detections frame hmr_node decides on: which person is the target and where.
+TARGET_TRACK = "target_track"
 TARGET_GEOMETRY = "target_geometry"
 PERSON_MASK = "person_mask"
 HUMAN_MESH_METRIC = "human_mesh_metric"
