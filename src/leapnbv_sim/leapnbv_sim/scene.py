@@ -135,6 +135,14 @@ class Scene:
         """
         return render_frame(self, self.start_camera if camera is None else camera, frame_index)
 
+    def at_time(self, elapsed_s: float) -> Scene:
+        """The scene as it is ``elapsed_s`` seconds of sim time after it was set (its people moved).
+
+        The one place where a scene's moving people are placed at a time; the simulator renders every
+        frame from the scene at its stamp. A scene whose people all stand is the same at every time.
+        """
+        return self
+
     def obstacle_voxel_centres(self, resolution: float = 0.1) -> FloatArray:
         """World-frame centres of the voxels that the scene's static obstacles occupy.
 
