@@ -47,6 +47,9 @@ INPUT_TOPICS: Dict[str, str] = {**CAMERA_TOPICS, **ROBOT_TOPICS}
 # The simulator's ground truth (the ground-truth perception backends read it).
 GROUND_TRUTH = "ground_truth"
 GROUND_TRUTH_TOPIC = NAMESPACE + "/sim/ground_truth"
+# leapnbv_msgs/ScenePeople: the other people of the same frame (bystanders, passers-by).
+SCENE_PEOPLE = "scene_people"
+SCENE_PEOPLE_TOPIC = NAMESPACE + "/sim/people"
 
 # Stage outputs: relative names, published inside NAMESPACE.
 DETECTIONS = "detections"
