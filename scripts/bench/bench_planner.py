@@ -44,13 +44,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src" / "leapnbv_pl
 
 from leapnbv_planner.candidates import check_feasibility, generate_candidates  # noqa: E402
 from leapnbv_planner.inputs import CameraInMap, PlanFloor, PlanInputs, PlanTarget  # noqa: E402
+from leapnbv_planner.mesh_kernel import mesh_vertex_normals  # noqa: E402
 from leapnbv_planner.obstacle_map import (  # noqa: E402
     line_of_sight_clear_fraction,
     voxel_map_from_centres,
     warm_up_obstacle_map,
 )
+from leapnbv_planner.occlusion_kernel import count_framed_bucketed  # noqa: E402
 from leapnbv_planner.params import nbv_params_class  # noqa: E402
 from leapnbv_planner.plan import plan_views  # noqa: E402
+from leapnbv_planner.requirements import SurfacePoints  # noqa: E402
 from leapnbv_planner.score_terms import ScoringContext, get_term  # noqa: E402
 from leapnbv_planner.scoring import score_candidates, warm_up_scoring  # noqa: E402
 
@@ -370,6 +373,24 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
         difference = np.max(np.abs(plan.scores.term(name)[scored] - values[scored]))
         print(f"  {name}: max |plan - per-point reference| over the {int(scored.sum())} scored candidates "
               f"{difference:.1e}")
+    # S_v over the whole body mesh (visibility_points: body_mesh) against the observed points: the plan with each,
+    # and the framing kernel alone over the scored candidates (its bucketed mesh is the mesh S_o's, made once).
+    mesh_input = (mesh_vertices, mesh_faces)
+    for points in ("observed", "body_mesh"):
+        variant = dataclasses.replace(robot, visibility_points=points)
+        median, p95 = time_call(partial(plan_views, PlanInputs(frame, ground, variant, body_mesh=mesh_input)), repeats)
+        print(f"  S_v over {points + ',':10s} frame only: {median:7.2f} / {p95:7.2f}")
+    mesh = SurfacePoints(mesh_vertices, mesh_vertex_normals(mesh_vertices, mesh_faces))
+    context = ScoringContext(target, background, plan.candidates.rotations[scored], plan.candidates.positions[scored],
+                             INTRINSICS, WIDTH, HEIGHT, params=robot, given={"body_mesh": mesh})
+    bucketed, _, *boxes = context.buckets("mesh")
+    fx, skew, cx = INTRINSICS[0]
+    fy, cy = INTRINSICS[1, 1], INTRINSICS[1, 2]
+    median, p95 = time_call(partial(count_framed_bucketed, bucketed, *boxes, context.rotations, context.positions,
+                                    fx, skew, cx, fy, cy, WIDTH, HEIGHT, robot.visibility_min_depth,
+                                    robot.visibility_max_depth), repeats)
+    print(f"  framing kernel alone ({len(context.positions)} candidates x {len(mesh_vertices)} vertices): "
+          f"{median:7.3f} / {p95:7.3f}")
     every = dataclasses.replace(robot, score_infeasible=True)
     frame_only = PlanInputs(frame, ground, every, body_mesh=(mesh_vertices, mesh_faces))
     median, p95 = time_call(partial(plan_views, frame_only), repeats)
@@ -379,10 +400,9 @@ def bench_robot_plan(params, centroid: np.ndarray, grid, repeats: int) -> None:
 def reference_robot_terms(plan, target: np.ndarray, background: np.ndarray, mesh_vertices: np.ndarray,
                           mesh_faces: np.ndarray, grid, robot) -> dict:
     """S_v and the mesh S_o of the plan's candidates from the per-point kernel (count_visible_targets: every point
-    projected, every background point tested) and the plain line-of-sight walk (segments_clear)."""
-    from reference_planner_kernels import count_visible_targets, segments_clear
-
-    from leapnbv_planner.plan import mesh_vertex_normals
+    projected, every background point tested; count_framed for S_v over the mesh) and the plain line-of-sight walk
+    (segments_clear)."""
+    from reference_planner_kernels import count_framed, count_visible_targets, segments_clear
 
     rotations, positions = plan.candidates.rotations, plan.candidates.positions
     fx, skew, cx = INTRINSICS[0]
@@ -400,7 +420,11 @@ def reference_robot_terms(plan, target: np.ndarray, background: np.ndarray, mesh
     clear = segments_clear(grid.occupied, grid.lower_index.astype(np.float64), grid.resolution, positions,
                            np.ascontiguousarray(mesh_vertices[::stride]), robot.map_target_margin).mean(axis=1)
     body = np.where(facing > 0, not_hidden / np.maximum(facing, 1), 0.0) * clear
-    return {"visibility": in_view / len(target), "body_occlusion": body}
+    visibility = in_view / len(target)
+    if robot.visibility_points == "body_mesh":  # S_v over the whole mesh: every vertex projected
+        visibility = count_framed(mesh_vertices, rotations, positions, fx, skew, cx, fy, cy, WIDTH, HEIGHT,
+                                  robot.visibility_min_depth, robot.visibility_max_depth) / len(mesh_vertices)
+    return {"visibility": visibility, "body_occlusion": body}
 
 
 def cylinder_mesh(count: int) -> Tuple[np.ndarray, np.ndarray]:

@@ -643,3 +643,99 @@ def count_visible_targets_bucketed(
                 visible += 1
         not_hidden[c] = visible
     return in_view, not_hidden
+
+
+@njit(cache=True)
+def count_framed_bucketed(
+    points: Array,
+    cell_runs: Array,
+    cell_boxes: Array,
+    run_starts: Array,
+    run_boxes: Array,
+    rotations: Array,
+    positions: Array,
+    fx: float,
+    skew: float,
+    cx: float,
+    fy: float,
+    cy: float,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+) -> Array:
+    """(C,) int64 per candidate: the bucketed points (from :func:`bucket_points`) inside its image and depth range.
+
+    A point is framed when, with (x, y, z) = R^T (p - t), z > 0 and near <= z <= far, and u = fx x/z + skew y/z +
+    cx, v = fy y/z + cy satisfy 0 <= u < width, 0 <= v < height: the in-view test of count_visible_targets (the
+    same arithmetic, point by point) with the depth range added. A cell or run wholly off the image or out of the
+    range is skipped, one wholly a pixel inside the image and well inside the range is counted without projecting
+    its points; every other point is tested. The count does not depend on the order of the points.
+    """
+    num_candidates = rotations.shape[0]
+    framed = np.zeros(num_candidates, dtype=np.int64)
+    outer_forms = np.empty((6, 4))
+    inner_forms = np.empty((6, 4))
+    live_runs = np.empty(run_starts.shape[0], dtype=np.int64)
+    for c in range(num_candidates):
+        rotation = rotations[c]
+        position = positions[c]
+        r00, r01, r02 = rotations[c, 0, 0], rotations[c, 0, 1], rotations[c, 0, 2]
+        r10, r11, r12 = rotations[c, 1, 0], rotations[c, 1, 1], rotations[c, 1, 2]
+        r20, r21, r22 = rotations[c, 2, 0], rotations[c, 2, 1], rotations[c, 2, 2]
+        tx, ty, tz = positions[c, 0], positions[c, 1], positions[c, 2]
+        _frustum_forms(outer_forms, rotation, position, fx, skew, cx, fy, cy, -_PIXEL_MARGIN,
+                       width + _PIXEL_MARGIN, -_PIXEL_MARGIN, height + _PIXEL_MARGIN, far)
+        _frustum_forms(inner_forms, rotation, position, fx, skew, cx, fy, cy, _PIXEL_MARGIN,
+                       width - _PIXEL_MARGIN, _PIXEL_MARGIN, height - _PIXEL_MARGIN, far)
+        count = 0
+        num_live = 0
+        for cell in range(cell_runs.shape[0] - 1):
+            box = cell_boxes[cell]
+            _, nearest_max = _form_range(outer_forms, 0, box)
+            if nearest_max < near - _Z_MARGIN or _box_outside(outer_forms, box, True):
+                continue
+            first_run, end_run = cell_runs[cell], cell_runs[cell + 1]
+            if _box_framed(inner_forms, box, near):
+                count += run_starts[end_run] - run_starts[first_run]
+                continue
+            for run in range(first_run, end_run):
+                box = run_boxes[run]
+                _, nearest_max = _form_range(outer_forms, 0, box)
+                if nearest_max < near - _Z_MARGIN or _box_outside(outer_forms, box, True):
+                    continue
+                if _box_framed(inner_forms, box, near):
+                    count += run_starts[run + 1] - run_starts[run]
+                    continue
+                live_runs[num_live] = run
+                num_live += 1
+        for live in range(num_live):
+            run = live_runs[live]
+            for n in range(run_starts[run], run_starts[run + 1]):
+                dx = points[n, 0] - tx
+                dy = points[n, 1] - ty
+                dz = points[n, 2] - tz
+                z = r02 * dx + r12 * dy + r22 * dz
+                if not (z > 0.0 and z >= near and z <= far):
+                    continue
+                xn = (r00 * dx + r10 * dy + r20 * dz) / z
+                yn = (r01 * dx + r11 * dy + r21 * dz) / z
+                u = fx * xn + skew * yn + cx
+                v = fy * yn + cy
+                if u >= 0.0 and u < width and v >= 0.0 and v < height:
+                    count += 1
+        framed[c] = count
+    return framed
+
+
+@njit(cache=True)
+def _box_framed(forms: Array, box: Array, near: float) -> bool:
+    """Every point of the box is surely framed: a pixel inside the image (the forms carry the inner margin) and
+    within [near, far] by far more than the rounding of z (forms 0 and 1: z and far - z)."""
+    nearest, _ = _form_range(forms, 0, box)
+    if not nearest > near + _Z_MARGIN:
+        return False
+    farthest_margin, _ = _form_range(forms, 1, box)
+    if not farthest_margin > _Z_MARGIN:
+        return False
+    return _box_inside(forms, box)

@@ -23,6 +23,7 @@ from typing import Dict, List, Tuple, Type
 from leapnbv_common.params import ParamsError, StageParams, param
 from leapnbv_planner.requirements import REQUIREMENTS
 from leapnbv_planner.score_terms import get_term, registered_terms, weight_parameter
+from leapnbv_planner.score_terms.visibility import VISIBILITY_POINTS
 
 # The deployed score terms, in summation order: non-occlusion over the whole metric body mesh
 # (body_occlusion), which rewards a view of the hidden side; the paper's S_o over the observed points
@@ -30,6 +31,9 @@ from leapnbv_planner.score_terms import get_term, registered_terms, weight_param
 # 0.05) breaks near-ties toward the shorter drive: on 50 furnished scenes it cut the mean straight-line
 # drive from 3.2 to 2.1 m at the same coverage.
 DEFAULT_SCORE_TERMS = ["visibility", "area", "body_occlusion", "travel"]
+# S_v stays the paper's (over the observed points) until the closed loop shows the body-mesh count is better:
+# the regression goldens and every measured table were made with it (docs/ALGORITHMS.md, S_v).
+DEFAULT_VISIBILITY_POINTS = "observed"
 
 
 @dataclass
@@ -111,6 +115,17 @@ class PlannerParams(CandidateRingParams, CommitmentParams, StageParams):
     score_infeasible: bool = param(False, "score every candidate, also those the robot cannot take (to look at their"
                                    " terms); off: infeasible candidates are not scored and carry score 0")
     delta_px: float = param(4.0, "pixels: neighbourhood of the background depth test in S_o", min=0.0, max=100.0)
+    # DEFAULT_VISIBILITY_POINTS below says why.
+    visibility_points: str = param(DEFAULT_VISIBILITY_POINTS, "what S_v counts: body_mesh: the share of the "
+                                   "metric body mesh's vertices (the whole predicted body) in the candidate's image"
+                                   " and depth range, the observed points when the frame has no mesh; observed: the"
+                                   " share of the target points the current view saw (the paper's S_v)",
+                                   choices=VISIBILITY_POINTS)
+    # 0.1 and 10 m: raster_node's min_depth / max_depth, the depths the graph takes person points from.
+    visibility_min_depth: float = param(0.1, "metres: S_v over the body mesh counts a vertex only at this camera"
+                                        " depth (z) or farther", min=0.0, max=100.0)
+    visibility_max_depth: float = param(10.0, "metres: S_v over the body mesh counts a vertex only at this camera"
+                                        " depth (z) or nearer", min=0.01, max=100.0)
     ground_wait_s: float = param(0.5, "s: how long a frame waits for the ground plane of its depth frame; then an"
                                  " older frame's plane carried by the camera-pose delta, or the frame is dropped"
                                  " (never planned with another frame's plane as it is)", min=0.0, max=10.0)
@@ -149,7 +164,10 @@ class PlannerParams(CandidateRingParams, CommitmentParams, StageParams):
 
     def check(self) -> None:
         """Rules between fields: the score terms are registered, distinct, each has its weight and its requirements are
-        registered; the rings."""
+        registered; the rings; S_v's depth range."""
+        if not self.visibility_min_depth < self.visibility_max_depth:
+            raise ParamsError(f"visibility_min_depth ({self.visibility_min_depth}) must be below visibility_max_depth"
+                              f" ({self.visibility_max_depth})")
         if self.num_rings > 1 and not self.min_radius < self.radius:
             raise ParamsError(f"min_radius ({self.min_radius}) must be below radius ({self.radius}) with "
                               f"num_rings = {self.num_rings}")

@@ -379,7 +379,7 @@ def _score_picked(frame: PlanFrame, background: Array) -> Tuple[CandidateScores,
     context = ScoringContext(frame.target_points, background, candidates.rotations[picked],
                              candidates.positions[picked], target.k, target.width, target.height,
                              delta_px=params.delta_px, params=params, frame=frame,
-                             declared=declared_requirements([get_term(name) for name, _ in terms]))
+                             declared=declared_requirements([get_term(name) for name, _ in terms], params))
     scores = score_context(context, terms)
     computed = context.computed()
     if len(picked) == count:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import List, Mapping, Optional, Sequence, Tuple
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from leapnbv_planner.arrays import Array
 from leapnbv_planner.params import PlannerParams, nbv_params_class
+from leapnbv_planner.requirements import BODY_MESH, SurfacePoints
 from leapnbv_planner.score_terms import (
     ScoringContext,
     ScoringInputError,
@@ -91,8 +93,8 @@ def score_candidates(
         given: requirement values by name (:mod:`leapnbv_planner.requirements`), e.g.
             ``{"target_line_of_sight": (C,) shares, "path_lengths": (C,) metres, "body_mesh":
             SurfacePoints(vertices, normals)}``; a requirement not given is absent (None) for the terms.
-        params: what the terms read of the planner's parameters (the travel term's max_path_length);
-            the robot's defaults when None.
+        params: what the terms read of the planner's parameters (the travel term's max_path_length, S_v's
+            visibility_points); the robot's defaults when None.
 
     Returns:
         CandidateScores with (C,) score and (C, T) term values.
@@ -103,7 +105,9 @@ def score_candidates(
         ValueError: a given value or a term's requirement names no registered requirement.
     """
     terms = default_terms() if terms is None else list(terms)
-    declared = declared_requirements([get_term(name) for name, _ in terms]) | frozenset(given or {})
+    if params is None:
+        params = nbv_params_class()()
+    declared = declared_requirements([get_term(name) for name, _ in terms], params) | frozenset(given or {})
     context = ScoringContext(target_points, background_points, rotations, positions, K, width, height,
                              delta_px=delta_px, params=params, given=given, declared=declared)
     return score_context(context, terms)
@@ -180,14 +184,20 @@ def choose_best(
 
 
 def warm_up_scoring() -> None:
-    """Compile the kernels of every registered term now (a node calls this at start-up, not on frame one)."""
-    score_candidates(
-        np.array([[0.0, 0.0, 2.0]]),
-        np.array([[0.0, 0.0, 1.0]]),
-        np.eye(3)[None],
-        np.zeros((1, 3)),
-        np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]]),
-        100,
-        100,
-        terms=[(term.name, 1.0) for term in registered_terms()],
-    )
+    """Compile the kernels of every registered term now (a node calls this at start-up, not on frame one).
+
+    Once without a body mesh, once with one (the mesh kernels: S_v's framing, the mesh S_o).
+    """
+    for given in (None, {BODY_MESH.name: SurfacePoints(np.array([[0.0, 0.0, 2.0]]), np.array([[0.0, 0.0, -1.0]]))}):
+        score_candidates(
+            np.array([[0.0, 0.0, 2.0]]),
+            np.array([[0.0, 0.0, 1.0]]),
+            np.eye(3)[None],
+            np.zeros((1, 3)),
+            np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]]),
+            100,
+            100,
+            terms=[(term.name, 1.0) for term in registered_terms()],
+            given=given,
+            params=dataclasses.replace(nbv_params_class()(), visibility_points="body_mesh"),
+        )

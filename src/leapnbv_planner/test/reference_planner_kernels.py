@@ -261,3 +261,24 @@ def segments_clear(
                 cell[axis] += step[axis]
                 t_max[axis] += t_delta[axis]
     return clear
+
+
+def count_framed(points: np.ndarray, rotations: np.ndarray, positions: np.ndarray, fx: float, skew: float, cx: float,
+                 fy: float, cy: float, width: int, height: int, near: float, far: float) -> np.ndarray:
+    """(C,) int64 per candidate: the points with z > 0, near <= z <= far, 0 <= u < width, 0 <= v < height.
+
+    Every point projected (vectorised numpy, the arithmetic of ``count_visible_targets`` term by term): what
+    :func:`leapnbv_planner.occlusion_kernel.count_framed_bucketed` counts over boxes of points.
+    """
+    counts = np.zeros(len(rotations), dtype=np.int64)
+    for c, (rotation, position) in enumerate(zip(rotations, positions)):
+        dx, dy, dz = (points[:, a] - position[a] for a in range(3))
+        z = rotation[0, 2] * dx + rotation[1, 2] * dy + rotation[2, 2] * dz
+        ok = (z > 0.0) & (z >= near) & (z <= far)
+        safe = np.where(ok, z, 1.0)
+        xn = (rotation[0, 0] * dx + rotation[1, 0] * dy + rotation[2, 0] * dz) / safe
+        yn = (rotation[0, 1] * dx + rotation[1, 1] * dy + rotation[2, 1] * dz) / safe
+        u = fx * xn + skew * yn + cx
+        v = fy * yn + cy
+        counts[c] = np.count_nonzero(ok & (u >= 0.0) & (u < width) & (v >= 0.0) & (v < height))
+    return counts

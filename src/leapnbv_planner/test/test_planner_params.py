@@ -43,7 +43,8 @@ def test_defaults_are_the_robot_values_and_valid():
         "weight_travel", "weight_body_occlusion", "num_rings", "min_radius", "reachability", "max_path_length",
         "grid_resolution", "unknown_space", "camera_height", "camera_tilt", "score_infeasible", "fit_to_free_space",
         "min_free_radius", "max_stamp_ahead_s", "max_obstacle_voxels", "commit_goals", "commit_margin",
-        "commit_person_moved_m", "commit_same_goal_m"}
+        "commit_person_moved_m", "commit_same_goal_m", "visibility_points", "visibility_min_depth",
+        "visibility_max_depth"}
     for name, value in ROBOT_VALUES.items():
         assert getattr(params, name) == value, name
     assert params.score_terms == ["visibility", "area", "body_occlusion", "travel"]

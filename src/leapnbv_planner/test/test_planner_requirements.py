@@ -74,9 +74,14 @@ def test_only_what_the_chosen_terms_declare_and_read_is_computed():
     assert set(without_mesh.computed) == {"body_mesh", "target_line_of_sight", "path_lengths"}
     assert without_mesh.computed["body_mesh"] is None  # declared, read, absent from this frame
     assert without_mesh.line_of_sight_clear is not None and without_mesh.mesh_line_of_sight_clear is None
-    framing = plan_views(PlanInputs(target, floor, dataclasses.replace(params, score_terms=["visibility", "area"]),
+    framing = plan_views(PlanInputs(target, floor, dataclasses.replace(params, score_terms=["visibility", "area"],
+                                                                       visibility_points="observed"),
                                     obstacle_map, CAMERA_IN_MAP, mesh))
     assert framing.computed == {} and framing.line_of_sight_clear is None and framing.used_obstacle_map
+    # S_v over the body mesh reads the mesh and nothing else.
+    body_framing = plan_views(PlanInputs(target, floor, dataclasses.replace(
+        params, score_terms=["visibility", "area"], visibility_points="body_mesh"), obstacle_map, CAMERA_IN_MAP, mesh))
+    assert set(body_framing.computed) == {"body_mesh"} and body_framing.line_of_sight_clear is None
     no_map = plan_views(PlanInputs(target, floor, dataclasses.replace(params, reachability=False)))
     assert no_map.computed["target_line_of_sight"] is None and no_map.computed["path_lengths"] is None
 

@@ -59,7 +59,7 @@ from leapnbv_planner.obstacle_map import warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
 from leapnbv_planner.plan import plan_views
 from leapnbv_planner.requirements import BODY_MESH, Requirement
-from leapnbv_planner.score_terms.base import declared_requirements, get_term
+from leapnbv_planner.score_terms.base import declared_requirements, get_term, missing_requirement_detail
 from leapnbv_planner.scoring import warm_up_scoring
 
 PLANE_CACHE = 30  # ground planes remembered by stamp (to pair, and to carry an older one)
@@ -134,9 +134,10 @@ class NbvNode(ManagedNode):
             self.commitment.clear()  # the committed goal's score is no longer comparable with the new ones
 
     def terms_need(self, requirement: Requirement) -> bool:
-        """Whether a chosen score term declares this requirement (the node waits only for inputs a term reads)."""
+        """Whether a chosen score term reads this requirement with the current parameters (the node waits only for
+        inputs a term reads)."""
         terms = [get_term(name) for name in self.params.value.score_terms]
-        return requirement.name in declared_requirements(terms)
+        return requirement.name in declared_requirements(terms, self.params.value)
 
     def body_mesh_wait_s(self, frame: Frame) -> float:
         """Wait for a body mesh only while some node publishes them (the graph's raster_node): else none comes."""
@@ -171,7 +172,8 @@ class NbvNode(ManagedNode):
         if body_mesh is not None:
             inputs.append((topics.HUMAN_MESH_METRIC, stamp))
         elif self.terms_need(BODY_MESH) and self.count_publishers(topics.HUMAN_MESH_METRIC) > 0:
-            planned_without[topics.HUMAN_MESH_METRIC] = "no metric body mesh of this frame: S_o of the observed points"
+            planned_without[topics.HUMAN_MESH_METRIC] = "no metric body mesh of this frame: " + \
+                missing_requirement_detail(BODY_MESH, self.params.value)
         camera_pose, without_map = self.obstacle_map.camera_pose_for(frame, self.camera_poses)
         if without_map:
             planned_without["obstacle_map"] = without_map

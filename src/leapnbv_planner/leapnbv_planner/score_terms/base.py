@@ -43,6 +43,7 @@ from leapnbv_planner.occlusion_kernel import (
     POINTS_PER_BOX,
     RUN_LENGTH,
     bucket_points,
+    count_framed_bucketed,
     count_visible_targets_bucketed,
     possible_occluders,
     run_facing_bounds,
@@ -68,8 +69,8 @@ Buckets = Tuple[Array, Array, Array, Array, Array, Array]
 _NO_ROWS = np.zeros((0, 3))
 
 __all__ = ["Camera", "ScoreTerm", "ScoringContext", "ScoringInputError", "check_camera", "check_poses",
-           "declared_requirements", "finite_points", "get_term", "register_term", "registered_terms", "score_term",
-           "unregister_term", "weight_parameter"]
+           "declared_requirements", "finite_points", "get_term", "missing_requirement_detail", "register_term",
+           "registered_terms", "score_term", "unregister_term", "weight_parameter"]
 
 
 def finite_points(points: object, name: str) -> Array:
@@ -169,6 +170,7 @@ class ScoringContext:
         self._buckets: Dict[str, Buckets] = {}
         self._mesh_counts: Optional[Tuple[Array, Array]] = None
         self._in_view: Optional[Array] = None
+        self._mesh_framed: Optional[Array] = None
         self._counts: Optional[Tuple[Array, Array]] = None
         self.kernel_calls = 0
 
@@ -261,6 +263,28 @@ class ScoringContext:
             self._in_view, _ = self._kernel_counts("targets", "none")
         return self._in_view
 
+    def mesh_framed_counts(self) -> Array:
+        """(C,) int64 body mesh vertices each candidate frames: in its image and its depth range, hidden or not,
+        facing it or not (:func:`leapnbv_planner.occlusion_kernel.count_framed_bucketed`), once per context.
+
+        In view as for :meth:`in_view_counts` (z > 0, 0 <= u < W, 0 <= v < H), and
+        ``visibility_min_depth <= z <= visibility_max_depth``.
+
+        Raises:
+            ScoringInputError: the context has no mesh.
+        """
+        mesh = self.need(BODY_MESH)
+        if mesh is None:
+            raise ScoringInputError("no body mesh in the scoring context")
+        if self._mesh_framed is None:
+            fx, skew, cx, fy, cy, width, height = self.camera
+            points, _, cell_runs, cell_boxes, run_starts, run_boxes = self.buckets("mesh")
+            self._mesh_framed = count_framed_bucketed(
+                points, cell_runs, cell_boxes, run_starts, run_boxes, self.rotations, self.positions, fx, skew, cx,
+                fy, cy, width, height, float(self.params.visibility_min_depth),
+                float(self.params.visibility_max_depth))
+        return self._mesh_framed
+
     def mesh_counts(self) -> Tuple[Array, Array]:
         """(facing (C,) int64, not_hidden (C,) int64) over the body mesh's vertices, once per context.
 
@@ -295,6 +319,10 @@ class ScoreTerm:
         compute: context -> (C,) float64 values in [0, 1], higher is better.
         requires: Names of the requirements (:mod:`leapnbv_planner.requirements`) the term may read
             with ``context.need``; only these are computed for it.
+        requires_for: params -> the names of ``requires`` the term reads with those parameters (a term whose
+            parameters choose what it reads, e.g. S_v's ``visibility_points``); None: all of ``requires``.
+        without: What the term scores when a requirement it reads is missing from the frame, by requirement
+            name (one phrase, e.g. "S_v of the observed points"): the text of ``planned_without``.
     """
 
     name: str
@@ -302,6 +330,22 @@ class ScoreTerm:
     description: str
     compute: Callable[[ScoringContext], Array]
     requires: FrozenSet[str] = field(default_factory=frozenset)
+    requires_for: Optional[Callable[[PlannerParams], Iterable[str]]] = None
+    without: Mapping[str, str] = field(default_factory=dict)
+
+    def requirements(self, params: Optional[PlannerParams] = None) -> FrozenSet[str]:
+        """The requirements the term reads with ``params``: all it may read (``requires``) without them.
+
+        Raises:
+            ValueError: ``requires_for`` named a requirement the term does not declare in ``requires``.
+        """
+        if params is None or self.requires_for is None:
+            return self.requires
+        names = frozenset(self.requires_for(params))
+        if not names <= self.requires:
+            raise ValueError(f"score term {self.name!r} reads {sorted(names - self.requires)} with these parameters, "
+                             f"which it does not declare (requires: {sorted(self.requires)})")
+        return names
 
 
 def _check_term(term: object) -> None:
@@ -324,14 +368,18 @@ def register_term(term: ScoreTerm) -> ScoreTerm:
 
 
 def score_term(name: str, default_weight: float, description: str,
-               requires: Iterable[Union[str, Requirement[Any]]] = ()
+               requires: Iterable[Union[str, Requirement[Any]]] = (),
+               requires_for: Optional[Callable[[PlannerParams], Iterable[str]]] = None,
+               without: Optional[Mapping[str, str]] = None,
                ) -> Callable[[Callable[[ScoringContext], Array]], Callable[[ScoringContext], Array]]:
     """Decorator form of register_term for a compute function: ``@score_term("area", 0.14, "...")``;
-    ``requires``: the requirements it reads (Requirement objects or their names)."""
+    ``requires``: the requirements it may read (Requirement objects or their names); ``requires_for`` and
+    ``without``: see :class:`ScoreTerm`."""
     names = frozenset(entry if isinstance(entry, str) else entry.name for entry in requires)
 
     def register(compute: Callable[[ScoringContext], Array]) -> Callable[[ScoringContext], Array]:
-        register_term(ScoreTerm(name, float(default_weight), description, compute, names))
+        register_term(ScoreTerm(name, float(default_weight), description, compute, names, requires_for,
+                                dict(without or {})))
         return compute
 
     return register
@@ -358,16 +406,29 @@ def registered_terms() -> List[ScoreTerm]:
     return [TERMS.get(name) for name in TERMS.names()]
 
 
-def declared_requirements(terms: Sequence[ScoreTerm]) -> FrozenSet[str]:
-    """The requirements the terms declare, each checked to be registered.
+def declared_requirements(terms: Sequence[ScoreTerm], params: Optional[PlannerParams] = None) -> FrozenSet[str]:
+    """The requirements the terms read with ``params`` (:meth:`ScoreTerm.requirements`; without params all they
+    may read), each checked to be registered.
 
     Raises:
         ValueError: a term declares a requirement nobody registered (the message lists the known ones).
     """
-    names = frozenset(name for term in terms for name in term.requires)
+    names = frozenset(name for term in terms for name in term.requirements(params))
     for name in names:
         get_requirement(name)
     return names
+
+
+def missing_requirement_detail(requirement: Requirement[Any], params: PlannerParams) -> str:
+    """What the chosen terms (``params.score_terms``) that read ``requirement`` score without it, joined: the
+    ``planned_without`` text of a frame that lacks it, e.g. "S_v of the observed points; S_o of the observed
+    points" ("" when no chosen term reads it)."""
+    phrases = []
+    for name in params.score_terms:
+        term = get_term(name)
+        if requirement.name in term.requirements(params):
+            phrases.append(term.without.get(requirement.name, f"{name} without {requirement.name}"))
+    return "; ".join(phrases)
 
 
 def weight_parameter(name: str) -> str:

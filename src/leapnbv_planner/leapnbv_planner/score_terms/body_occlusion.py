@@ -10,7 +10,8 @@ from leapnbv_planner.score_terms.occlusion import not_hidden_share
 
 
 @score_term("body_occlusion", 0.83, "S_o over the metric body mesh: share of the body's near side in view and "
-            "not hidden", requires=(BODY_MESH, MESH_LINE_OF_SIGHT, TARGET_LINE_OF_SIGHT))
+            "not hidden", requires=(BODY_MESH, MESH_LINE_OF_SIGHT, TARGET_LINE_OF_SIGHT),
+            without={BODY_MESH.name: "S_o of the observed points"})
 def body_occlusion(context: ScoringContext) -> Array:
     """(# facing mesh vertices in view and not hidden) / (# facing mesh vertices), 0 when none faces.
 
