@@ -1,11 +1,20 @@
-"""Which detected person the HMR stage follows from frame to frame."""
+"""Which detected person the HMR stage follows, by the image alone: box overlap and the acquisition rule.
+
+The fixed-frame tracking (:mod:`leapnbv_perception.target_tracking`) uses these for the frames it follows in
+the image only (no camera pose or no depth) and to take a target when it has none.
+"""
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 
 from leapnbv_common.array_types import BoolArray, FloatArray
+
+#: Scores closer than this are a tie for the acquisition rule (a detector's score is no finer than this).
+SCORE_TIE = 1e-3
+#: Box centres whose distances to the image centre differ by less than this (pixels) are a tie.
+CENTRE_TIE_PX = 0.5
 
 
 def box_iou(box: FloatArray, boxes: FloatArray) -> FloatArray:
@@ -31,26 +40,67 @@ def usable_boxes(boxes: FloatArray) -> BoolArray:
     return usable
 
 
-def select_target(boxes: FloatArray, previous_box: Optional[FloatArray] = None, min_track_iou: float = 0.3) -> int:
-    """Index of the person to reconstruct, or -1 when there is none.
+def acquisition_index(boxes: FloatArray, candidates: BoolArray, image_size: Optional[Tuple[int, int]]) -> int:
+    """The box the acquisition rule takes among the candidate rows, or -1 when there is none.
 
-    The best-scoring box, unless a box overlaps the previous frame's target by at least
-    min_track_iou: then the one overlapping most, so that a second, briefly more confident
-    person does not steal the target. A row that is not a usable box (NaN or inf anywhere, an
-    empty or inverted box, a score outside [0, 1]) is never chosen: np.argmax would pick a NaN.
+    The rule: the highest score; scores within :data:`SCORE_TIE` of it tie, and then the box whose centre is
+    nearest the image centre wins (distances within :data:`CENTRE_TIE_PX` tie); then the lowest index. The
+    tolerances make the choice independent of the last bit of a score or a coordinate.
+
+    Args:
+        boxes: (N, 5) [x_min, y_min, x_max, y_max, score].
+        candidates: (N,) bool, the rows that may be taken (usable boxes).
+        image_size: (width, height) of the image; None: no centre rule (the lowest index among the tied).
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
+    rows = np.flatnonzero(np.asarray(candidates, dtype=bool))
+    if rows.size == 0:
+        return -1
+    scores = boxes[rows, 4]
+    rows = rows[scores >= scores.max() - SCORE_TIE]
+    if rows.size > 1 and image_size is not None:
+        centre = np.array([image_size[0] / 2.0, image_size[1] / 2.0])
+        centres = np.stack([(boxes[rows, 0] + boxes[rows, 2]) / 2.0, (boxes[rows, 1] + boxes[rows, 3]) / 2.0], 1)
+        distances = np.hypot(*(centres - centre).T)
+        rows = rows[distances <= distances.min() + CENTRE_TIE_PX]
+    return int(rows.min())
+
+
+def select_target(boxes: FloatArray, previous_box: Optional[FloatArray] = None, min_track_iou: float = 0.3,
+                  image_size: Optional[Tuple[int, int]] = None) -> int:
+    """Index of the person to reconstruct by the image alone, or -1 when there is none.
+
+    The box overlapping the previous frame's target most, when it overlaps by at least min_track_iou
+    (so that a second, briefly more confident person does not steal the target); else the acquisition
+    rule's box (:func:`acquisition_index`: the best score, ties to the image centre). A row that is not a
+    usable box (NaN or inf anywhere, an empty or inverted box, a score outside [0, 1]) is never chosen.
 
     Args:
         boxes: (N, 5) [x_min, y_min, x_max, y_max, score], sorted by score or not.
         previous_box: [x_min, y_min, x_max, y_max] of the last target, or None.
         min_track_iou: overlap needed to keep following the previous target.
+        image_size: (width, height), for the acquisition rule's tie-break.
+    """
+    index, _ = overlapping_index(boxes, previous_box, min_track_iou)
+    if index >= 0:
+        return index
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
+    return acquisition_index(boxes, usable_boxes(boxes), image_size)
+
+
+def overlapping_index(boxes: FloatArray, previous_box: Optional[FloatArray], min_track_iou: float,
+                      candidates: Optional[BoolArray] = None) -> Tuple[int, float]:
+    """(the candidate box overlapping previous_box most, its IoU), or (-1, the best IoU or 0) below min_track_iou.
+
+    Candidates default to the usable boxes; IoUs within 1e-9 tie to the lowest index.
     """
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
-    usable = usable_boxes(boxes)
-    if not np.any(usable):
-        return -1
-    if previous_box is not None and np.all(np.isfinite(previous_box)):
-        overlaps = np.where(usable, box_iou(np.asarray(previous_box, dtype=np.float64), boxes), -1.0)
-        best = int(np.argmax(overlaps))
-        if overlaps[best] >= min_track_iou:
-            return best
-    return int(np.argmax(np.where(usable, boxes[:, 4], -1.0)))
+    usable = usable_boxes(boxes) if candidates is None else np.asarray(candidates, dtype=bool) & usable_boxes(boxes)
+    if previous_box is None or not np.any(usable) or not np.all(np.isfinite(previous_box)):
+        return -1, 0.0
+    overlaps = np.where(usable, box_iou(np.asarray(previous_box, dtype=np.float64), boxes), -1.0)
+    best = float(overlaps.max())
+    index = int(np.flatnonzero(overlaps >= best - 1e-9).min())
+    if best >= min_track_iou and best > 0.0:
+        return index, best
+    return -1, max(best, 0.0)

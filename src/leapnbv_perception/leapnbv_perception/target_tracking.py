@@ -1,0 +1,505 @@
+"""Keeping the same person across frames and robot moves: the target's track in the fixed frame (ROS-free).
+
+Each detections frame, :meth:`TargetTracker.update` decides which detection is the target
+(docs/ALGORITHMS.md, "Keeping the same person"):
+
+1. **Where each detection is.** The median of the valid depth readings in the central part of its box
+   (``central_share`` of its width and height about its centre: background at the box's edges and an
+   occluder over less than half of the central part do not move the median), back-projected through the
+   box centre with the depth camera's intrinsics, then taken to the fixed frame with the frame's camera pose
+   (p_fixed = R p_camera + t). A box with fewer than ``min_depth_pixels`` valid readings has no position.
+2. **Where the target should be.** A constant-velocity Kalman filter of the target's horizontal position
+   (x, y of the fixed frame, whose z is up) and velocity, predicted to the frame's stamp.
+3. **Which detection it is.** The gate: a detection is the target only within
+   ``gate_m + gate_growth_m_s * (time since the target's last measured position)`` of the predicted
+   place (horizontal distance). The other people in view are tracked too (same filter and gate, not
+   published); detections are given to tracks nearest first (distances within :data:`DISTANCE_TIE_M` tie:
+   the target first, then the lowest detection index), so a bystander standing next to a hidden target
+   keeps its own track and is never taken for it.
+4. **States.** TRACKED (a detection is the target), NOT_SEEN (none is: the target is kept at its
+   predicted place and only a detection inside the gate can be it again), LOST (not seen for longer than
+   ``lost_after_s``: dropped), NONE (no target yet). A frame that finds the target lost takes a new one
+   at once if it has a candidate, else says LOST (every frame until one has).
+5. **Acquisition** (the first target, and after LOST), the only way another person becomes the target:
+   :func:`leapnbv_perception.target_selection.acquisition_index` over the frame's candidates (the highest
+   score, ties within 1e-3 to the box nearest the image centre, then the lowest index); each acquisition
+   has a new ``track_id``.
+
+Without a camera pose, a depth frame or any box with depth (or with ``fixed_frame`` off) the frame is
+decided in the image only, by today's overlap rule (:func:`~leapnbv_perception.target_selection.select_target`):
+the box overlapping the last target box by ``min_track_iou``. For a target that has a fixed-frame track, a
+frame without an overlapping box is NOT_SEEN (an image-only frame never takes another person); for a track
+that never had a position (a graph without poses or depth), no overlap is an acquisition, as the image-only
+rule always did. The decision says which way it was made (``mode``, ``reason``).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Dict, List, Optional, Protocol, Set, Tuple
+
+import numpy as np
+
+from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray
+from leapnbv_perception.target_selection import acquisition_index, overlapping_index, usable_boxes
+
+__all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE_NAMES", "MODE_FIXED_FRAME",
+           "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
+           "box_positions_camera"]
+
+# leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
+STATE_NONE = 0
+STATE_TRACKED = 1
+STATE_NOT_SEEN = 2
+STATE_LOST = 3
+STATE_NAMES = {STATE_NONE: "NONE", STATE_TRACKED: "TRACKED", STATE_NOT_SEEN: "NOT_SEEN", STATE_LOST: "LOST"}
+
+MODE_FIXED_FRAME = "fixed_frame"
+MODE_IMAGE = "image"
+
+#: Distances (m) between a track's prediction and detections closer than this tie: the assignment then goes
+#: by track (the target first) and detection index, never by the last bit of a depth median or a pose.
+DISTANCE_TIE_M = 1e-3
+#: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
+INITIAL_SPEED_SIGMA_M_S = 0.5
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """How the tracker decides (hmr_node's parameters; docs/ALGORITHMS.md, "Keeping the same person").
+
+    Attributes:
+        fixed_frame: Track in the camera pose's fixed frame (False: every frame in the image only).
+        follow: Follow the target at all (False: every frame takes the acquisition rule's box).
+        gate_m: m, the gate's radius around the predicted place for a target seen in the last frame.
+        gate_growth_m_s: m/s, how fast the gate grows with the time since the last measured position.
+        lost_after_s: s, a target not seen for longer than this is lost.
+        min_track_iou: The overlap with the last target box that continues an image-only track.
+        central_share: Share of the box's width and height, about its centre, whose depth is the position.
+        min_depth_m: m, depth readings nearer than this are invalid.
+        max_depth_m: m, depth readings farther than this are invalid.
+        min_depth_pixels: Valid readings a box needs for a position.
+        measurement_sigma_m: m, standard deviation of a measured position (depth noise, the body turning).
+        acceleration_sigma_m_s2: m/s^2, the filter's white-noise acceleration (people start, stop, turn).
+    """
+
+    fixed_frame: bool = True
+    follow: bool = True
+    gate_m: float = 0.6
+    gate_growth_m_s: float = 0.5
+    lost_after_s: float = 3.0
+    min_track_iou: float = 0.3
+    central_share: float = 0.5
+    min_depth_m: float = 0.2
+    max_depth_m: float = 12.0
+    min_depth_pixels: int = 20
+    measurement_sigma_m: float = 0.1
+    acceleration_sigma_m_s2: float = 0.5
+
+
+class CameraPoseLike(Protocol):
+    """The camera's optical frame in a floor-aligned fixed frame (z up): p_fixed = rotation @ p + position.
+
+    leapnbv_common.camera_pose.StampedCameraPose is one.
+    """
+
+    @property
+    def frame_id(self) -> str: ...
+
+    @property
+    def rotation(self) -> np.ndarray[Any, Any]: ...
+
+    @property
+    def position(self) -> np.ndarray[Any, Any]: ...
+
+
+@dataclass(frozen=True)
+class TargetDecision:
+    """One frame's decision (the fields of leapnbv_msgs/TargetTrack, plus how it was made).
+
+    Attributes:
+        state: STATE_NONE, STATE_TRACKED, STATE_NOT_SEEN or STATE_LOST.
+        detection_index: The target's row in the frame's boxes, -1 when it is not among them.
+        track_id: The target's id (0: no target yet); a new one on every acquisition.
+        fixed_frame: Frame of position and velocity; "" when the track has no fixed-frame position.
+        position: (3,) the target's place in fixed_frame (filtered x, y; the last measured z); zeros without one.
+        velocity: (3,) filtered horizontal velocity, m/s (z = 0).
+        position_sigma_m: Standard deviation of each horizontal coordinate (grows while not seen); 0 without one.
+        last_seen_ns: Stamp of the last frame in which the target was among the detections (0: never).
+        reason: How the decision was made, in words.
+        mode: MODE_FIXED_FRAME or MODE_IMAGE (decided in the image only; ``reason`` says why).
+        acquired: This frame took a new target (by the acquisition rule).
+        gate_m: The gate in force for this frame (0 in the image only).
+    """
+
+    state: int
+    detection_index: int
+    track_id: int
+    fixed_frame: str
+    position: FloatArray
+    velocity: FloatArray
+    position_sigma_m: float
+    last_seen_ns: int
+    reason: str
+    mode: str
+    acquired: bool = False
+    gate_m: float = 0.0
+
+    @property
+    def state_name(self) -> str:
+        return STATE_NAMES[self.state]
+
+
+def box_positions_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: FloatingArray, k: FloatArray,
+                         config: TrackerConfig) -> FloatArray:
+    """(N, 3) each box's position in the depth camera's optical frame (m); NaN rows for boxes without one.
+
+    The median of the valid readings (finite, within [min_depth_m, max_depth_m]) in the central part of the
+    box, back-projected through the box centre: X = (u - cx) z / fx, Y = (v - cy) z / fy. Boxes are in the
+    pixels of an image of ``image_size``; the depth frame (aligned to it) may have another size: boxes are
+    scaled to it.
+
+    Args:
+        boxes: (N, >=4) [x_min, y_min, x_max, y_max, ...].
+        image_size: (width, height) of the image the boxes are in.
+        depth: (H, W) metres, 0 for no reading.
+        k: (3, 3) the depth camera's intrinsics.
+        config: central_share, the valid depth range, min_depth_pixels.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64)
+    boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
+    height, width = depth.shape[:2]
+    sx, sy = width / float(image_size[0]), height / float(image_size[1])
+    out = np.full((len(boxes), 3), np.nan)
+    half = 0.5 * float(config.central_share)
+    for i, box in enumerate(boxes):
+        if not np.all(np.isfinite(box[:4])):
+            continue
+        u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
+        hw, hh = half * (box[2] - box[0]) * sx, half * (box[3] - box[1]) * sy
+        u0, u1 = int(np.clip(np.floor(u - hw), 0, width)), int(np.clip(np.ceil(u + hw), 0, width))
+        v0, v1 = int(np.clip(np.floor(v - hh), 0, height)), int(np.clip(np.ceil(v + hh), 0, height))
+        values = np.asarray(depth[v0:v1, u0:u1], dtype=np.float64).ravel()
+        with np.errstate(invalid="ignore"):
+            values = values[np.isfinite(values) & (values >= config.min_depth_m) & (values <= config.max_depth_m)]
+        if values.size < max(1, int(config.min_depth_pixels)):
+            continue
+        z = float(np.median(values))
+        out[i] = ((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z)
+    return out
+
+
+class _Filter:
+    """A constant-velocity Kalman filter of a horizontal position: state [[x, y], [vx, vy]].
+
+    One 2x2 covariance is shared by both axes (the same model and noise on each).
+    """
+
+    def __init__(self, stamp_ns: int, xy: FloatArray, z: float, config: TrackerConfig) -> None:
+        self.stamp_ns = int(stamp_ns)  # of the last measurement (the state is the posterior there)
+        self.state = np.array([[xy[0], xy[1]], [0.0, 0.0]])
+        r = config.measurement_sigma_m ** 2
+        self.covariance = np.diag([r, INITIAL_SPEED_SIGMA_M_S ** 2])
+        self.z = float(z)
+
+    def predicted(self, stamp_ns: int, config: TrackerConfig) -> Tuple[FloatArray, FloatArray]:
+        """(state, covariance) predicted to stamp_ns (never back in time)."""
+        dt = max(0.0, (int(stamp_ns) - self.stamp_ns) * 1e-9)
+        f = np.array([[1.0, dt], [0.0, 1.0]])
+        q = config.acceleration_sigma_m_s2 ** 2 * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0], [dt ** 2 / 2.0, dt]])
+        return f @ self.state, f @ self.covariance @ f.T + q
+
+    def update(self, stamp_ns: int, xy: FloatArray, z: float, config: TrackerConfig) -> None:
+        state, covariance = self.predicted(stamp_ns, config)
+        innovation = np.asarray(xy, dtype=np.float64)[:2] - state[0]
+        gain = covariance[:, 0] / (covariance[0, 0] + config.measurement_sigma_m ** 2)  # H = [1, 0]
+        self.state = state + np.outer(gain, innovation)
+        self.covariance = covariance - np.outer(gain, covariance[0, :])
+        self.covariance = 0.5 * (self.covariance + self.covariance.T)
+        self.stamp_ns = int(stamp_ns)
+        self.z = float(z)
+
+    def gate_m(self, stamp_ns: int, config: TrackerConfig) -> float:
+        return float(config.gate_m + config.gate_growth_m_s * max(0.0, (int(stamp_ns) - self.stamp_ns) * 1e-9))
+
+
+@dataclass
+class _Track:
+    track_id: int
+    last_seen_ns: int
+    fixed_frame: str = ""
+    filter: Optional[_Filter] = None
+    last_box: Optional[FloatArray] = None
+
+
+class TargetTracker:
+    """The target's track across frames (see the module docstring). One per node; not thread-safe.
+
+    Args:
+        config: How it decides; ``config`` may be replaced between frames (live parameters).
+    """
+
+    def __init__(self, config: Optional[TrackerConfig] = None) -> None:
+        self.config = config or TrackerConfig()
+        self.next_id = 1  # track ids keep increasing across resets: an id names one person for a node's life
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the target and the others (the stamps started over: a replay, a simulator reset)."""
+        self.target: Optional[_Track] = None
+        self.lost: Optional[TargetDecision] = None  # the decision that found the target lost, repeated until one
+        self.others: List[_Track] = []
+        self.last_stamp_ns: Optional[int] = None
+
+    # ------------------------------------------------------------------ the frame
+
+    def update(self, stamp_ns: int, boxes: FloatArray, image_size: Optional[Tuple[int, int]] = None,
+               depth: Optional[FloatingArray] = None, k: Optional[FloatArray] = None,
+               pose: Optional[CameraPoseLike] = None) -> TargetDecision:
+        """Decide which of this frame's boxes is the target.
+
+        Args:
+            stamp_ns: The frame's stamp (a stamp before the last one decided resets the tracker).
+            boxes: (N, 5) [x_min, y_min, x_max, y_max, score] in the image's pixels.
+            image_size: (width, height) of that image (the acquisition rule's centre; the boxes' scale in depth).
+            depth: (H, W) metres of the frame's depth (aligned to the image), 0 = no reading; None: none.
+            k: (3, 3) the depth camera's intrinsics; None: none.
+            pose: The frame's camera pose in the fixed frame; None: none.
+        """
+        stamp_ns = int(stamp_ns)
+        if self.last_stamp_ns is not None and stamp_ns < self.last_stamp_ns:
+            self.reset()
+        self.last_stamp_ns = stamp_ns
+        cfg = self.config
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
+        usable = usable_boxes(boxes)
+        if not cfg.follow:
+            self.target, self.others, self.lost = None, [], None
+            return self._acquire(stamp_ns, boxes, usable, image_size, None, None, "track_previous_target is off")
+        why_image, positions = self._positions(boxes, usable, image_size, depth, k, pose)
+        frame = "" if positions is None or pose is None else str(pose.frame_id)
+        if positions is not None and self.others and self.others[0].fixed_frame != frame:
+            self.others = []  # another fixed frame: their places mean nothing in it
+        with_position = usable if positions is None else usable & np.all(np.isfinite(positions), axis=1)
+        target = self.target
+        if target is not None and (stamp_ns - target.last_seen_ns) * 1e-9 > cfg.lost_after_s:
+            self._lose(stamp_ns, target)
+            target = None
+        if target is None:
+            return self._acquire(stamp_ns, boxes, with_position, image_size, positions, frame or None, why_image)
+        if positions is None:
+            return self._image_frame(stamp_ns, boxes, usable, image_size, target, why_image)
+        if target.filter is None or target.fixed_frame != frame:
+            return self._start_filter(stamp_ns, boxes, with_position, image_size, positions, frame, target)
+        return self._fixed_frame(stamp_ns, boxes, with_position, positions, frame, target)
+
+    def _positions(self, boxes: FloatArray, usable: BoolArray, image_size: Optional[Tuple[int, int]],
+                   depth: Optional[FloatingArray], k: Optional[FloatArray],
+                   pose: Optional[CameraPoseLike]) -> Tuple[str, Optional[FloatArray]]:
+        """(why the frame is decided in the image only, or ""; (N, 3) fixed-frame positions, NaN rows, or None)."""
+        if not self.config.fixed_frame:
+            return "track_in_fixed_frame is off", None
+        if pose is None:
+            return "no camera pose of this frame", None
+        if depth is None or k is None or image_size is None:
+            return "no depth frame of this frame", None
+        camera = box_positions_camera(boxes, image_size, depth, k, self.config)
+        camera[~usable] = np.nan
+        if np.any(usable) and not np.any(np.all(np.isfinite(camera), axis=1)):
+            return "no valid depth in any box", None
+        rotation = np.asarray(pose.rotation, dtype=np.float64).reshape(3, 3)
+        position = np.asarray(pose.position, dtype=np.float64).reshape(3)
+        return "", camera @ rotation.T + position
+
+    # ------------------------------------------------------------------ outcomes
+
+    def _lose(self, stamp_ns: int, target: _Track) -> None:
+        unseen_s = (stamp_ns - target.last_seen_ns) * 1e-9
+        position, velocity, sigma = self._estimate(target, stamp_ns)
+        self.lost = TargetDecision(STATE_LOST, -1, target.track_id, target.fixed_frame if target.filter else "",
+                                   position, velocity, sigma, target.last_seen_ns,
+                                   f"lost: track {target.track_id} not seen for {unseen_s:.2f} s (limit "
+                                   f"{self.config.lost_after_s:g} s)",
+                                   MODE_FIXED_FRAME if target.filter is not None else MODE_IMAGE)
+        self.target = None
+
+    def _acquire(self, stamp_ns: int, boxes: FloatArray, candidates: BoolArray,
+                 image_size: Optional[Tuple[int, int]], positions: Optional[FloatArray], frame: Optional[str],
+                 why_image: str) -> TargetDecision:
+        """A new target by the acquisition rule among the candidates; NONE (or LOST, repeated) without one."""
+        fixed = positions is not None and frame is not None
+        index = acquisition_index(boxes, candidates, image_size)
+        assignment = self._assign(stamp_ns, positions, candidates, with_target=False) if fixed else {}
+        if index < 0:
+            if fixed:
+                self._apply_others(stamp_ns, positions, str(frame), assignment, set())
+            what = "no detections" if len(boxes) == 0 else ("no usable detection" if not np.any(
+                usable_boxes(boxes)) else "no detection with depth")
+            if self.lost is not None:
+                return dataclasses.replace(self.lost, reason=f"{self.lost.reason}; {what}")
+            zero = np.zeros(3)
+            return TargetDecision(STATE_NONE, -1, 0, "", zero, zero.copy(), 0.0, 0, f"no target yet: {what}",
+                                  MODE_FIXED_FRAME if fixed else MODE_IMAGE)
+        previous = self.lost
+        track = _Track(self.next_id, stamp_ns, last_box=boxes[index, :4].copy())
+        self.next_id += 1
+        if fixed:
+            assert positions is not None and frame is not None
+            claimed = next((key for key, j in assignment.items() if j == index), None)
+            track.fixed_frame = str(frame)
+            if claimed is None:
+                track.filter = _Filter(stamp_ns, positions[index], positions[index, 2], self.config)
+            else:  # a person already followed as another: their filter (their velocity) comes with them
+                track.filter = self.others[claimed].filter
+                assert track.filter is not None
+                track.filter.update(stamp_ns, positions[index], positions[index, 2], self.config)
+                del assignment[claimed]
+                self._apply_others(stamp_ns, positions, str(frame), assignment, {index}, drop=claimed)
+            if claimed is None:
+                self._apply_others(stamp_ns, positions, str(frame), assignment, {index})
+        self.target, self.lost = track, None
+        count = int(np.count_nonzero(candidates))
+        reason = f"acquired track {track.track_id}: detection {index}, the highest score ({boxes[index, 4]:.3f})"
+        if count > 1:
+            reason += f" of {count} candidates (ties: nearest the image centre)"
+        if previous is not None:
+            reason += f"; {previous.reason}"
+        if why_image:
+            reason += f"; image only: {why_image}"
+        return self._decision(track, stamp_ns, STATE_TRACKED, index, reason,
+                              MODE_FIXED_FRAME if fixed else MODE_IMAGE, acquired=True)
+
+    def _image_frame(self, stamp_ns: int, boxes: FloatArray, usable: BoolArray,
+                     image_size: Optional[Tuple[int, int]], target: _Track, why_image: str) -> TargetDecision:
+        """An image-only frame of a live target: the box overlapping its last box."""
+        index, iou = overlapping_index(boxes, target.last_box, self.config.min_track_iou, usable)
+        if index >= 0:
+            target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
+            return self._decision(target, stamp_ns, STATE_TRACKED, index, f"image only ({why_image}): overlaps the"
+                                  f" last target box, IoU {iou:.2f}", MODE_IMAGE)
+        if target.filter is None and np.any(usable):  # a track that never had a position: the image-only rule
+            self.target = None
+            return self._acquire(stamp_ns, boxes, usable, image_size, None, None,
+                                 f"{why_image}; no box overlaps the last target box (best IoU {iou:.2f})")
+        what = "no detections" if len(boxes) == 0 else f"no box overlaps the last target box (best IoU {iou:.2f})"
+        return self._decision(target, stamp_ns, STATE_NOT_SEEN, -1, f"not seen, image only ({why_image}): {what}",
+                              MODE_IMAGE)
+
+    def _start_filter(self, stamp_ns: int, boxes: FloatArray, with_position: BoolArray,
+                      image_size: Optional[Tuple[int, int]], positions: FloatArray, frame: str,
+                      target: _Track) -> TargetDecision:
+        """A live target without a place in this fixed frame: continued by box overlap, which starts its filter."""
+        index, iou = overlapping_index(boxes, target.last_box, self.config.min_track_iou, with_position)
+        if index < 0 and target.filter is None:  # an image-only track: the image-only rule takes the best box
+            self.target = None
+            return self._acquire(stamp_ns, boxes, with_position, image_size, positions, frame, "")
+        candidates = with_position.copy()
+        if index >= 0:
+            candidates[index] = False
+        assignment = self._assign(stamp_ns, positions, candidates, with_target=False)
+        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index})
+        if index < 0:  # the fixed frame changed: the old place means nothing in the new one
+            target.filter = None
+            return self._decision(target, stamp_ns, STATE_NOT_SEEN, -1, f"not seen: the fixed frame changed to "
+                                  f"{frame!r} and no box overlaps the last target box", MODE_FIXED_FRAME)
+        target.filter = _Filter(stamp_ns, positions[index], positions[index, 2], self.config)
+        target.fixed_frame = frame
+        target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
+        return self._decision(target, stamp_ns, STATE_TRACKED, index, f"overlaps the last target box (IoU "
+                              f"{iou:.2f}): its place in {frame!r} starts the track", MODE_FIXED_FRAME)
+
+    def _fixed_frame(self, stamp_ns: int, boxes: FloatArray, with_position: BoolArray, positions: FloatArray,
+                     frame: str, target: _Track) -> TargetDecision:
+        """A frame with positions, of a target with a filter in this fixed frame: the gate decides."""
+        cfg = self.config
+        assert target.filter is not None
+        predicted, _ = target.filter.predicted(stamp_ns, cfg)
+        gate = target.filter.gate_m(stamp_ns, cfg)
+        distances = np.hypot(positions[:, 0] - predicted[0, 0], positions[:, 1] - predicted[0, 1])
+        assignment = self._assign(stamp_ns, positions, with_position, with_target=True)
+        index = assignment.pop(-1, -1)
+        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index})
+        if index >= 0:
+            target.filter.update(stamp_ns, positions[index], positions[index, 2], cfg)
+            target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
+            return self._decision(target, stamp_ns, STATE_TRACKED, index, f"nearest detection to the predicted "
+                                  f"place, {distances[index]:.2f} m (gate {gate:.2f} m)", MODE_FIXED_FRAME,
+                                  gate_m=gate)
+        if not np.any(with_position):
+            what = "no detections" if len(boxes) == 0 else "no detection with depth"
+        else:
+            nearest = float(np.min(distances[with_position]))
+            what = f"no detection within the gate {gate:.2f} m of the predicted place (nearest {nearest:.2f} m)"
+            if nearest <= gate:
+                what = f"the detections within the gate {gate:.2f} m are nearer other people followed"
+        return self._decision(target, stamp_ns, STATE_NOT_SEEN, -1, f"not seen: {what}", MODE_FIXED_FRAME,
+                              gate_m=gate)
+
+    # ------------------------------------------------------------------ the assignment and the other people
+
+    def _assign(self, stamp_ns: int, positions: Optional[FloatArray], candidates: BoolArray,
+                with_target: bool) -> Dict[int, int]:
+        """Detections given to tracks nearest first, within each track's gate: {track key: detection index}.
+
+        The target's key is -1, another person's its index in ``self.others``. Distances within DISTANCE_TIE_M
+        of the nearest pair left tie: then the target first, then the others in the order they were first
+        seen, then the lowest detection index.
+        """
+        if positions is None:
+            return {}
+        cfg = self.config
+        tracks: List[Tuple[int, _Filter]] = []
+        if with_target and self.target is not None and self.target.filter is not None:
+            tracks.append((-1, self.target.filter))
+        tracks.extend((n, other.filter) for n, other in enumerate(self.others) if other.filter is not None)
+        rows = np.flatnonzero(np.asarray(candidates, dtype=bool) & np.all(np.isfinite(positions), axis=1))
+        pairs: List[Tuple[float, int, int, int]] = []
+        for rank, (key, filt) in enumerate(tracks):
+            predicted, _ = filt.predicted(stamp_ns, cfg)
+            gate = filt.gate_m(stamp_ns, cfg)
+            distances = np.hypot(positions[rows, 0] - predicted[0, 0], positions[rows, 1] - predicted[0, 1])
+            pairs.extend((float(d), rank, int(j), key) for d, j in zip(distances, rows) if d <= gate)
+        assignment: Dict[int, int] = {}
+        while pairs:
+            nearest = min(p[0] for p in pairs)
+            _, _, j, key = min((p for p in pairs if p[0] <= nearest + DISTANCE_TIE_M), key=lambda p: (p[1], p[2]))
+            assignment[key] = j
+            pairs = [p for p in pairs if p[3] != key and p[2] != j]
+        return assignment
+
+    def _apply_others(self, stamp_ns: int, positions: Optional[FloatArray], frame: str, assignment: Dict[int, int],
+                      taken: Set[int], drop: Optional[int] = None) -> None:
+        """The other people: update those given a detection, follow each detection nobody has as a new one.
+
+        Forget those not seen for lost_after_s (and ``drop``, who became the target).
+        """
+        if positions is None:
+            return
+        cfg = self.config
+        for key, j in assignment.items():
+            if key >= 0:
+                other = self.others[key]
+                assert other.filter is not None
+                other.filter.update(stamp_ns, positions[j], positions[j, 2], cfg)
+                other.last_seen_ns = stamp_ns
+        used = set(taken) | set(assignment.values())
+        self.others = [o for n, o in enumerate(self.others)
+                       if n != drop and (stamp_ns - o.last_seen_ns) * 1e-9 <= cfg.lost_after_s]
+        for j in np.flatnonzero(np.all(np.isfinite(positions), axis=1)):
+            if int(j) not in used:
+                self.others.append(_Track(0, stamp_ns, frame, _Filter(stamp_ns, positions[j], positions[j, 2], cfg)))
+
+    # ------------------------------------------------------------------ the decision
+
+    def _estimate(self, track: _Track, stamp_ns: int) -> Tuple[FloatArray, FloatArray, float]:
+        if track.filter is None:
+            return np.zeros(3), np.zeros(3), 0.0
+        state, covariance = track.filter.predicted(stamp_ns, self.config)
+        return (np.array([state[0, 0], state[0, 1], track.filter.z]), np.array([state[1, 0], state[1, 1], 0.0]),
+                float(np.sqrt(max(covariance[0, 0], 0.0))))
+
+    def _decision(self, track: _Track, stamp_ns: int, state: int, index: int, reason: str, mode: str,
+                  acquired: bool = False, gate_m: float = 0.0) -> TargetDecision:
+        position, velocity, sigma = self._estimate(track, stamp_ns)
+        return TargetDecision(state, int(index), track.track_id, track.fixed_frame if track.filter else "",
+                              position, velocity, sigma, track.last_seen_ns, reason, mode, acquired, gate_m)
