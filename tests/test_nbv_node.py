@@ -33,7 +33,7 @@ from leapnbv_common.conversions import (  # noqa: E402
 )
 from leapnbv_common.params import params_from_values  # noqa: E402
 from leapnbv_common.qos import latched_goal_qos, stage_output_qos  # noqa: E402
-from leapnbv_msgs.msg import GoalStatus, GroundPlane, TargetGeometry, ViewCandidates  # noqa: E402
+from leapnbv_msgs.msg import GoalStatus, GroundPlane, TargetGeometry, TargetTrack, ViewCandidates  # noqa: E402
 from leapnbv_planner.params import DEFAULT_SCORE_TERMS, nbv_params_class  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
@@ -573,3 +573,44 @@ def test_near_ties_keep_the_committed_goal_and_a_view_ahead_by_the_margin_replac
     finally:
         (result,) = set_parameters(probe, node, commit_margin=deployed_params().commit_margin)
         assert result.successful, result.reason
+
+
+def test_goal_status_carries_the_target_and_a_lost_target_withdraws_the_goal(graph, planned):
+    # hmr_node's TargetTrack as it would come: TRACKED, then NOT_SEEN (the goal stays: driving there may bring
+    # the person back), then LOST (the goal is withdrawn at once, though max_goal_age_s is 0 here).
+    probe = graph["probe"]
+    statuses = probe.collect(GoalStatus, f"{NS}/goal_status", latched_goal_qos())
+    track_pub = probe.node.create_publisher(TargetTrack, f"{NS}/target_track", stage_output_qos(5))
+    assert probe.spin_until(lambda: track_pub.get_subscription_count() >= 1, 5.0)
+    key = send_frame(graph, make_header(700, 0))
+    assert probe.spin_until(lambda: by_stamp(graph["goals"], key), 10.0)
+
+    def said(state: int, track_state: int, sec: int) -> GoalStatus:
+        track = TargetTrack(header=make_header(sec, 0), state=track_state, track_id=7, fixed_frame="map",
+                            reason=f"test {track_state}")
+        track.position.x, track.position.y = 3.0, 0.5
+        track_pub.publish(track)
+        assert probe.spin_until(lambda: any(s.target.header.stamp.sec == sec for s in statuses), 5.0), \
+            [(s.state, s.target.state) for s in statuses]
+        status = [s for s in statuses if s.target.header.stamp.sec == sec][-1]
+        assert status.state == state and status.target.state == track_state and status.target.track_id == 7, \
+            status.reason
+        assert (status.target.position.x, status.target.position.y) == (3.0, 0.5)
+        return status
+
+    tracked = said(GoalStatus.STATE_CURRENT, TargetTrack.STATE_TRACKED, 700)
+    assert not tracked.goal_changed  # the same goal said again with its target
+    assert (tracked.goal_stamp.sec, tracked.goal_stamp.nanosec) == key
+    said(GoalStatus.STATE_CURRENT, TargetTrack.STATE_NOT_SEEN, 701)
+    lost = said(GoalStatus.STATE_STALE, TargetTrack.STATE_LOST, 702)
+    assert lost.reason.startswith("target lost") and "test 3" in lost.reason
+    assert probe.spin_until(lambda: graph["goals"] and graph["goals"][-1].header.frame_id == "", 5.0)  # withdrawn
+    assert graph["base_goals"][-1].header.frame_id == ""
+    # A new target and a new frame: a goal again, carrying the new target.
+    track = TargetTrack(header=make_header(703, 0), state=TargetTrack.STATE_TRACKED, track_id=8, fixed_frame="map")
+    track_pub.publish(track)
+    probe.spin_for(0.2)
+    key = send_frame(graph, make_header(703, 0))
+    assert probe.spin_until(lambda: by_stamp(graph["goals"], key), 10.0)
+    assert probe.spin_until(lambda: [s for s in statuses if (s.goal_stamp.sec, s.goal_stamp.nanosec) == key
+                                     and s.state == GoalStatus.STATE_CURRENT and s.target.track_id == 8], 5.0)

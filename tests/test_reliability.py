@@ -393,7 +393,8 @@ def kinds_of_camera_infos() -> List[Kind]:
     def centre(msg):
         msg.width, msg.height = 100, 80  # K's principal point (320, 240) lies outside a 100x80 image
 
-    both = ((ras, "bad_camera_info"), (gnd, "bad_camera_info"))
+    # hmr_node reads the depth camera_info too (its target's place in the fixed frame).
+    both = ((ras, "bad_camera_info"), (gnd, "bad_camera_info"), (hmr, "bad_camera_info"))
     return [
         Kind("depth camera_info: zero focal length", info("depth_info", k(0, 0.0)), both),
         Kind("depth camera_info: NaN in K", info("depth_info", k(4, NAN)), both),

@@ -52,8 +52,10 @@ def graph_nodes(camera_topics: Optional[Dict[str, str]] = None) -> List[NodeSpec
     return [
         NodeSpec("detector_node", "leapnbv_perception", "leapnbv_perception.nodes.detector_node",
                  {"image": cam["image"], CAMERA_POSE: cam[CAMERA_POSE], **gt}),  # poses: detect_every_n_frames
+        # depth and poses: which detection is the target (its place in the fixed frame)
         NodeSpec("hmr_node", "leapnbv_perception", "leapnbv_perception.nodes.hmr_node",
-                 {"image": cam["image"], "camera_info": cam["camera_info"], **gt}),
+                 {"image": cam["image"], "camera_info": cam["camera_info"], "depth": cam["depth"],
+                  "depth/camera_info": cam["depth/camera_info"], CAMERA_POSE: cam[CAMERA_POSE], **gt}),
         NodeSpec("raster_node", "leapnbv_geometry", "leapnbv_geometry.nodes.raster_node",
                  {"depth": cam["depth"], "depth/camera_info": cam["depth/camera_info"]},
                  warm_up=("leapnbv_geometry.raster.warm_up",)),

@@ -113,8 +113,30 @@ class HmrParams(EngineParams):
                                  read_only=True)
     box_scale: float = param(1.25, "crop box scale about its centre (SMPLer-X 1.25, SMPLest-X 1.2)", min=1.0, max=3.0)
     unmirror_left_hand: bool = param(True, "un-mirror the left hand (SMPLer-X: true, SMPLest-X: false)")
-    track_previous_target: bool = param(True, "follow the person who overlaps the last target, else the best score")
-    min_track_iou: float = param(0.3, "overlap with the last target needed to keep following it", min=0.0, max=1.0)
+    # Keeping the same person (leapnbv_perception.target_tracking; docs/ALGORITHMS.md, "Keeping the same person").
+    track_previous_target: bool = param(True, "follow the target from frame to frame (false: every frame takes the "
+                                        "acquisition rule's box, a new track each frame)")
+    min_track_iou: float = param(0.3, "frames decided in the image only: the overlap with the last target box that "
+                                 "continues the target", min=0.0, max=1.0)
+    track_in_fixed_frame: bool = param(True, "decide which detection is the target by its place in the camera pose's "
+                                       "fixed frame (the box's depth and the frame's camera pose); false, or a frame "
+                                       "without its pose or depth: by box overlap in the image only")
+    target_gate_m: float = param(0.6, "m: a detection is the target only within this horizontal distance of its "
+                                 "predicted place (in a frame right after one that saw it)", min=0.05, max=10.0)
+    target_gate_growth_m_s: float = param(0.5, "m/s: how fast the gate grows with the time since the target's last "
+                                          "measured place (a person walks about 0.5 m/s)", min=0.0, max=5.0)
+    target_lost_after_s: float = param(3.0, "s: a target not among the detections for longer than this is lost: a "
+                                       "frame with a detection then takes a new target by the acquisition rule",
+                                       min=0.1, max=600.0)
+    target_depth_share: float = param(0.5, "share of a box's width and height, about its centre, whose median depth "
+                                      "is the person's place", min=0.1, max=1.0)
+    target_input_wait_s: float = param(0.05, "s: how long detections wait for their depth frame and camera pose, once "
+                                       "such inputs have come (DDS does not order topics); then decided without",
+                                       min=0.0, max=2.0)
+    depth_slop_s: float = param(0.005, "s: largest stamp difference between detections and their depth frame",
+                                min=0.0, max=1.0)
+    camera_pose_source: str = param("topic", "where the camera poses come from (a key of "
+                                    "leapnbv_common.camera_pose.CAMERA_POSE_SOURCES)", read_only=True)
     # SMPL-X's triangles are 251 KB of its 377 KB mesh and the same in every frame (docs/TWO_HOSTS.md).
     inline_mesh_faces: bool = param(False, "send the triangles in every HumanMesh instead of once per model on "
                                            "mesh_faces (for a consumer that does not read mesh_faces)")

@@ -14,15 +14,22 @@ whose meshes all have the SMPL-X hand mean pose; that is also logged once).
 The body model's triangles go out once per model on the latched mesh_faces topic and each mesh names
 them by id (``faces_id``; leapnbv_common.mesh_faces), unless ``inline_mesh_faces`` puts them in every mesh.
 
+Which detection is the target (:mod:`leapnbv_perception.nodes.target_inputs`, the rules in
+:mod:`leapnbv_perception.target_tracking`): its place in the camera pose's fixed frame, from the frame's
+depth and camera pose, within a gate around where the target's track predicts it; without a pose or depth,
+by box overlap in the image. Every decided frame publishes a ``TargetTrack`` on ``target_track`` (TRACKED,
+NOT_SEEN, LOST or NONE) before the mesh; a frame whose target is not among its detections gets no mesh
+(``rejected.target_not_seen``).
+
 Parameters: :class:`leapnbv_perception.params.HmrParams`. The crop scale, the hand un-mirroring,
-the target tracking and inline_mesh_faces change at runtime; the engine, the models and the cache are
-set at start-up.
+the target tracking and inline_mesh_faces change at runtime; the engine, the models, the cache and the
+camera-pose source are set at start-up.
 """
 from __future__ import annotations
 
 import os
 import time
-from typing import Optional, Set
+from typing import Set
 
 import numpy as np
 from sensor_msgs.msg import Image
@@ -44,8 +51,9 @@ from leapnbv_common.topics import DETECTIONS, HUMAN_MESH
 from leapnbv_msgs.msg import HumanMesh, PersonDetections
 from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, GroundTruthMeshBackend
 from leapnbv_perception.nodes.engine_loading import create_engine_backend, load_in_configure
+from leapnbv_perception.nodes.target_inputs import TargetInputs
 from leapnbv_perception.params import HmrParams
-from leapnbv_perception.target_selection import select_target
+from leapnbv_perception.target_tracking import STATE_NOT_SEEN
 
 # How long detections wait for their colour image: DDS does not order topics, and a fast detector (the
 # simulator's boxes, a carried box) can publish before this node has the image it was made from.
@@ -62,11 +70,11 @@ class HmrNode(ManagedNode):
         p = self.params.value
         self.diagnostics.hardware_id = p.backend
         self.ground_truth = p.backend == GROUND_TRUTH_BACKEND
-        self.previous_box: Optional[np.ndarray] = None
         self.engine = load_in_configure(self, f"HMR engine {p.model_file_path!r} with body model "
                                                        f"{p.body_model_path!r}", self.load_engine)
         self.publisher = self.create_lifecycle_publisher(HumanMesh, HUMAN_MESH, stage_output_qos())
         self.mesh_faces = MeshFacesPublisher(self)
+        self.target = TargetInputs(self)
         if self.ground_truth:
             companions = GroundTruthMeshBackend.companions(p.cache_size)
         else:
@@ -78,10 +86,13 @@ class HmrNode(ManagedNode):
                                     missing_detail=lambda f: f"no image with stamp {f.stamp_ns} ns within"
                                     f" {IMAGE_WAIT_S} s", capacity=p.cache_size, raw=True, pulled=True, consume=True,
                                     skip_older=True)]
-        # The detections start the work (the newest only); the truth or the image and the camera infos come at
-        # camera rate and are pulled when detections come (leapnbv_common.pulled_input).
+        # The detections start the work (the newest only); the truth or the image, the camera infos, the depth
+        # frames and the camera poses come at camera rate and are pulled when detections come
+        # (leapnbv_common.pulled_input).
         self.stage = Stage(self, KeyInput("detections", PersonDetections, DETECTIONS, detections_to_boxes,
-                                          stage_input_qos(1)), companions, self.estimate, capacity=p.cache_size)
+                                          stage_input_qos(1)), companions + self.target.companions(), self.estimate,
+                           capacity=p.cache_size, on_restart=self.target.reset)
+        self.target.attach()
 
     def activate_stage(self) -> None:
         self.stage.start()
@@ -134,17 +145,18 @@ class HmrNode(ManagedNode):
             return
         boxes = frame["detections"]
         p = self.params.value
-        previous = self.previous_box if p.track_previous_target else None
-        index = select_target(boxes, previous, p.min_track_iou)
-        if index < 0:
-            self.diagnostics.reject("no_person", "no detection in this frame")
+        decision = self.target.decide(frame, boxes, (int(detections.image_width), int(detections.image_height)))
+        if decision.detection_index < 0:
+            if decision.state == STATE_NOT_SEEN:
+                self.diagnostics.reject("target_not_seen", decision.reason)
+            else:
+                self.diagnostics.reject("no_person", decision.reason)
             return
-        box = boxes[index]
+        box = boxes[decision.detection_index]
         if self.ground_truth:
             mesh = GroundTruthMeshBackend.mesh(self.engine, frame, box, p.box_scale)
         else:
             mesh = self.engine_mesh(box, frame["image"])
-        self.previous_box = box[:4]
         self.mesh_faces.name(mesh)  # its triangles on mesh_faces before the first mesh that names them
         out = arrays_to_human_mesh(mesh, header=detections.header,
                                    compute_time_ms=(time.perf_counter() - started) * 1e3, inputs=frame.inputs,

@@ -13,10 +13,15 @@ The goal published is the commitment's (:mod:`leapnbv_planner.nodes.goal_commitm
 says why it is what it is (``commitment``, ``goal_changed``, ``committed_since``, the scores weighed and the
 margin; the decision's line in ``reason``). A committed goal that a plan drops without a feasible view to
 take its place (infeasible, unreachable, the person moved) is withdrawn at once (NONE), not left to age out.
+
+Every status carries the target as hmr_node tracks it (``target``: the newest TargetTrack, set by
+:mod:`leapnbv_planner.nodes.target_status`); :meth:`LatchedGoal.target_changed` says a change of it at once
+(the status restated, ``goal_changed`` false) and withdraws a CURRENT goal when the target is lost (STALE,
+"target lost: ...").
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
@@ -25,7 +30,7 @@ from std_msgs.msg import Header
 from leapnbv_common import topics
 from leapnbv_common.conversions import path_msg, pose_msg, set_stamp
 from leapnbv_common.qos import latched_goal_qos
-from leapnbv_msgs.msg import GoalStatus
+from leapnbv_msgs.msg import GoalStatus, TargetTrack
 from leapnbv_planner.commitment import CommitReason, GoalDecision
 from leapnbv_planner.goal_age import expired_age_s, too_old, valid_until_ns
 
@@ -57,6 +62,8 @@ class LatchedGoal:
         self.planned_without: Dict[str, str] = {}  # of the latched goal: input name -> why
         self.decision: Optional[GoalDecision] = None  # the commitment's decision of the latched goal
         self.age_timer: Any = None
+        self.reason = ""  # of the last status published
+        self.target: Callable[[], TargetTrack] = TargetTrack  # the newest TargetTrack (the node sets its source)
 
     def now_ns(self) -> int:
         now: int = self.node.get_clock().now().nanoseconds
@@ -138,6 +145,21 @@ class LatchedGoal:
         self.publish_status(GoalStatus.STATE_STALE, f"no goal from a frame younger than {limit:g} s: the last one"
                             f" is {age_s:.2f} s old and was withdrawn")
 
+    def target_changed(self, lost: str = "") -> None:
+        """The target's state or id changed: restate the status now with it.
+
+        ``lost`` (why the target was lost, or ""): a CURRENT goal is withdrawn (STALE) instead.
+        """
+        if lost and self.state == GoalStatus.STATE_CURRENT:
+            if self.age_timer is not None:
+                self.age_timer.cancel()
+            self.decision = None
+            self.withdraw()
+            self.node.diagnostics.drop("goal_withdrawn_target_lost")
+            self.publish_status(GoalStatus.STATE_STALE, f"target lost: the goal was withdrawn ({lost})")
+            return
+        self.publish_status(self.state, self.reason, restated=True)
+
     def withdraw(self) -> None:
         """Replace the latched goals by "no goal": a motion stack connecting later must not receive the old one."""
         cleared = Header(frame_id="", stamp=self.node.get_clock().now().to_msg())
@@ -145,7 +167,11 @@ class LatchedGoal:
         self.base_goal_pub.publish(PoseStamped(header=cleared))
         self.base_path_pub.publish(Path(header=cleared))  # an empty path: no way to a current goal
 
-    def publish_status(self, state: int, reason: str) -> None:
+    def publish_status(self, state: int, reason: str, restated: bool = False) -> None:
+        """Publish goal_status.
+
+        ``restated``: the same goal and state said again (a change of the target only), so ``goal_changed`` is false.
+        """
         now = self.now_ns()
         msg = GoalStatus(state=state, reason=reason, max_goal_age_s=float(self.node.params.value.max_goal_age_s))
         msg.header.stamp = self.node.get_clock().now().to_msg()
@@ -158,7 +184,9 @@ class LatchedGoal:
             msg.planned_without = list(self.planned_without)
         if self.decision is not None and (state == GoalStatus.STATE_CURRENT or self.decision.goal is None):
             commitment_fields(msg, self.decision, self.stamp)
-        self.state = state
+            msg.goal_changed = msg.goal_changed and not restated
+        msg.target = self.target()
+        self.state, self.reason = state, reason
         self.status_pub.publish(msg)
 
 

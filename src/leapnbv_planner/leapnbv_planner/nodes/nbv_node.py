@@ -33,6 +33,9 @@ for its pose; without one (or without a map) the node plans from the frame alone
 Goal commitment (``commit_*``, :mod:`leapnbv_planner.nodes.goal_commitment`): next_best_view carries the
 committed goal, replaced only for a reason goal_status names; ViewCandidates' ``chosen_index`` stays the
 plan's own choice (a kept goal is no ring candidate).
+The target (:mod:`leapnbv_planner.nodes.target_status`): every goal_status carries hmr_node's newest
+TargetTrack; a change of it is said at once, a lost target withdraws the goal (STALE, "target lost"), and a
+new target (another track_id) ends the commitment to the goal planned around the previous one.
 """
 from __future__ import annotations
 
@@ -49,12 +52,13 @@ from leapnbv_common.mesh_faces_topic import MeshFacesInput
 from leapnbv_common.pulled_input import PulledInput
 from leapnbv_common.qos import stage_input_qos, stage_output_qos
 from leapnbv_common.stage import Companion, Frame, KeyInput, Received, Stage
-from leapnbv_msgs.msg import GroundPlane, HumanMesh, InputStamp, TargetGeometry, ViewCandidates
+from leapnbv_msgs.msg import GroundPlane, HumanMesh, InputStamp, TargetGeometry, TargetTrack, ViewCandidates
 from leapnbv_planner.inputs import PlanInputs
 from leapnbv_planner.nodes.goal_commitment import NodeCommitment, decision_path_frames, scores_changed
 from leapnbv_planner.nodes.latched_goal import LatchedGoal
 from leapnbv_planner.nodes.markers import candidate_markers
 from leapnbv_planner.nodes.nbv_inputs import FrameFloor, ObstacleMapInput, body_mesh_arrays
+from leapnbv_planner.nodes.target_status import TargetTrackInput
 from leapnbv_planner.obstacle_map import warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
 from leapnbv_planner.plan import plan_views
@@ -83,6 +87,8 @@ class NbvNode(ManagedNode):
         self.obstacle_map = ObstacleMapInput(self)
         self.mesh_faces = MeshFacesInput(self)  # the triangles the metric meshes name by id
         self.commitment = NodeCommitment(self)
+        self.target = TargetTrackInput(self, self.target_changed)
+        self.goal.target = self.target.current  # every goal_status carries the newest TargetTrack
         # The target starts the work (the newest only); it takes the plane of its own frame (waited for),
         # its camera pose while a map or the commitment is in use (DDS does not order topics: waited for briefly)
         # and its metric body mesh while a chosen term reads it (BODY_MESH) and some node publishes them.
@@ -115,6 +121,7 @@ class NbvNode(ManagedNode):
         if self.params.value.use_obstacle_map:
             self.obstacle_map.subscribe()
         self.mesh_faces.subscribe()
+        self.target.subscribe()
         self.stage.start()
         self.diagnostics.await_publishers(topics.TARGET_GEOMETRY, topics.GROUND_PLANE)
         self.goal.start()
@@ -132,6 +139,13 @@ class NbvNode(ManagedNode):
             self.goal.limit_changed(new.max_goal_age_s)
         if scores_changed(changed):
             self.commitment.clear()  # the committed goal's score is no longer comparable with the new ones
+
+    def target_changed(self, track: TargetTrack, previous: Optional[TargetTrack]) -> None:
+        """Say the target's change on goal_status now; a lost target withdraws the goal, another person ends the
+        commitment (the goal was planned around the previous one)."""
+        if previous is not None and track.track_id != previous.track_id:
+            self.commitment.clear()
+        self.goal.target_changed(lost=track.reason if track.state == TargetTrack.STATE_LOST else "")
 
     def terms_need(self, requirement: Requirement) -> bool:
         """Whether a chosen score term reads this requirement with the current parameters (the node waits only for
