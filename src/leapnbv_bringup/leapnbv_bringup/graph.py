@@ -21,6 +21,8 @@ from leapnbv_common.topics import (  # noqa: F401 - re-exported for the launch f
     OBSTACLE_MAP,
     OUTPUT_TOPICS,
     ROBOT_TOPICS,
+    SCENE_PEOPLE,
+    SCENE_PEOPLE_TOPIC,
 )
 
 
@@ -48,7 +50,7 @@ def graph_nodes(camera_topics: Optional[Dict[str, str]] = None) -> List[NodeSpec
     """The five nodes, inputs remapped to the topics given (keys of INPUT_TOPICS; RealSense names by default)."""
     cam = dict(INPUT_TOPICS)
     cam.update(camera_topics or {})
-    gt = {GROUND_TRUTH: GROUND_TRUTH_TOPIC}
+    gt = {GROUND_TRUTH: GROUND_TRUTH_TOPIC, SCENE_PEOPLE: SCENE_PEOPLE_TOPIC}
     return [
         NodeSpec("detector_node", "leapnbv_perception", "leapnbv_perception.nodes.detector_node",
                  {"image": cam["image"], CAMERA_POSE: cam[CAMERA_POSE], **gt}),  # poses: detect_every_n_frames

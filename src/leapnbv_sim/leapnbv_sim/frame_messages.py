@@ -17,7 +17,9 @@ from tf2_msgs.msg import TFMessage
 from leapnbv_common.camera_pose.tf_messages import tf_message
 from leapnbv_common.conversions import (
     SceneGroundTruthArrays,
+    ScenePersonArrays,
     arrays_to_scene_ground_truth,
+    arrays_to_scene_people,
     header_with_stamp,
     make_camera_info,
     numpy_to_image,
@@ -29,15 +31,28 @@ from leapnbv_common.topics import (
     DEPTH_IMAGE_TOPIC,
     DEPTH_INFO_TOPIC,
     GROUND_TRUTH_TOPIC,
+    SCENE_PEOPLE_TOPIC,
 )
-from leapnbv_msgs.msg import SceneGroundTruth
+from leapnbv_msgs.msg import SceneGroundTruth, ScenePeople
 from leapnbv_sim.poses import CameraPose
-from leapnbv_sim.render import RenderedFrame
+from leapnbv_sim.render import PersonGroundTruth, RenderedFrame
 from leapnbv_sim.robot_frames import RobotFrameIds, dynamic_links, static_links
 
 
+def _box_with_score(box_xyxy: Optional[Tuple[int, int, int, int]]) -> np.ndarray:
+    """[x0, y0, x1, y1, 1] of a visible box; all zero (score 0) for None."""
+    return np.zeros(5) if box_xyxy is None else np.array(list(box_xyxy) + [1.0])
+
+
+def _scene_person(person: PersonGroundTruth) -> ScenePersonArrays:
+    params = person.body_params_camera
+    return ScenePersonArrays(object_id=person.object_id, person_box=_box_with_score(person.box_xyxy),
+                             root_pose=params.root_pose, body_pose=params.body_pose, betas=params.betas,
+                             translation=person.translation_camera, occlusion_share=person.occlusion_share)
+
+
 def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: str) -> SceneGroundTruth:
-    """leapnbv_msgs/SceneGroundTruth of a rendered frame (an all-zero box, score 0, when no person is visible).
+    """leapnbv_msgs/SceneGroundTruth of a rendered frame: the target (an all-zero box, score 0, when it is not visible).
 
     Args:
         header: The frame's header.
@@ -48,13 +63,20 @@ def scene_ground_truth_msg(header: Header, frame: RenderedFrame, body_model_id: 
         The message.
     """
     truth = frame.ground_truth
-    box = np.zeros(5) if truth.person_box_xyxy is None else np.array(list(truth.person_box_xyxy) + [1.0])
     params = truth.body_params_camera
     return arrays_to_scene_ground_truth(SceneGroundTruthArrays(
-        person_box=box, root_pose=params.root_pose, body_pose=params.body_pose,
+        person_box=_box_with_score(truth.person_box_xyxy), root_pose=params.root_pose, body_pose=params.body_pose,
         left_hand_pose=params.left_hand_pose, right_hand_pose=params.right_hand_pose, jaw_pose=params.jaw_pose,
         betas=params.betas, expression=params.expression, translation=truth.translation_camera,
         occlusion_share=truth.occlusion_share, body_model_id=body_model_id), header)
+
+
+def scene_people_msg(header: Header, frame: RenderedFrame) -> ScenePeople:
+    """leapnbv_msgs/ScenePeople of a rendered frame: every person but the target, visible or not.
+
+    In object id order; empty in a one-person scene.
+    """
+    return arrays_to_scene_people([_scene_person(person) for person in frame.ground_truth.others], header)
 
 
 def robot_tf_message(camera: CameraPose, stamp_ns: int, ids: RobotFrameIds) -> TFMessage:
@@ -68,7 +90,7 @@ def robot_static_tf_message(ids: RobotFrameIds) -> TFMessage:
 
 
 def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: str) -> Dict[str, object]:
-    """Absolute topic -> message for one frame: both camera infos, the ground truth, colour and depth.
+    """Absolute topic -> message for one frame: both camera infos, the ground truth, the other people, colour and depth.
 
     In this order (the order the simulator publishes them: calibration before the images). The
     depth is aligned to colour, so both camera infos are the same message.
@@ -79,6 +101,7 @@ def camera_frame_messages(frame: RenderedFrame, header: Header, body_model_id: s
         COLOR_INFO_TOPIC: info,
         DEPTH_INFO_TOPIC: info,
         GROUND_TRUTH_TOPIC: scene_ground_truth_msg(header, frame, body_model_id),
+        SCENE_PEOPLE_TOPIC: scene_people_msg(header, frame),
         COLOR_IMAGE_TOPIC: numpy_to_image(np.ascontiguousarray(frame.rgb), "rgb8", header),
         DEPTH_IMAGE_TOPIC: numpy_to_image(np.ascontiguousarray(frame.depth_mm), "16UC1", header),
     }

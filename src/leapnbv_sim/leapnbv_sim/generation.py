@@ -6,22 +6,38 @@ scene). The start camera sits on the -x side of the person at ``person_distance`
 box (so its optical axis is pitched down by a few degrees; its x axis stays parallel to the
 floor: no roll). Occluders stand between the camera and the person, sized so that the start
 view's occluder share hits a drawn target; clutter (furniture, when the config asks for it)
-stands around the person off the start view's line of sight.
+stands around the person off the start view's line of sight. Other people (bystanders,
+passers-by) and the target's walk, when the config asks for them, come last, from their own
+random streams (:mod:`leapnbv_sim.people`): the rest of the scene is the one-person scene of the seed.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from leapnbv_common.array_types import BoolArray, FloatArray
 from leapnbv_geometry.raster import rasterize_mesh
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_sim.body import body_model_id, place_body, sample_body_pose
+from leapnbv_sim.body import PlacedBody, body_model_id, place_body, sample_body_pose
 from leapnbv_sim.depth_noise import DepthNoiseConfig
 from leapnbv_sim.meshes import box_footprint, box_mesh, convex_hull_2d, convex_polygons_apart, quad_mesh
+from leapnbv_sim.people import (
+    OTHER_PERSON_COLOURS,
+    ROLE_BYSTANDER,
+    ROLE_PASSER_BY,
+    TARGET_MOTIONS,
+    FloorPlan,
+    OtherPerson,
+    PersonMotion,
+    people_rng,
+    place_bystander,
+    place_passer_by,
+    plan_target_motion,
+    target_motion_rng,
+)
 from leapnbv_sim.poses import CameraPose, look_at_pose
 from leapnbv_sim.scene import Scene, SceneError, SceneObject, assemble_scene
 from leapnbv_sim.visibility import visible_vertex_mask
@@ -81,6 +97,16 @@ class SceneConfig:
             and a side wall 0.6-1.0 m from the person) or "near_wall" (a back wall 0.4-0.7 m behind
             the person). The layouts other than "default" draw from their own random stream, so the
             rest of the scene is the default layout's.
+        bystanders: People standing still near the target (:mod:`leapnbv_sim.people`), 0 = none.
+        passers_by: People walking across the start view's line of sight to the target, 0 = none.
+        target_motion: "stand" (the target stands still) or "walk" (it walks, or turns in place).
+            Other people and the target's motion draw from their own random streams, after everything
+            else: a config without them gives exactly the scene it gave before they existed.
+        bystander_distance_range: Horizontal distance from the target's pelvis to a bystander's (m), uniform.
+        passer_by_speed_range: A passer-by's walking speed (m/s), uniform.
+        passer_by_crossing_s_range: When a passer-by crosses the line of sight (s of scene time), uniform.
+        target_speed_range: The walking target's speed (m/s), uniform.
+        target_walk_length_range: How far the walking target walks (m), uniform.
     """
 
     seed: int = 0
@@ -108,6 +134,14 @@ class SceneConfig:
     clutter_clearance: float = 0.15
     clutter_max_tries: int = 100
     room_layout: str = "default"
+    bystanders: int = 0
+    passers_by: int = 0
+    target_motion: str = "stand"
+    bystander_distance_range: Tuple[float, float] = (0.6, 1.5)
+    passer_by_speed_range: Tuple[float, float] = (0.5, 1.0)
+    passer_by_crossing_s_range: Tuple[float, float] = (1.0, 3.0)
+    target_speed_range: Tuple[float, float] = (0.2, 0.5)
+    target_walk_length_range: Tuple[float, float] = (0.8, 2.0)
 
     @property
     def K(self) -> FloatArray:
@@ -129,7 +163,11 @@ def generate_scene(config: SceneConfig, body_model: SMPLXModel) -> Scene:
     from a separate stream, ``np.random.default_rng([seed, 7])`` (see :func:`_place_clutter`):
     they keep clear of the start view's line of sight to the body, so the occluder share found
     above holds (it is measured again on the full scene), and a config without clutter gives
-    exactly the scene it gave before clutter existed.
+    exactly the scene it gave before clutter existed. Then, when the config asks for them, the
+    target's motion and the other people (:func:`_place_people`), from their own streams and
+    appended after every other object: they keep off the start view's line of sight at time 0, so
+    the occluder share holds (measured again), and a config without them gives the scene it gave
+    before they existed.
 
     Args:
         config: Scene parameters and seed.
@@ -139,8 +177,13 @@ def generate_scene(config: SceneConfig, body_model: SMPLXModel) -> Scene:
         The scene; ``start_occluder_share`` lies in ``config.occluder_share_range``.
 
     Raises:
-        SceneError: No layout met the occlusion range within ``config.max_attempts``.
+        SceneError: No layout met the occlusion range within ``config.max_attempts``, or a person
+            found no free place.
     """
+    if config.target_motion not in TARGET_MOTIONS:
+        raise SceneError(f"target_motion must be one of {TARGET_MOTIONS}, got {config.target_motion!r}")
+    if config.bystanders < 0 or config.passers_by < 0:
+        raise SceneError(f"bystanders and passers_by must be >= 0, got {config.bystanders}, {config.passers_by}")
     rng = np.random.default_rng(config.seed)
     camera_height = rng.uniform(*config.camera_height_range)
     distance = rng.uniform(*config.person_distance_range)
@@ -265,32 +308,43 @@ def generate_scene(config: SceneConfig, body_model: SMPLXModel) -> Scene:
                 ("occluder_%d" % index, vertices, faces, _OCCLUDER_COLOURS[index % len(_OCCLUDER_COLOURS)])
             )
 
-        def assemble(scene_objects: List[SceneObject]) -> Scene:
+        def assemble(scene_objects: List[SceneObject], others: Sequence[OtherPerson] = (),
+                     target_motion: Optional[PersonMotion] = None) -> Scene:
             assembled = assemble_scene(config, scene_objects, body, start_camera,
-                                       body_model_id(body_model, config.body_resolution))
+                                       body_model_id(body_model, config.body_resolution), others, target_motion)
             assembled.start_occluder_share, _ = assembled.occluder_share(start_camera)
             return assembled
 
         scene = assemble(objects + occluders + walls)
         if not low <= scene.start_occluder_share <= high:
             continue
-        if config.clutter_count_range[1] <= 0:
+        clutter: List[SceneObject] = []
+        if config.clutter_count_range[1] > 0:
+            # Clutter comes next, from its own random stream, so the draws above (and every scene
+            # without clutter) stay as they were. It stays clear of the start view's line of sight
+            # to the body, so it cannot change the start view's occluder share; the share is
+            # measured again on the full scene all the same.
+            clutter = _place_clutter(
+                config,
+                body_world,
+                start_camera,
+                layout.boxes(best_height),
+                wall_back_x,
+                wall_side_y,
+            )
+            scene = assemble(objects + occluders + walls + clutter)
+            if not low <= scene.start_occluder_share <= high:
+                continue
+        if not (config.bystanders or config.passers_by or config.target_motion != "stand"):
             return scene
-        # Clutter comes last, from its own random stream, so the draws above (and every scene
-        # without clutter) stay as they were. It stays clear of the start view's line of sight
-        # to the body, so it cannot change the start view's occluder share; the share is
-        # measured again on the full scene all the same.
-        clutter = _place_clutter(
-            config,
-            body_world,
-            start_camera,
-            layout.boxes(best_height),
-            wall_back_x,
-            wall_side_y,
-        )
-        scene = assemble(objects + occluders + walls + clutter)
+        # The people last, from their own streams (the scene so far is the one-person scene).
+        others, target_motion = _place_people(config, body_model, body, heading, start_camera, occluders + clutter,
+                                              walls)
+        scene = assemble(objects + occluders + walls + clutter, others, target_motion)
         if low <= scene.start_occluder_share <= high:
             return scene
+        raise SceneError(f"seed {config.seed}: the other people changed the start view's occluder share to "
+                         f"{scene.start_occluder_share:.3f}, outside [{low}, {high}]")
     raise SceneError(
         f"seed {config.seed}: no occluder layout reached an occluder share in [{low}, {high}] "
         f"in {config.max_attempts} attempts"
@@ -299,6 +353,42 @@ def generate_scene(config: SceneConfig, body_model: SMPLXModel) -> Scene:
 
 ROOM_LAYOUTS = ("default", "corridor", "corner", "near_wall")
 _LAYOUT_STREAM = 11
+
+
+def _place_people(config: SceneConfig, body_model: SMPLXModel, target: PlacedBody, heading: float,
+                  start_camera: CameraPose, obstacles: List[SceneObject],
+                  walls: List[SceneObject]) -> Tuple[List[OtherPerson], Optional[PersonMotion]]:
+    """The target's motion and the other people (:mod:`leapnbv_sim.people`).
+
+    In this order: the target's motion (its own stream), then the bystanders and the passers-by (the
+    people's stream).
+
+    Raises:
+        SceneError: A person found no free place.
+    """
+    plan = FloorPlan.of([vertices for _, vertices, _, _ in obstacles], [vertices for _, vertices, _, _ in walls],
+                        target, start_camera)
+    motion = None
+    if config.target_motion == "walk":
+        motion = plan_target_motion(target_motion_rng(config.seed), plan, target, heading, config.target_speed_range,
+                                    config.target_walk_length_range)
+    rng = people_rng(config.seed)
+    others: List[OtherPerson] = []
+    for _ in range(config.bystanders):
+        placed = place_bystander(rng, body_model, plan, target, start_camera, config.K, config.width,
+                                 config.bystander_distance_range)
+        if placed is None:
+            raise SceneError(f"seed {config.seed}: no free place for bystander {len(others) + 1}")
+        colour = OTHER_PERSON_COLOURS[len(others) % len(OTHER_PERSON_COLOURS)]
+        others.append(OtherPerson(ROLE_BYSTANDER, placed, colour))
+    for index in range(config.passers_by):
+        walking = place_passer_by(rng, body_model, plan, target, start_camera, config.passer_by_speed_range,
+                                  config.passer_by_crossing_s_range)
+        if walking is None:
+            raise SceneError(f"seed {config.seed}: no free path for passer-by {index + 1}")
+        others.append(OtherPerson(ROLE_PASSER_BY, walking[0],
+                                  OTHER_PERSON_COLOURS[len(others) % len(OTHER_PERSON_COLOURS)], walking[1]))
+    return others, motion
 
 
 def _layout_walls(config: SceneConfig, distance: float) -> Tuple[List[SceneObject], Optional[float], Optional[float]]:

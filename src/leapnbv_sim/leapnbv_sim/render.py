@@ -5,14 +5,15 @@ at integer coordinates). Faces are flat shaded once, when the scene is assembled
 (:func:`shade_faces`: Lambert with both sides lit, plus ambient).
 
 Object ids, in a scene's faces and in ``RenderedFrame.object_id``: -1 background (frames only),
-:data:`FLOOR_ID` 0, :data:`PERSON_ID` 1, occluders from :data:`FIRST_OCCLUDER_ID` 2 on, then
-walls, then clutter (see ``Scene.object_names``).
+:data:`FLOOR_ID` 0, :data:`PERSON_ID` 1 (the target), occluders from :data:`FIRST_OCCLUDER_ID` 2 on,
+then walls, then clutter, then the other people (see ``Scene.object_names``). The ground truth
+describes the target and, in ``FrameGroundTruth.others``, every other person of the scene.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, List, Optional, Tuple
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from leapnbv_common.array_types import (
     UInt16Array,
 )
 from leapnbv_geometry.raster import rasterize_mesh
-from leapnbv_sim.body import BodyParams
+from leapnbv_sim.body import BodyParams, body_params_in_camera
 from leapnbv_sim.depth_noise import apply_depth_noise, depth_m_to_mm
 from leapnbv_sim.poses import CameraPose
 from leapnbv_sim.visibility import visible_vertex_mask
@@ -43,6 +44,32 @@ BACKGROUND_RGB = np.array([40, 40, 48], dtype=np.uint8)
 # Light travelling down and slightly sideways (world frame), plus ambient.
 _LIGHT_DIRECTION = np.array([0.3, 0.5, -1.0]) / np.linalg.norm([0.3, 0.5, -1.0])
 _AMBIENT = 0.35
+
+
+@dataclass
+class PersonGroundTruth:
+    """What the simulator knows about a person other than the target in one view (camera optical frame).
+
+    Attributes:
+        object_id: The person's object id (``Scene.object_names``).
+        role: "bystander" or "passer_by" (:mod:`leapnbv_sim.people`).
+        box_xyxy: (x_min, y_min, x_max, y_max) of its visible pixels, max edges exclusive; None when
+            none is visible.
+        body_params_camera: Its body parameters; root_pose is the orientation in the camera frame
+            (hands, jaw and expression neutral).
+        translation_camera: (3,) added to ``model.forward(params).vertices`` to place them in the camera frame.
+        occlusion_share: Share of its body vertices hidden from this view (by anything, itself included,
+            or outside the image).
+        pixel_count: Its visible pixels.
+    """
+
+    object_id: int
+    role: str
+    box_xyxy: Optional[Tuple[int, int, int, int]]
+    body_params_camera: BodyParams
+    translation_camera: FloatArray
+    occlusion_share: float
+    pixel_count: int
 
 
 @dataclass
@@ -62,6 +89,7 @@ class FrameGroundTruth:
         occluder_share: Share of the body's self-visible in-image vertices that other objects
             hide (0 without occluders in the line of sight).
         person_pixel_count: Visible person pixels.
+        others: The other people of the scene, in id order (empty in a one-person scene).
     """
 
     person_box_xyxy: Optional[Tuple[int, int, int, int]]
@@ -72,6 +100,7 @@ class FrameGroundTruth:
     occlusion_share: float
     occluder_share: float
     person_pixel_count: int
+    others: List[PersonGroundTruth] = field(default_factory=list)
 
 
 @dataclass
@@ -87,6 +116,7 @@ class RenderedFrame:
         K: (3,3) intrinsics.
         camera_pose: The T_world_camera it was rendered from.
         ground_truth: FrameGroundTruth.
+        scene_time_s: The scene time it shows (``Scene.elapsed_s``: where its moving people were).
     """
 
     rgb: UInt8Array
@@ -97,6 +127,7 @@ class RenderedFrame:
     K: FloatArray
     camera_pose: CameraPose
     ground_truth: FrameGroundTruth
+    scene_time_s: float = 0.0
 
 
 def shade_faces(vertices: FloatArray, faces: IntArray, base_rgb: FloatArray) -> UInt8Array:
@@ -204,13 +235,18 @@ def render_frame(scene: Scene, camera: CameraPose, frame_index: int = 0) -> Rend
     vertices_camera = camera.world_to_camera(scene.body_vertices_world)
     share, _ = occluder_share(scene, camera, depth_clean)
     visible = visible_vertex_mask(vertices_camera, depth_clean, scene.K)
-    person = object_id == PERSON_ID
-    person_pixels = int(np.count_nonzero(person))
-    box: Optional[Tuple[int, int, int, int]] = None
-    if person_pixels:
-        rows = np.nonzero(person.any(axis=1))[0]
-        columns = np.nonzero(person.any(axis=0))[0]
-        box = (int(columns[0]), int(rows[0]), int(columns[-1]) + 1, int(rows[-1]) + 1)
+    box, person_pixels = _pixel_box(object_id == PERSON_ID)
+    others = []
+    for other in scene.others:
+        other_box, other_pixels = _pixel_box(object_id == other.object_id)
+        other_params, other_translation = body_params_in_camera(
+            other.body.params_world, other.body.root_joint, other.body.translation_world, camera)
+        other_visible = visible_vertex_mask(camera.world_to_camera(other.body.vertices_world), depth_clean, scene.K)
+        others.append(PersonGroundTruth(
+            object_id=other.object_id, role=other.role, box_xyxy=other_box, body_params_camera=other_params,
+            translation_camera=other_translation,
+            occlusion_share=1.0 - float(np.count_nonzero(other_visible)) / max(1, other_visible.size),
+            pixel_count=other_pixels))
     truth = FrameGroundTruth(
         person_box_xyxy=box,
         body_params_camera=params,
@@ -220,6 +256,7 @@ def render_frame(scene: Scene, camera: CameraPose, frame_index: int = 0) -> Rend
         occlusion_share=1.0 - float(np.count_nonzero(visible)) / max(1, visible.size),
         occluder_share=share,
         person_pixel_count=person_pixels,
+        others=others,
     )
     return RenderedFrame(
         rgb=rgb,
@@ -230,4 +267,15 @@ def render_frame(scene: Scene, camera: CameraPose, frame_index: int = 0) -> Rend
         K=scene.K.copy(),
         camera_pose=camera,
         ground_truth=truth,
+        scene_time_s=float(scene.elapsed_s),
     )
+
+
+def _pixel_box(pixels: BoolArray) -> Tuple[Optional[Tuple[int, int, int, int]], int]:
+    """(x_min, y_min, x_max, y_max) of the set pixels, max edges exclusive (None: none), and their count."""
+    count = int(np.count_nonzero(pixels))
+    if not count:
+        return None, 0
+    rows = np.nonzero(pixels.any(axis=1))[0]
+    columns = np.nonzero(pixels.any(axis=0))[0]
+    return (int(columns[0]), int(rows[0]), int(columns[-1]) + 1, int(rows[-1]) + 1), count

@@ -14,7 +14,7 @@ One module per concern, every name importable from here:
 - ``serialized``: CDR-serialized messages read in place (SerializedImage, header stamps);
 - ``geometry``: points, point clouds, the obstacle map, poses, paths (the quaternion math is
   :mod:`leapnbv_common.rotations`);
-- ``person``: PersonDetections, HumanMesh, SceneGroundTruth;
+- ``person``: PersonDetections, HumanMesh, SceneGroundTruth, ScenePeople;
 - ``planning``: GroundPlane, TargetGeometry, ViewCandidates.
 """
 from __future__ import annotations
@@ -50,13 +50,16 @@ from leapnbv_common.conversions.person import (
     _MESH_PARAM_SIZES,  # noqa: F401 - the HumanMesh body-parameter sizes, read by the contract tests
     HumanMeshArrays,
     SceneGroundTruthArrays,
+    ScenePersonArrays,
     arrays_to_human_mesh,
     arrays_to_scene_ground_truth,
+    arrays_to_scene_people,
     box_to_detection,
     detection_to_box,
     detections_to_boxes,
     human_mesh_to_arrays,
     scene_ground_truth_to_arrays,
+    scene_people_to_arrays,
 )
 from leapnbv_common.conversions.planning import (
     GROUND_PLANE_SOURCES,
@@ -97,6 +100,7 @@ __all__ = [
     "GroundPlaneArrays",
     "HumanMeshArrays",
     "SceneGroundTruthArrays",
+    "ScenePersonArrays",
     "SerializedImage",
     "Stamp",
     "TargetGeometryArrays",
@@ -104,6 +108,7 @@ __all__ = [
     "arrays_to_ground_plane",
     "arrays_to_human_mesh",
     "arrays_to_scene_ground_truth",
+    "arrays_to_scene_people",
     "arrays_to_target_geometry",
     "arrays_to_view_candidates",
     "box_to_detection",
@@ -137,6 +142,7 @@ __all__ = [
     "quaternion_to_rotation",
     "rotations_to_quaternions",
     "scene_ground_truth_to_arrays",
+    "scene_people_to_arrays",
     "serialized_header_stamp_ns",
     "serialized_image_header",
     "set_stamp",

@@ -1,8 +1,8 @@
-"""The person: PersonDetections, HumanMesh and SceneGroundTruth (with the SMPL-X body parameters) <-> arrays."""
+"""The person: PersonDetections, HumanMesh, SceneGroundTruth and ScenePeople (SMPL-X body parameters) <-> arrays."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Dict, Mapping, Optional, Sequence, Tuple
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 from std_msgs.msg import Header
@@ -16,7 +16,7 @@ from leapnbv_common.conversions.base import (
 )
 from leapnbv_common.conversions.stamps import input_stamp_msgs
 from leapnbv_common.mesh_faces import KnownMeshFaces, faces_id_count
-from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth
+from leapnbv_msgs.msg import HumanMesh, PersonDetection, PersonDetections, SceneGroundTruth, ScenePeople, ScenePerson
 
 if TYPE_CHECKING:
     import numpy.typing as npt
@@ -194,13 +194,33 @@ def arrays_to_human_mesh(mesh: HumanMeshArrays, header: Optional[Header] = None,
 
 # The float fields of SceneGroundTruth: the body parameters and the translation in the camera frame.
 _GROUND_TRUTH_PARAM_SIZES = {**_BODY_PARAM_SIZES, "translation": 3}
+# Those of a ScenePerson (an other person: no hands, jaw nor expression, which are neutral).
+_SCENE_PERSON_PARAM_SIZES = {"root_pose": 3, "body_pose": 63, "betas": 10, "translation": 3}
+#: The target's object id in a simulated scene (a ScenePerson is never it).
+TARGET_OBJECT_ID = 1
+
+
+@dataclass
+class ScenePersonArrays:
+    """A person of a simulated scene other than the target (ScenePerson): its object id, its visible box
+    (x0, y0, x1, y1, score; all zero when not visible), its body parameters and translation in the camera
+    frame (hands, jaw and expression neutral) and its occlusion share."""
+
+    object_id: int
+    person_box: npt.NDArray[Any]
+    root_pose: npt.NDArray[Any]
+    body_pose: npt.NDArray[Any]
+    betas: npt.NDArray[Any]
+    translation: npt.NDArray[Any]
+    occlusion_share: float
 
 
 @dataclass
 class SceneGroundTruthArrays:
-    """The simulator's truth for one frame: the visible person's box (x0, y0, x1, y1, score; all zero
-    when no person is visible), the body parameters in the camera frame, and the occlusion share
-    (float32 arrays when read from a message; any float array when written)."""
+    """The simulator's truth for one frame: the target's box (x0, y0, x1, y1, score; all zero when it is
+    not visible), its body parameters in the camera frame, its occlusion share (float32 arrays when read
+    from a message; any float array when written), and the scene's other people (``others``: from the
+    frame's ScenePeople, which travels on its own topic; empty in a one-person scene)."""
 
     person_box: npt.NDArray[Any]
     root_pose: npt.NDArray[Any]
@@ -213,10 +233,71 @@ class SceneGroundTruthArrays:
     translation: npt.NDArray[Any]
     occlusion_share: float
     body_model_id: str
+    others: List[ScenePersonArrays] = field(default_factory=list)
 
 
-def scene_ground_truth_to_arrays(msg: SceneGroundTruth) -> SceneGroundTruthArrays:
-    """SceneGroundTruthArrays from a SceneGroundTruth message, checked.
+def _check_truth_box(what: str, box: npt.NDArray[Any]) -> None:
+    x0, y0, x1, y1, score = (float(v) for v in box)
+    if x1 < x0 or y1 < y0 or not 0.0 <= score <= 1.0:
+        raise ConversionError(f"{what} [{x0}, {y0}, {x1}, {y1}] with score {score} is inverted "
+                              "or its score is outside [0, 1] (an empty box means nobody is visible)")
+
+
+def _check_share(what: str, share: float) -> None:
+    if not 0.0 <= share <= 1.0:
+        raise ConversionError(f"{what} occlusion_share {share} is outside [0, 1]")
+
+
+def _scene_person_to_arrays(msg: ScenePerson, index: int) -> ScenePersonArrays:
+    what = f"ScenePeople people[{index}]"
+    params = _read_float32_fields(msg, _SCENE_PERSON_PARAM_SIZES)
+    person = ScenePersonArrays(object_id=int(msg.object_id), person_box=detection_to_box(msg.person_box),
+                               occlusion_share=float(msg.occlusion_share), **params)
+    check_finite_fields(what, {"person_box": person.person_box, "occlusion_share": person.occlusion_share, **params})
+    if person.object_id < 0 or person.object_id == TARGET_OBJECT_ID:
+        raise ConversionError(f"{what} object_id {person.object_id} is negative or the target's "
+                              f"({TARGET_OBJECT_ID})")
+    _check_share(what, person.occlusion_share)
+    _check_truth_box(what + " person_box", person.person_box)
+    return person
+
+
+def scene_people_to_arrays(msg: ScenePeople) -> List[ScenePersonArrays]:
+    """The other people of a frame (leapnbv_msgs/ScenePeople), in the message's order.
+
+    Raises:
+        ConversionError: a person's value is not finite, its occlusion share is outside [0, 1], its box
+            inverted or its score outside [0, 1], its object id negative or the target's (1), or two of
+            them have one id.
+    """
+    people = [_scene_person_to_arrays(person, index) for index, person in enumerate(msg.people)]
+    ids = [person.object_id for person in people]
+    if len(set(ids)) != len(ids):
+        raise ConversionError(f"ScenePeople name an object id twice: {ids}")
+    return people
+
+
+def arrays_to_scene_people(people: Sequence[ScenePersonArrays], header: Optional[Header] = None) -> ScenePeople:
+    """leapnbv_msgs/ScenePeople of a frame's other people (empty in a one-person scene)."""
+    msg = ScenePeople()
+    if header is not None:
+        msg.header = header
+    for person in people:
+        other = ScenePerson(object_id=int(person.object_id), person_box=box_to_detection(person.person_box),
+                            occlusion_share=float(person.occlusion_share))
+        _write_float32_fields(other, person, _SCENE_PERSON_PARAM_SIZES)
+        msg.people.append(other)
+    return msg
+
+
+def scene_ground_truth_to_arrays(msg: SceneGroundTruth,
+                                 people: Optional[Sequence[ScenePersonArrays]] = None) -> SceneGroundTruthArrays:
+    """The simulator's truth for one frame from its leapnbv_msgs/SceneGroundTruth.
+
+    Args:
+        msg: The target's truth.
+        people: The frame's other people (:func:`scene_people_to_arrays` of its ScenePeople); None or empty
+            in a one-person scene (and from a bag recorded before other people existed).
 
     Raises:
         ConversionError: a value is not finite, the occlusion share is outside [0, 1], or the person box
@@ -226,20 +307,16 @@ def scene_ground_truth_to_arrays(msg: SceneGroundTruth) -> SceneGroundTruthArray
     params = _read_float32_fields(msg, _GROUND_TRUTH_PARAM_SIZES)
     truth = SceneGroundTruthArrays(person_box=detection_to_box(msg.person_box),
                                    occlusion_share=float(msg.occlusion_share), body_model_id=str(msg.body_model_id),
-                                   **params)
+                                   others=list(people or []), **params)
     check_finite_fields("SceneGroundTruth", {"person_box": truth.person_box,
                                               "occlusion_share": truth.occlusion_share, **params})
-    if not 0.0 <= truth.occlusion_share <= 1.0:
-        raise ConversionError(f"SceneGroundTruth occlusion_share {truth.occlusion_share} is outside [0, 1]")
-    x0, y0, x1, y1, score = (float(v) for v in truth.person_box)
-    if x1 < x0 or y1 < y0 or not 0.0 <= score <= 1.0:
-        raise ConversionError(f"SceneGroundTruth person_box [{x0}, {y0}, {x1}, {y1}] with score {score} is inverted "
-                              "or its score is outside [0, 1] (an empty box means nobody is visible)")
+    _check_share("SceneGroundTruth", truth.occlusion_share)
+    _check_truth_box("SceneGroundTruth person_box", truth.person_box)
     return truth
 
 
 def arrays_to_scene_ground_truth(truth: SceneGroundTruthArrays, header: Optional[Header] = None) -> SceneGroundTruth:
-    """A SceneGroundTruth message (the inverse of scene_ground_truth_to_arrays)."""
+    """A SceneGroundTruth message (the inverse of scene_ground_truth_to_arrays; ``others`` go on ScenePeople)."""
     msg = SceneGroundTruth(person_box=box_to_detection(truth.person_box), body_model_id=str(truth.body_model_id),
                            occlusion_share=float(truth.occlusion_share))
     if header is not None:

@@ -38,7 +38,13 @@ from leapnbv_common.stage_inputs import checked_colour_image
 from leapnbv_common.topics import DETECTIONS, VIEW_CANDIDATES
 from leapnbv_msgs.msg import PersonDetections, ViewCandidates
 from leapnbv_perception.admission import Admission
-from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, ground_truth_boxes, truth_companion
+from leapnbv_perception.backends.ground_truth import (
+    GROUND_TRUTH_BACKEND,
+    frame_truth,
+    ground_truth_boxes,
+    people_published_on,
+    truth_companions,
+)
 from leapnbv_perception.nodes.box_carrying import BoxCarrier
 from leapnbv_perception.nodes.engine_loading import load_in_configure, load_person_detector
 from leapnbv_perception.params import DetectorParams
@@ -69,9 +75,9 @@ class DetectorNode(ManagedNode):
         self.carrier = BoxCarrier(self) if p.detect_every_n_frames > 1 else None
         # The newest frame only (depth 1): frames that came while the node was busy are counted as not taken.
         # Read in place from its serialized bytes (SerializedImage): it is checked, never deserialized. With the
-        # ground-truth backend, the simulator's truth of its stamp (pulled when the image comes).
+        # ground-truth backend, the simulator's truth of its stamp and its other people (pulled when the image comes).
         self.stage = Stage(self, KeyInput("image", Image, "image", checked_colour_image, camera_input_qos(1), raw=True),
-                           [truth_companion(10)] if self.ground_truth else [], self.on_frame,
+                           truth_companions(10, people_published_on(self)) if self.ground_truth else [], self.on_frame,
                            frame_error_reason="bad_ground_truth" if self.ground_truth else "bad_image",
                            on_restart=self.admission.reset)
 
@@ -165,7 +171,7 @@ class DetectorNode(ManagedNode):
         if self.ground_truth:
             # The truth gives the box: the image's pixels are not read (only checked on arrival).
             try:
-                boxes = ground_truth_boxes(frame["ground_truth"], (image.width, image.height))
+                boxes = ground_truth_boxes(frame_truth(frame), (image.width, image.height))
             except ContractError as error:
                 self.diagnostics.reject("bad_ground_truth", error.detail)
                 return

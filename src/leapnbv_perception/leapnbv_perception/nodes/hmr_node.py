@@ -49,7 +49,7 @@ from leapnbv_common.qos import camera_input_qos, stage_input_qos, stage_output_q
 from leapnbv_common.stage import REJECT, Companion, Frame, KeyInput, Stage
 from leapnbv_common.topics import DETECTIONS, HUMAN_MESH
 from leapnbv_msgs.msg import HumanMesh, PersonDetections
-from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, GroundTruthMeshBackend
+from leapnbv_perception.backends.ground_truth import GROUND_TRUTH_BACKEND, GroundTruthMeshBackend, people_published_on
 from leapnbv_perception.nodes.engine_loading import create_engine_backend, load_in_configure
 from leapnbv_perception.nodes.target_inputs import TargetInputs
 from leapnbv_perception.params import HmrParams
@@ -76,7 +76,7 @@ class HmrNode(ManagedNode):
         self.mesh_faces = MeshFacesPublisher(self)
         self.target = TargetInputs(self)
         if self.ground_truth:
-            companions = GroundTruthMeshBackend.companions(p.cache_size)
+            companions = GroundTruthMeshBackend.companions(p.cache_size, people_published_on(self))
         else:
             # Images wait for their detections (the detector takes a while) in the reader and the stage's cache,
             # serialized: pulled when detections come, deserialized only for the frame worked on.

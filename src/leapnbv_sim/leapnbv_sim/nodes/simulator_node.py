@@ -112,12 +112,13 @@ from leapnbv_common.topics import (
     GROUND_TRUTH_TOPIC,
     NEXT_BEST_VIEW_TOPIC,
     OBSTACLE_MAP_TOPIC,
+    SCENE_PEOPLE_TOPIC,
     TF_STATIC_TOPIC,
     TF_TOPIC,
     VIEW_CANDIDATES,
     output_topic,
 )
-from leapnbv_msgs.msg import GoalStatus, SceneGroundTruth, ViewCandidates
+from leapnbv_msgs.msg import GoalStatus, SceneGroundTruth, ScenePeople, ViewCandidates
 from leapnbv_sim.frame_messages import camera_frame_messages, robot_static_tf_message, robot_tf_message
 from leapnbv_sim.poses import CameraPose, pose_in_world
 from leapnbv_sim.render import RenderedFrame
@@ -189,6 +190,8 @@ class SimulatorNode(Node):
             DEPTH_INFO_TOPIC: self.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, camera_qos),
             # The detector and HMR nodes pair every image with its ground truth: deliver it reliably.
             GROUND_TRUTH_TOPIC: self.create_publisher(SceneGroundTruth, GROUND_TRUTH_TOPIC, stage_output_qos(10)),
+            # The other people, with the same stamp (empty in a one-person scene), as reliably.
+            SCENE_PEOPLE_TOPIC: self.create_publisher(ScenePeople, SCENE_PEOPLE_TOPIC, stage_output_qos(10)),
         }
         self.pose_pub = self.create_publisher(PoseStamped, CAMERA_POSE_TOPIC, stage_output_qos(10))
         self.frame_ids = robot_frame_ids(p)
@@ -224,6 +227,8 @@ class SimulatorNode(Node):
         self.last_path_msg_stamp_ns: Optional[int] = None
         self.last_view_candidates_stamp_ns: Optional[int] = None
         self.frame_count = 0
+        #: Sim time of the current scene's first frame: the scene's time 0 (Scene.at_time), None before it.
+        self.scene_start_ns: Optional[int] = None
         self.last_stamp_ns: Optional[int] = None
         self.last_goal_stamp_ns: Optional[int] = None
         self.goals_accepted = 0
@@ -263,6 +268,7 @@ class SimulatorNode(Node):
         self.camera = start.copy()
         self.motion = None
         self.frame_count = 0
+        self.scene_start_ns = None
         self._poses.clear()
         self.last_goal_stamp_ns = None
         p = self.params
@@ -340,6 +346,10 @@ class SimulatorNode(Node):
     def publish_frame(self, stamp_ns: Optional[int] = None) -> Tuple[int, RenderedFrame]:
         """Render the scene from the current camera and publish the camera pose, then the five topics.
 
+        The scene is rendered as it is at the frame's time (:meth:`~leapnbv_sim.scene.Scene.at_time`: the sim time
+        since the scene's first frame, the first frame after :meth:`set_scene`), so its moving people walk with
+        sim time; a scene whose people stand renders the same at every time.
+
         Args:
             stamp_ns: Sim time of the frame (header stamp); the node clock's now when None.
                 Stamps must increase (a motion in progress is evaluated at this time).
@@ -370,7 +380,11 @@ class SimulatorNode(Node):
         camera = self.camera
         if self.clock_pub is not None:  # sim time reaches the frame's stamp before the frame
             self.publish_clock(stamp_ns)
-        frame = self.scene.render(camera, frame_index=self.frame_count)
+        if self.frame_count == 0 or self.scene_start_ns is None:
+            self.scene_start_ns = stamp_ns  # the scene's first frame is its time 0
+        # The scene as it is at the frame's time (its people where they walked to; a standing scene is itself).
+        frame = self.scene.at_time((stamp_ns - self.scene_start_ns) * 1e-9).render(camera,
+                                                                                    frame_index=self.frame_count)
         header = Header(frame_id=self.frame_id)
         header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         messages = camera_frame_messages(frame, header, self.body_model_id)
