@@ -112,7 +112,12 @@ BASE_ROOMS = ("furnished", "open")
 #: ... and the families, each a change of BENCHMARK_CONFIG with its own committed seeds
 #: (FAMILY_SEEDS): the room's walls (corner, corridor, near a wall: no furniture, the walls are the
 #: obstacles), the starting occlusion, the person's distance, the robot's camera height (the ground
-#: node's mounting priors follow it: FAMILY_GRAPH_PARAMETERS) and the depth noise.
+#: node's mounting priors follow it: FAMILY_GRAPH_PARAMETERS), the depth noise, and the people
+#: (leapnbv_sim.people; each the furnished room of its seed with the people added): "two_people" (a
+#: bystander standing 0.6-1.5 m from the target, in the start view), "three_people" (that bystander and
+#: a passer-by walking across the line of sight between the robot and the target at 0.5-1.0 m/s),
+#: "walking" (the target walks 0.8-2.0 m at 0.2-0.5 m/s after turning to face its way; one scene in
+#: three it only turns in place).
 FAMILY_CHANGES: Dict[str, Dict[str, Any]] = {
     "corner": {"room_layout": "corner", "clutter_count_range": (0, 0)},
     "corridor": {"room_layout": "corridor", "clutter_count_range": (0, 0)},
@@ -122,6 +127,9 @@ FAMILY_CHANGES: Dict[str, Dict[str, Any]] = {
     "camera_0.6": {"camera_height_range": (0.6, 0.6)},
     "camera_1.8": {"camera_height_range": (1.8, 1.8)},
     "noise_3x": {"noise": "3x"},
+    "two_people": {"bystanders": 1},
+    "three_people": {"bystanders": 1, "passers_by": 1},
+    "walking": {"target_motion": "walk"},
 }
 ROOMS = BASE_ROOMS + tuple(FAMILY_CHANGES)
 
@@ -163,6 +171,19 @@ FAMILY_SEEDS: Dict[str, List[int]] = {
         27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
     ],
     "noise_3x": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    "two_people": [
+        0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
+        27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
+    ],
+    # A seed whose occluders leave the passer-by no free crossing gives no scene (generate_scene raises).
+    "three_people": [
+        1, 2, 4, 5, 6, 7, 8, 10, 11, 12, 13, 19, 21, 24, 26, 28, 39, 40, 41, 45, 47, 49, 50, 54, 55, 57, 59,
+        62, 63, 68, 70, 74, 75, 76, 78, 84, 87, 88, 90, 91
+    ],
+    "walking": [
         0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26,
         27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39
     ],

@@ -45,14 +45,14 @@ from leapnbv_evaluation.continuous_results import (
     OUTCOME_NO_PLAN,
     OUTCOME_TIME_LIMIT,
     ContinuousEpisode,
-    count_changes,
     count_reversals,
+    count_swaps,
 )
 from leapnbv_evaluation.episode import view_metrics
 from leapnbv_evaluation.frame_outputs import FrameOutputs
 from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_sim.motion_stack import path_length
-from leapnbv_sim.render import RenderedFrame
+from leapnbv_sim.render import PERSON_ID, RenderedFrame
 from leapnbv_sim.scene import Scene
 from leapnbv_sim.simulator import DrivenRobot
 
@@ -113,7 +113,10 @@ def person_ids(scene: Scene) -> List[int]:
 
 
 def target_person(scene: Scene, rendered: RenderedFrame, outputs: FrameOutputs) -> Optional[int]:
-    """The person the graph's target is: the person object under most of the graph's person mask (None: no mask)."""
+    """The person the graph's target is: the person object under most of the graph's person mask.
+
+    None: no mask, or no person under it. The target is ``PERSON_ID`` (1); any other is a swap.
+    """
     mask_msg = outputs.messages.get(PERSON_MASK)
     if mask_msg is None:
         return None
@@ -159,6 +162,7 @@ class ContinuousEpisodes:
         no_plan_ns = int(round(o.no_plan_limit_s * 1e9))
         coverages: List[float] = []
         targets: List[Optional[int]] = []
+        target_unseen = 0
         track: List[FloatArray] = []
         first_path_m: Optional[float] = None
         first_goal_ns: Optional[int] = None
@@ -181,6 +185,7 @@ class ContinuousEpisodes:
             robot = session.driven_robot()
             coverages.append(view_metrics(scene, rendered).surface_coverage)
             targets.append(target_person(scene, rendered, outputs))
+            target_unseen += rendered.ground_truth.person_box_xyxy is None
             track.append(np.array([robot.stack.state.x, robot.stack.state.y]))
             path = session.last_path()
             if first_path_m is None and path is not None:
@@ -220,7 +225,9 @@ class ContinuousEpisodes:
             first_path_m=None if first_path_m is None else round(first_path_m, 6),
             first_goal_s=None if first_goal_ns is None else round(first_goal_ns * 1e-9, 6),
             goal_switches=max(0, changed - 1), withdrawals=int(robot.withdrawals),
-            reversals=count_reversals(np.array(track)), target_swaps=count_changes(targets), frames=len(coverages),
+            reversals=count_reversals(np.array(track)), target_swaps=count_swaps(targets, PERSON_ID),
+            frames_other_person=sum(1 for person in targets if person is not None and person != PERSON_ID),
+            frames_target_unseen=int(target_unseen), frames=len(coverages),
             frames_planned=planned, frames_failed=failed, commit_reasons=reasons,
             frames_ticked=session.ticked_between(start_stamp_ns, stamp),
             wall_s=round(time.monotonic() - started, 3))

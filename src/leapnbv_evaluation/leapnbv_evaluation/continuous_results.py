@@ -4,7 +4,8 @@ A continuous episode (:mod:`leapnbv_evaluation.continuous`) drives the robot whi
 every frame; its :class:`ContinuousEpisode` says how it ended (arrived at a goal committed long enough,
 time limit, no plan), the coverage at the start, at arrival (or the episode's last frame) and the best
 on the way, the time and distance to arrival against the first plan's path length, and what the goal
-and the target did on the way (goal switches, direction reversals, target swaps, frames planned).
+and the target did on the way (goal switches, direction reversals, target swaps, frames on another
+person, frames without the target in view, frames planned).
 The JSON form is lossless (``from_json(to_json(x)) == x``).
 """
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from leapnbv_common.array_types import FloatArray
 from leapnbv_evaluation.metrics import is_success
 from leapnbv_evaluation.report_files import write_json_atomically
+from leapnbv_sim.render import PERSON_ID
 
 #: How an episode ended.
 OUTCOME_ARRIVED = "arrived"
@@ -67,10 +69,23 @@ def count_reversals(xy: FloatArray, segment_m: float = REVERSAL_SEGMENT_M,
     return reversals
 
 
-def count_changes(values: Sequence[Optional[int]]) -> int:
-    """How often a sequence changes value, ignoring its Nones (frames without one)."""
-    seen = [value for value in values if value is not None]
-    return sum(1 for a, b in zip(seen, seen[1:]) if a != b)
+def count_swaps(values: Sequence[Optional[int]], target: int = PERSON_ID) -> int:
+    """Target swaps: how often the graph took a person other than ``target``, frame by frame.
+
+    A swap is a frame whose person is not the target while the frame before it that had a person
+    (Nones, frames without one, are skipped) had another one, or none before it: taking a wrong person
+    at the first frame is a swap, staying on it is the same swap, moving on to a third person another.
+    So a run that only ever followed the target counts 0, whatever frames it lost it in.
+    """
+    swaps = 0
+    previous: Optional[int] = None
+    for value in values:
+        if value is None:
+            continue
+        if value != target and value != previous:
+            swaps += 1
+        previous = value
+    return swaps
 
 
 @dataclass
@@ -93,7 +108,8 @@ class ContinuousEpisode:
         goal_switches: Goals after the first one that were another place (goal_status.goal_changed).
         withdrawals: Goals withdrawn while the robot followed them (STALE, NONE, empty path).
         reversals: :func:`count_reversals` of the base's track.
-        target_swaps: :func:`count_changes` of the target person's id, frame by frame (0 with one person).
+        target_swaps: :func:`count_swaps` of the person the graph followed, frame by frame (the person under
+            most of its person mask): how often it took a person other than the target (id 1).
         frames: Frames rendered and published.
         frames_planned: Frames whose plan chose a view (view_candidates.chosen_index >= 0).
         frames_failed: Frames the graph answered with no plan (no person, timeout ...).
@@ -101,6 +117,9 @@ class ContinuousEpisode:
         frames_ticked: Frames the graph answered only after sim time ticked on within their period (a companion
             found by a stage's wait-check timer).
         wall_s: Wall seconds the episode took.
+        frames_other_person: Frames in which the graph followed a person other than the target.
+        frames_target_unseen: Frames in which no pixel of the target was in view (it was out of the
+            image or wholly hidden).
     """
 
     seed: int
@@ -125,6 +144,8 @@ class ContinuousEpisode:
     commit_reasons: Dict[str, int] = field(default_factory=dict)
     frames_ticked: int = 0
     wall_s: float = 0.0
+    frames_other_person: int = 0
+    frames_target_unseen: int = 0
 
     @property
     def arrived(self) -> bool:
@@ -221,6 +242,10 @@ def aggregate_continuous(run: ContinuousRun) -> Dict[str, float]:
         "reversals_total": float(sum(e.reversals for e in eps)),
         "episodes_with_reversal_pct": share([e.reversals > 0 for e in eps]),
         "target_swaps_total": float(sum(e.target_swaps for e in eps)),
+        "episodes_with_swap_pct": share([e.target_swaps > 0 for e in eps]),
+        "frames_other_person_total": float(sum(e.frames_other_person for e in eps)),
+        "frames_target_unseen_total": float(sum(e.frames_target_unseen for e in eps)),
+        "frames_total": float(sum(e.frames for e in eps)),
         "withdrawals_total": float(sum(e.withdrawals for e in eps)),
         "frames_planned_median": _percentile([float(e.frames_planned) for e in eps], 50),
         "frames_median": _percentile([float(e.frames) for e in eps], 50),
@@ -241,15 +266,18 @@ def continuous_table_markdown(run: ContinuousRun) -> str:
         "",
         "| episodes | success | arrived | coverage start -> end (best) | time to arrival s (median / p95) | "
         "distance / first path (median / p95) | goal switches (median / p95 / max) | reversals (total, % eps) | "
-        "target swaps | frames planned (median of frames) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "target swaps (% eps) | frames on another person | frames without the target in view | "
+        "frames planned (median of frames) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
         f"| {int(a['episodes'])} | {_fmt(a['success_pct'], 1)} % | {_fmt(a['arrived_pct'], 1)} % | "
         f"{_fmt(a['coverage_start'], 3)} -> {_fmt(a['coverage_end'], 3)} ({_fmt(a['coverage_best'], 3)}) | "
         f"{_fmt(a['time_to_arrival_median_s'], 1)} / {_fmt(a['time_to_arrival_p95_s'], 1)} | "
         f"{_fmt(a['path_ratio_median'])} / {_fmt(a['path_ratio_p95'])} | "
         f"{_fmt(a['goal_switches_median'], 0)} / {_fmt(a['goal_switches_p95'], 1)} / "
         f"{_fmt(a['goal_switches_max'], 0)} | {int(a['reversals_total'])}, "
-        f"{_fmt(a['episodes_with_reversal_pct'], 1)} % | {int(a['target_swaps_total'])} | "
+        f"{_fmt(a['episodes_with_reversal_pct'], 1)} % | {int(a['target_swaps_total'])} "
+        f"({_fmt(a['episodes_with_swap_pct'], 1)} %) | {int(a['frames_other_person_total'])} of "
+        f"{int(a['frames_total'])} | {int(a['frames_target_unseen_total'])} of {int(a['frames_total'])} | "
         f"{_fmt(a['frames_planned_median'], 0)} of {_fmt(a['frames_median'], 0)} |",
         "",
     ]
@@ -259,10 +287,12 @@ def continuous_table_markdown(run: ContinuousRun) -> str:
 def per_episode_markdown(run: ContinuousRun) -> str:
     """One row per episode."""
     lines = ["| seed | outcome | coverage start / end / best | time s | distance m | first path m | switches | "
-             "reversals | swaps | planned / frames | wall s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "reversals | swaps | frames on another person | frames target unseen | planned / frames | wall s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in run.episodes:
         lines.append(f"| {e.seed} | {e.outcome} | {e.coverage_start:.3f} / {e.coverage_end:.3f} / "
                      f"{e.coverage_best:.3f} | {e.time_s:.1f} | {e.distance_m:.2f} | "
                      f"{_fmt(e.first_path_m) if e.first_path_m is not None else '-'} | {e.goal_switches} | "
-                     f"{e.reversals} | {e.target_swaps} | {e.frames_planned} / {e.frames} | {e.wall_s:.0f} |")
+                     f"{e.reversals} | {e.target_swaps} | {e.frames_other_person} | {e.frames_target_unseen} | "
+                     f"{e.frames_planned} / {e.frames} | {e.wall_s:.0f} |")
     return "\n".join(lines) + "\n"

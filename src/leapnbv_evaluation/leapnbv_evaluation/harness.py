@@ -47,11 +47,12 @@ from leapnbv_common.topics import (
     NAMESPACE,
     NEXT_BEST_VIEW_TOPIC,
     PERSON_MASK,
+    SCENE_PEOPLE_TOPIC,
     TARGET_GEOMETRY,
     VIEW_CANDIDATES,
     output_topic,
 )
-from leapnbv_evaluation.benchmark_set import FAMILY_GRAPH_PARAMETERS, benchmark_scene
+from leapnbv_evaluation.benchmark_set import FAMILY_GRAPH_PARAMETERS, benchmark_scene, room_seeds
 from leapnbv_evaluation.closed_loop import ClosedLoopEpisodes, stay_where_the_graph_failed
 from leapnbv_evaluation.continuous import ContinuousEpisodes, StatusRecord
 from leapnbv_evaluation.continuous_results import ContinuousEpisode, ContinuousRun
@@ -201,7 +202,8 @@ class ClosedLoopEvaluator:
         if not rclpy.ok():
             rclpy.init()
             self._owns_rclpy = True
-        first_scene = self._load_scene(0)
+        # The room's first committed seed (seed 0 of some families gives no scene: three_people).
+        first_scene = self._load_scene(room_seeds(self.options.room, 1)[0])
         collector = self.collector = Node("leapnbv_evaluation")
         runner = self.runner = GraphRunner(self.options.params_file, overrides, log_dir=self.options.log_dir)
         self._started = True
@@ -312,8 +314,9 @@ class ClosedLoopEvaluator:
 
     def _wait_connected(self, sim: SimulatorNode, timeout_s: float = 20.0) -> None:
         """Every camera topic has the graph's subscribers and every output its publisher."""
-        # The colour camera_info and the ground truth have readers only with ground-truth perception.
-        unread = (COLOR_INFO_TOPIC, GROUND_TRUTH_TOPIC) if self.options.real_models else ()
+        # The colour camera_info, the ground truth and the other people have readers only with ground-truth
+        # perception.
+        unread = (COLOR_INFO_TOPIC, GROUND_TRUTH_TOPIC, SCENE_PEOPLE_TOPIC) if self.options.real_models else ()
         publishers = [pub for topic, pub in sim.frame_pubs.items() if topic not in unread]
 
         def connected() -> bool:

@@ -14,8 +14,8 @@ from leapnbv_evaluation.continuous_results import (
     ContinuousRun,
     aggregate_continuous,
     continuous_table_markdown,
-    count_changes,
     count_reversals,
+    count_swaps,
     per_episode_markdown,
 )
 
@@ -41,10 +41,13 @@ def test_driving_back_is_a_reversal_a_gradual_turn_is_not() -> None:
     assert count_reversals(np.zeros((50, 2)) + np.random.default_rng(0).normal(0, 0.001, (50, 2))) == 0
 
 
-def test_target_swaps_ignore_frames_without_a_target() -> None:
-    assert count_changes([1, 1, None, 1, 1]) == 0
-    assert count_changes([1, None, 2, 2, 1]) == 2
-    assert count_changes([None, None]) == 0
+def test_target_swaps_count_taking_another_person_not_losing_the_target() -> None:
+    assert count_swaps([1, 1, None, 1, 1]) == 0  # lost and found again: no swap
+    assert count_swaps([None, None]) == 0
+    assert count_swaps([1, None, 7, 7, 1]) == 1  # took person 7 (stayed on it: the same swap), then back
+    assert count_swaps([7, 1]) == 1  # a wrong person from the first frame is a swap
+    assert count_swaps([1, 7, 8, 1, 7]) == 3  # 7, then a third person, then 7 again
+    assert count_swaps([3, 3], target=3) == 0
 
 
 def _episode(seed, outcome, start, end, best, time_s, distance, first_path, switches, reversals=0):
