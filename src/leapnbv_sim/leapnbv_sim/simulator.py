@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import List, Optional
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from leapnbv_common.params import param
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
-from leapnbv_sim.motion_stack import BaseLimits, MotionStack
+from leapnbv_sim.motion_stack import BaseLimits, MotionStack, path_length
 from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS, CameraPose, RobotModel, camera_pitch
 from leapnbv_sim.robot_frames import RobotFrameIds
 from leapnbv_sim.scene import Scene
@@ -77,6 +77,11 @@ class SimulatorParams:
     base_max_turn_rate_rad_s: float = param(1.0, "motion stack: the base's turn rate", min=0.01, max=20.0)
     head_pan_rate_rad_s: float = param(1.5, "motion stack: the pan-tilt head's pan rate", min=0.01, max=20.0)
     head_tilt_rate_rad_s: float = param(1.0, "motion stack: the pan-tilt head's tilt rate", min=0.01, max=20.0)
+    search_look_s: float = param(1.5, "motion stack: a goal withdrawn because the target is not seen: seconds it "
+                                 "stands looking toward the target's last known place before it drives back",
+                                 min=0.0, max=60.0)
+    search_return_m: float = param(3.0, "motion stack: then the longest drive back along its own track to where it "
+                                   "last saw the target from (0: it only looks)", min=0.0, max=50.0)
     publish_clock: bool = param(False, "publish /clock (the simulator owns sim time): at each frame's stamp before "
                                 "the frame, and with rate_hz > 0 from the wall clock at clock_rate_hz (the "
                                 "real-time mode)", read_only=True)
@@ -100,6 +105,11 @@ def base_limits(params: SimulatorParams) -> BaseLimits:
     return BaseLimits(max_speed_m_s=params.base_max_speed_m_s, max_accel_m_s2=params.base_max_accel_m_s2,
                       max_turn_rate_rad_s=params.base_max_turn_rate_rad_s, pan_rate_rad_s=params.head_pan_rate_rad_s,
                       tilt_rate_rad_s=params.head_tilt_rate_rad_s)
+
+
+def search_limits(params: SimulatorParams) -> SearchLimits:
+    """The lost-target search's limits the parameters give."""
+    return SearchLimits(look_s=params.search_look_s, return_m=params.search_return_m)
 
 
 def load_scene(params: SimulatorParams) -> Scene:
@@ -163,35 +173,82 @@ def level_heading(rotation: FloatArray) -> float:
     return float(math.atan2(x_axis[1], x_axis[0]))
 
 
+#: What the robot's search for a lost target is doing (:attr:`DrivenRobot.search_phase`).
+SEARCH_NONE = "none"  # no search: following a goal, or standing without one
+SEARCH_LOOKING = "looking"  # braking / standing, the head toward the target's last known place
+SEARCH_RETURNING = "returning"  # driving back along its own track to where it last saw the target from
+SEARCH_WAITING = "waiting"  # back there (or nowhere to go back to): standing and looking; the search is over
+SEARCH_PHASES = (SEARCH_NONE, SEARCH_LOOKING, SEARCH_RETURNING, SEARCH_WAITING)
+#: The track a search may drive back along keeps this many positions (one per camera frame that moved the base).
+MAX_TRACK_POINTS = 10_000
+
+
+@dataclass(frozen=True)
+class SearchLimits:
+    """How far the search for a lost target goes (:class:`DrivenRobot`).
+
+    Attributes:
+        look_s: seconds the robot stands looking toward the target's last known place before it drives back.
+        return_m: the longest drive back along its own track (0: it only looks).
+    """
+
+    look_s: float = 1.5
+    return_m: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("look_s", "return_m"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"search limit {name} must be a finite number >= 0, got {value}")
+
+
 class DrivenRobot:
     """The continuous mode's robot: what a motion stack does with the planner's goal topics, in sim time.
 
     It follows the base path of the latest CURRENT goal (:meth:`take_path`, world frame) and stops on a
     withdrawn one (:meth:`withdraw`). A changed goal's path always replaces the one followed; a kept goal's
     path (the same goal, planned from where the robot is now) only with ``replan_kept``. The head (pan-tilt)
-    turns toward the target (the latest plan's ring centre, :meth:`look_at_target`) and tilts to the goal's
-    pitch (:meth:`take_view`); a fixed head keeps its pan at 0 and its mounting pitch.
+    turns toward the target (the latest plan's ring centre or the target's last known place,
+    :meth:`look_at_target`) from wherever the base is and tilts to the goal's pitch (:meth:`take_view`); a
+    fixed head keeps its pan at 0 and its mounting pitch.
+
+    A goal withdrawn because the target is no longer seen (:meth:`lose_target`) starts a bounded,
+    deterministic search: the base brakes to a stop with the head toward the target's last known place
+    (LOOKING); after ``search.look_s`` without a new goal it drives back along its own track to the place
+    of the latest frame that saw the target (:meth:`saw_target_from`), at most ``search.return_m``, and turns
+    toward the target there (RETURNING); then it stands and looks (WAITING). The next CURRENT goal's path
+    ends the search.
 
     Args:
         camera: The camera's pose now (the robot stands under it).
         limits: The base's and head's limits.
         head: One of ``HEAD_MODES``.
         replan_kept: Whether a kept goal's path replaces the one followed.
+        search: The lost-target search's limits (defaults: :class:`SearchLimits`).
     """
 
     def __init__(self, camera: CameraPose, limits: BaseLimits, head: str = "pan_tilt", replan_kept: bool = True,
-                 ) -> None:
+                 search: Optional[SearchLimits] = None) -> None:
         if head not in HEAD_MODES:
             raise ValueError(f"head must be one of {HEAD_MODES}, got {head!r}")
         self.stack = MotionStack.from_camera(camera, limits)
         self.head = head
         self.replan_kept = bool(replan_kept)
+        self.search = search or SearchLimits()
         self.mounting_pitch = camera_pitch(camera)
         self._pitch = self.mounting_pitch
         self._target_xy: Optional[FloatArray] = None
-        #: Paths taken (replacing the one followed) and withdrawals, for the episode's record.
+        #: Seconds driven since the robot was made (the sum of advance()'s steps).
+        self.clock_s = 0.0
+        # The base's positions, one per advance (the start first): the track a search drives back along.
+        self._track: List[FloatArray] = [self.stack.position_xy]
+        self._seen_from: Optional[FloatArray] = None  # camera (floor) position of the latest frame that saw the target
+        self.search_phase = SEARCH_NONE
+        self._search_since_s = 0.0
+        #: Paths taken (replacing the one followed), withdrawals and searches started, for the episode's record.
         self.paths_taken = 0
         self.withdrawals = 0
+        self.searches = 0
 
     def camera_pose(self) -> CameraPose:
         """T_world_camera now."""
@@ -201,10 +258,18 @@ class DrivenRobot:
         """Drive ``dt_s`` seconds on (the head re-aimed at the target from where the camera is), the camera then."""
         self._aim()
         self.stack.step(dt_s)
+        self.clock_s += float(dt_s)
+        if float(np.linalg.norm(self.stack.position_xy - self._track[-1])) > 1e-6:
+            self._track.append(self.stack.position_xy)
+            if len(self._track) > MAX_TRACK_POINTS:
+                del self._track[0]
+        self._search_step()
         return self.stack.camera_pose()
 
     def take_path(self, points_world: FloatArray, final_rotation_world: FloatArray, goal_changed: bool) -> bool:
         """A CURRENT goal's base path (world (P, 3) points, the last pose's world rotation); whether it was taken.
+
+        A path taken ends a search.
 
         Raises:
             ValueError: No point, or a point not finite.
@@ -212,7 +277,10 @@ class DrivenRobot:
         if self.stack.has_path and not goal_changed and not self.replan_kept:
             return False
         points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(points)) or len(points) == 0:
+            raise ValueError("a path needs at least one finite point")
         self.stack.set_path(points[:, :2], level_heading(final_rotation_world))
+        self.search_phase = SEARCH_NONE
         self.paths_taken += 1
         return True
 
@@ -227,15 +295,80 @@ class DrivenRobot:
         self._target_xy = np.asarray(target_world, dtype=np.float64).reshape(-1)[:2].copy()
         self._aim()
 
+    def saw_target_from(self, camera_world: FloatArray) -> None:
+        """A frame rendered with the camera at ``camera_world`` (world) saw the target: where a search returns to."""
+        self._seen_from = np.asarray(camera_world, dtype=np.float64).reshape(-1)[:2].copy()
+
     def withdraw(self) -> None:
-        """The goal was withdrawn (STALE, NONE, an empty path): brake to a stop, the head where it is."""
+        """The goal was withdrawn (STALE, NONE, an empty path) with the target in view: brake to a stop.
+
+        The head stays where it is; a search stops too.
+        """
         if self.stack.has_path:
             self.withdrawals += 1
         self.stack.clear_path()
+        self.search_phase = SEARCH_NONE
+
+    def lose_target(self, last_known_world: Optional[FloatArray] = None) -> None:
+        """The goal was withdrawn because the target is not seen: brake and start the search (once per loss).
+
+        Args:
+            last_known_world: Where the target was last known (world; its floor point is used); None: the latest
+                plan's ring centre (:meth:`look_at_target`).
+        """
+        if last_known_world is not None:
+            self.look_at_target(last_known_world)
+        if self.search_phase != SEARCH_NONE:
+            return  # searching already: the search's own path is not a goal to withdraw
+        if self.stack.has_path:
+            self.withdrawals += 1
+        self.stack.clear_path()
+        self.searches += 1
+        self.search_phase = SEARCH_LOOKING
+        self._search_since_s = self.clock_s
+        self._aim()
 
     def arrived(self) -> bool:
         """At the path's end, facing its heading, standing, the head aligned."""
         return self.stack.arrived()
+
+    def return_path(self) -> Optional[FloatArray]:
+        """(P, 2) the track driven back to the point nearest the latest seen-from place, at most ``return_m`` long.
+
+        The base's position first; None when there is no such place or the base is already there.
+        """
+        if self._seen_from is None or self.search.return_m <= 0.0:
+            return None
+        track = self._track
+        points = [track[-1]]
+        best, best_distance, travelled = 0, float(np.linalg.norm(track[-1] - self._seen_from)), 0.0
+        for point in reversed(track[:-1]):
+            travelled += float(np.linalg.norm(point - points[-1]))
+            if travelled > self.search.return_m + 1e-9:
+                break
+            points.append(point)
+            distance = float(np.linalg.norm(point - self._seen_from))
+            if distance < best_distance - 1e-12:
+                best, best_distance = len(points) - 1, distance
+        if best == 0 or path_length(np.array(points[:best + 1])) <= self.stack.limits.goal_tolerance_m:
+            return None
+        return np.array(points[:best + 1])
+
+    def _search_step(self) -> None:
+        """The search's next phase, once the current one is done."""
+        if self.search_phase == SEARCH_LOOKING and self.clock_s - self._search_since_s >= self.search.look_s - 1e-9:
+            path = self.return_path()
+            if path is None:
+                self.search_phase = SEARCH_WAITING
+                return
+            end = path[-1]
+            target = self._target_xy
+            heading = math.atan2(target[1] - end[1], target[0] - end[0]) if target is not None \
+                and float(np.linalg.norm(target - end)) > 1e-6 else self.stack.state.yaw
+            self.stack.set_path(path, heading)
+            self.search_phase = SEARCH_RETURNING
+        elif self.search_phase == SEARCH_RETURNING and self.stack.base_arrived():
+            self.search_phase = SEARCH_WAITING
 
     def _aim(self) -> None:
         if self.head != "pan_tilt":

@@ -136,3 +136,54 @@ def test_motion_stack_follows_the_path_stops_on_withdrawal_and_publishes_the_clo
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_a_goal_withdrawn_while_the_target_is_not_seen_starts_the_search(scene) -> None:
+    from leapnbv_msgs.msg import TargetTrack
+    from leapnbv_sim.simulator import SEARCH_LOOKING, SEARCH_NONE
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        sim = SimulatorNode(scene=scene, context=context, parameter_overrides=[
+            Parameter("rate_hz", value=0.0), Parameter("motion_stack", value=True),
+            Parameter("publish_obstacle_map", value=False), Parameter("publish_tf", value=False)])
+        start = scene.start_camera.copy()
+        heading = camera_heading(start)
+        forward = np.array([np.cos(heading), np.sin(heading), 0.0])
+        base = np.array([start.position[0], start.position[1], 0.0])
+        goal_points = np.array([base, base + 1.0 * forward, base + 2.0 * forward])
+        sim.publish_frame(T0)
+
+        def status(state, goal_stamp, target_state, target_stamp, fixed_frame="sim_world"):
+            msg = _status(state, goal_stamp, state == GoalStatus.STATE_CURRENT)
+            msg.target = TargetTrack(state=target_state, fixed_frame=fixed_frame)
+            set_stamp(msg.target.header.stamp, target_stamp)
+            msg.target.position.x, msg.target.position.y, msg.target.position.z = 3.0, 2.0, 0.9
+            return msg
+
+        # Seen at the first frame: that camera is where a search drives back to.
+        sim.on_goal_status(status(GoalStatus.STATE_CURRENT, T0, TargetTrack.STATE_TRACKED, T0))
+        sim.on_base_path(_path_in_optical_frame(sim, T0, goal_points, heading))
+        np.testing.assert_allclose(sim.robot._seen_from, start.position[:2])
+        for k in range(1, 11):
+            sim.publish_frame(T0 + k * PERIOD)
+        stamp = T0 + 10 * PERIOD
+        # Withdrawn with the target in view: a plain stop.
+        sim.on_goal_status(status(GoalStatus.STATE_STALE, stamp, TargetTrack.STATE_TRACKED, stamp))
+        assert sim.robot.search_phase == SEARCH_NONE and sim.robot.withdrawals == 1
+        # A new goal, then withdrawn with the target not seen: the search, the head toward its last known place.
+        sim.on_goal_status(status(GoalStatus.STATE_CURRENT, stamp, TargetTrack.STATE_TRACKED, stamp))
+        sim.on_base_path(_path_in_optical_frame(sim, stamp, goal_points, heading))
+        sim.on_goal_status(status(GoalStatus.STATE_STALE, stamp, TargetTrack.STATE_NOT_SEEN, stamp))
+        assert sim.robot.search_phase == SEARCH_LOOKING and sim.robot.searches == 1
+        np.testing.assert_allclose(sim.robot._target_xy, [3.0, 2.0])
+        # A place in another fixed frame is not used (the last ring centre is looked at instead).
+        sim.robot.withdraw()
+        sim.robot.look_at_target(np.array([1.0, 1.0, 0.0]))
+        sim.on_goal_status(status(GoalStatus.STATE_NONE, stamp, TargetTrack.STATE_LOST, stamp, fixed_frame="odom"))
+        assert sim.robot.search_phase == SEARCH_LOOKING and sim.robot.searches == 2
+        np.testing.assert_allclose(sim.robot._target_xy, [1.0, 1.0])
+        sim.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

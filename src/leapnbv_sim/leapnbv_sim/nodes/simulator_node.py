@@ -118,7 +118,7 @@ from leapnbv_common.topics import (
     VIEW_CANDIDATES,
     output_topic,
 )
-from leapnbv_msgs.msg import GoalStatus, SceneGroundTruth, ScenePeople, ViewCandidates
+from leapnbv_msgs.msg import GoalStatus, SceneGroundTruth, ScenePeople, TargetTrack, ViewCandidates
 from leapnbv_sim.frame_messages import camera_frame_messages, robot_static_tf_message, robot_tf_message
 from leapnbv_sim.poses import CameraPose, pose_in_world
 from leapnbv_sim.render import RenderedFrame
@@ -131,6 +131,7 @@ from leapnbv_sim.simulator import (
     load_scene,
     robot_frame_ids,
     robot_model,
+    search_limits,
 )
 
 DEFAULT_GOAL_TOPIC = NEXT_BEST_VIEW_TOPIC
@@ -272,7 +273,8 @@ class SimulatorNode(Node):
         self._poses.clear()
         self.last_goal_stamp_ns = None
         p = self.params
-        self.robot = DrivenRobot(start, base_limits(p), p.robot_head, p.replan_kept_goals) if p.motion_stack else None
+        self.robot = DrivenRobot(start, base_limits(p), p.robot_head, p.replan_kept_goals,
+                                 search_limits(p)) if p.motion_stack else None
         self.goal_status = None
         self.goal_statuses = []
         self.last_path_stamp_ns = None
@@ -447,14 +449,30 @@ class SimulatorNode(Node):
     def on_goal_status(self, msg: GoalStatus) -> None:
         """Continuous mode: a goal that is not CURRENT (withdrawn, aged out, none) stops the robot.
 
-        A status about a goal planned on a frame this scene never rendered (a previous scene's, arriving late) is
-        not about the robot's goal: ignored.
+        With the target not seen (``target`` NOT_SEEN or LOST) the stop starts the robot's search
+        (:meth:`DrivenRobot.lose_target`: look toward the target's last known place, then drive back to where it
+        was last seen from). A status whose target is TRACKED tells where the target was seen from (the camera of
+        its frame). A status about a goal planned on a frame this scene never rendered (a previous scene's,
+        arriving late) is not about the robot's goal: ignored.
         """
         if self.camera_pose_at(stamp_to_ns(msg.goal_stamp)) is None:
             return
         self.goal_status = msg
         self.goal_statuses.append(msg)
-        if self.robot is not None and msg.state != GoalStatus.STATE_CURRENT:
+        if self.robot is None:
+            return
+        target = msg.target
+        if target.state == TargetTrack.STATE_TRACKED:
+            seen_from = self.camera_pose_at(stamp_to_ns(target.header.stamp))
+            if seen_from is not None:
+                self.robot.saw_target_from(seen_from.position)
+        if msg.state == GoalStatus.STATE_CURRENT:
+            return
+        if target.state in (TargetTrack.STATE_NOT_SEEN, TargetTrack.STATE_LOST):
+            place = np.array([target.position.x, target.position.y, target.position.z], dtype=np.float64)
+            known = target.fixed_frame == self.params.world_frame_id and bool(np.all(np.isfinite(place)))
+            self.robot.lose_target(place if known else None)
+        else:
             self.robot.withdraw()
 
     @rejects_bad_input("bad_base_path")
