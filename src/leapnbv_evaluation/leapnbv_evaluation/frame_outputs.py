@@ -19,6 +19,7 @@ from leapnbv_common.topics import (
     HUMAN_MESH_METRIC,
     PERSON_MASK,
     TARGET_GEOMETRY,
+    TARGET_TRACK,
     VIEW_CANDIDATES,
 )
 from leapnbv_evaluation.episode import EvaluationError
@@ -75,6 +76,10 @@ class FrameOutputs:
         detections = self.messages.get(DETECTIONS)
         if detections is not None and not detections.detections:
             return "no person detected"
+        track = self.messages.get(TARGET_TRACK)
+        if track is not None and track.detection_index < 0:
+            # hmr_node gives no mesh to a frame whose target is not among its detections (hidden, out of view).
+            return f"the target is not among the detections: {track.reason}"
         target = self.messages.get(TARGET_GEOMETRY)
         if target is not None and not target.valid:
             return "empty target (no person points survived the mask and depth clustering)"

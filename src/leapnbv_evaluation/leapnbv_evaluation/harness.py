@@ -49,6 +49,7 @@ from leapnbv_common.topics import (
     PERSON_MASK,
     SCENE_PEOPLE_TOPIC,
     TARGET_GEOMETRY,
+    TARGET_TRACK,
     VIEW_CANDIDATES,
     output_topic,
 )
@@ -60,7 +61,15 @@ from leapnbv_evaluation.episode import DEFAULT_METHOD, SCENE_STAMP_SPACING_NS, E
 from leapnbv_evaluation.frame_outputs import END_TO_END, STAGE_TOPICS, STAGES, FrameOutputs
 from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import EvaluationRun, SceneResult
-from leapnbv_msgs.msg import GoalStatus, GroundPlane, HumanMesh, PersonDetections, TargetGeometry, ViewCandidates
+from leapnbv_msgs.msg import (
+    GoalStatus,
+    GroundPlane,
+    HumanMesh,
+    PersonDetections,
+    TargetGeometry,
+    TargetTrack,
+    ViewCandidates,
+)
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_planner.obstacle_memory import ObstacleMemory, depth_points_in_fixed_frame
 from leapnbv_sim.nodes.simulator_node import SimulatorNode, clock_publisher
@@ -280,7 +289,8 @@ class ClosedLoopEvaluator:
 
     def _subscribe_outputs(self, collector: Node) -> None:
         topics = {DETECTIONS: PersonDetections, HUMAN_MESH: HumanMesh, TARGET_GEOMETRY: TargetGeometry,
-                  GROUND_PLANE: GroundPlane, VIEW_CANDIDATES: ViewCandidates, PERSON_MASK: Image}
+                  GROUND_PLANE: GroundPlane, VIEW_CANDIDATES: ViewCandidates, PERSON_MASK: Image,
+                  TARGET_TRACK: TargetTrack}  # the target track: a frame without the target's mesh ends early
         if self.options.real_models:
             topics[HUMAN_MESH_METRIC] = HumanMesh
         qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)

@@ -94,6 +94,13 @@ def test_frame_outputs_early_failure_completeness_and_latency() -> None:
     frame.messages["target_geometry"] = SimpleNamespace(valid=True, compute_time_ms=2.5)
     frame.messages["ground_plane"] = SimpleNamespace(valid=False, inlier_count=12, compute_time_ms=1.0)
     assert frame.early_failure() == "no ground plane (12 inliers)"
+    # The target track: found (index 0) is no failure; not among the detections is one, with hmr_node's reason.
+    frame.messages["ground_plane"] = SimpleNamespace(valid=True, inlier_count=900, compute_time_ms=1.0)
+    frame.messages["target_track"] = SimpleNamespace(detection_index=0, reason="nearest")
+    assert frame.early_failure() is None
+    frame.messages["target_track"] = SimpleNamespace(detection_index=-1, reason="hidden 0.4 s")
+    assert frame.early_failure() == "the target is not among the detections: hidden 0.4 s"
+    frame.messages["ground_plane"] = SimpleNamespace(valid=False, inlier_count=12, compute_time_ms=1.0)
     frame.messages["detections"] = SimpleNamespace(detections=[], compute_time_ms=4.0)
     assert frame.early_failure() == "no person detected"
     assert frame.latency_ms() == {"detector_node": 4.0, "raster_node": 2.5, "ground_node": 1.0}
