@@ -6,8 +6,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from leapnbv_common.contracts import ContractError
-from leapnbv_common.conversions import (
+pytest.importorskip("rclpy")  # the backends read ROS messages: not among the ROS-free cores
+
+from leapnbv_common.contracts import ContractError  # noqa: E402
+from leapnbv_common.conversions import (  # noqa: E402
     SceneGroundTruthArrays,
     ScenePersonArrays,
     arrays_to_scene_ground_truth,
@@ -17,12 +19,16 @@ from leapnbv_common.conversions import (
     scene_ground_truth_to_arrays,
     scene_people_to_arrays,
 )
-from leapnbv_common.conversions.base import ConversionError
-from leapnbv_common.topics import SCENE_PEOPLE
-from leapnbv_msgs.msg import PersonDetections
-from leapnbv_perception.backends.ground_truth import GroundTruthMeshBackend, ground_truth_boxes, matched_person
-from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams
-from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model
+from leapnbv_common.conversions.base import ConversionError  # noqa: E402
+from leapnbv_common.topics import SCENE_PEOPLE  # noqa: E402
+from leapnbv_msgs.msg import PersonDetections  # noqa: E402
+from leapnbv_perception.backends.ground_truth import (  # noqa: E402
+    GroundTruthMeshBackend,
+    ground_truth_boxes,
+    matched_person,
+)
+from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams  # noqa: E402
+from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model  # noqa: E402
 
 rng = np.random.default_rng(3)
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
