@@ -172,7 +172,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"[graph] {policy_error}", file=sys.stderr)
         return EXIT_USAGE
 
+    stop_requests: List[int] = []
+
     def on_signal(signum, _frame) -> None:
+        stop_requests.append(signum)
         raise _StopSignal(signum)
 
     def on_signal_while_stopping(signum, _frame) -> None:
@@ -229,6 +232,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     except GraphError as exc:
         print(f"[graph] {exc}", file=sys.stderr, flush=True)
         result = EXIT_GRAPH_FAILED
+    except Exception:
+        # A signal that lands while rclpy converts a message comes out of the C++ binding as
+        # its own RuntimeError (the _StopSignal is its cause): still a requested stop.
+        if not stop_requests:
+            raise
+        print(f"[graph] {_StopSignal(stop_requests[0])}: stopping the nodes", flush=True)
     finally:
         signal.signal(signal.SIGTERM, on_signal_while_stopping)
         signal.signal(signal.SIGINT, on_signal_while_stopping)

@@ -38,8 +38,8 @@ from typing import Dict, List, Optional, Protocol, Tuple
 import numpy as np
 
 from leapnbv_common.array_types import FloatArray
-from leapnbv_common.conversions import ConversionError, image_to_numpy
-from leapnbv_common.topics import PERSON_MASK
+from leapnbv_common.conversions import ConversionError, detections_to_boxes, image_to_numpy
+from leapnbv_common.topics import DETECTIONS, PERSON_MASK, TARGET_TRACK
 from leapnbv_evaluation.continuous_results import (
     OUTCOME_ARRIVED,
     OUTCOME_NO_PLAN,
@@ -134,6 +134,47 @@ def target_person(scene: Scene, rendered: RenderedFrame, outputs: FrameOutputs) 
     return people[int(np.argmax(counts))]
 
 
+def detected_people(scene: Scene, rendered: RenderedFrame, outputs: FrameOutputs) -> List[Optional[int]]:
+    """The person each of the frame's detections is: the person object with most pixels in its box (None: none)."""
+    msg = outputs.messages.get(DETECTIONS)
+    if msg is None:
+        return []
+    try:
+        boxes = detections_to_boxes(msg)
+    except ConversionError:
+        return []
+    ids = np.asarray(rendered.object_id)
+    height, width = ids.shape[:2]
+    people = person_ids(scene)
+    found: List[Optional[int]] = []
+    for box in boxes:
+        x0, y0 = int(np.clip(np.floor(box[0]), 0, width)), int(np.clip(np.floor(box[1]), 0, height))
+        x1, y1 = int(np.clip(np.ceil(box[2]), 0, width)), int(np.clip(np.ceil(box[3]), 0, height))
+        inside = ids[y0:y1, x0:x1]
+        counts = [int(np.count_nonzero(inside == person)) for person in people]
+        found.append(people[int(np.argmax(counts))] if counts and max(counts) > 0 else None)
+    return found
+
+
+def other_person_record(frame: int, person: int, scene: Scene, rendered: RenderedFrame,
+                        outputs: FrameOutputs) -> Dict[str, object]:
+    """What explains a frame whose target was another person: the tracker's decision and who each detection was."""
+    track = outputs.messages.get(TARGET_TRACK)
+    record: Dict[str, object] = {"frame": int(frame), "person": int(person),
+                                 "detections": detected_people(scene, rendered, outputs)}
+    msg = outputs.messages.get(DETECTIONS)
+    if msg is not None:
+        try:
+            record["boxes"] = [[round(float(v), 1) for v in box[:4]] for box in detections_to_boxes(msg)]
+        except ConversionError:
+            pass
+    record["target_box"] = rendered.ground_truth.person_box_xyxy
+    if track is not None:
+        record.update(track_id=int(track.track_id), state=int(track.state),
+                      detection_index=int(track.detection_index), reason=str(track.reason))
+    return record
+
+
 class ContinuousEpisodes:
     """The continuous episodes of an evaluation, one per scene, through one session.
 
@@ -162,6 +203,7 @@ class ContinuousEpisodes:
         no_plan_ns = int(round(o.no_plan_limit_s * 1e9))
         coverages: List[float] = []
         targets: List[Optional[int]] = []
+        other_frames: List[Dict[str, object]] = []
         target_unseen = 0
         track: List[FloatArray] = []
         first_path_m: Optional[float] = None
@@ -185,6 +227,8 @@ class ContinuousEpisodes:
             robot = session.driven_robot()
             coverages.append(view_metrics(scene, rendered).surface_coverage)
             targets.append(target_person(scene, rendered, outputs))
+            if targets[-1] is not None and targets[-1] != PERSON_ID:
+                other_frames.append(other_person_record(k, int(targets[-1]), scene, rendered, outputs))
             target_unseen += rendered.ground_truth.person_box_xyxy is None
             track.append(np.array([robot.stack.state.x, robot.stack.state.y]))
             path = session.last_path()
@@ -227,7 +271,7 @@ class ContinuousEpisodes:
             goal_switches=max(0, changed - 1), withdrawals=int(robot.withdrawals),
             reversals=count_reversals(np.array(track)), target_swaps=count_swaps(targets, PERSON_ID),
             frames_other_person=sum(1 for person in targets if person is not None and person != PERSON_ID),
-            frames_target_unseen=int(target_unseen), frames=len(coverages),
+            frames_target_unseen=int(target_unseen), other_person_frames=other_frames, frames=len(coverages),
             frames_planned=planned, frames_failed=failed, commit_reasons=reasons,
             frames_ticked=session.ticked_between(start_stamp_ns, stamp),
             wall_s=round(time.monotonic() - started, 3))

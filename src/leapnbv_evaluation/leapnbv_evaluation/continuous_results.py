@@ -120,6 +120,9 @@ class ContinuousEpisode:
         frames_other_person: Frames in which the graph followed a person other than the target.
         frames_target_unseen: Frames in which no pixel of the target was in view (it was out of the
             image or wholly hidden).
+        other_person_frames: For each frame that followed another person, what explains it
+            (:func:`leapnbv_evaluation.continuous.other_person_record`: frame, person, the person each
+            detection was, the target track's state, detection index and reason).
     """
 
     seed: int
@@ -146,6 +149,7 @@ class ContinuousEpisode:
     wall_s: float = 0.0
     frames_other_person: int = 0
     frames_target_unseen: int = 0
+    other_person_frames: List[Dict[str, Any]] = field(default_factory=list)
 
     @property
     def arrived(self) -> bool:

@@ -128,6 +128,10 @@ class HmrParams(EngineParams):
     target_lost_after_s: float = param(3.0, "s: a target not among the detections for longer than this is lost: a "
                                        "frame with a detection then takes a new target by the acquisition rule",
                                        min=0.1, max=600.0)
+    target_ambiguity_m: float = param(0.3, "m: boxes measured this near one another in the target's gate are one "
+                                      "place (a box mostly covered by another person measures that person's "
+                                      "depth): the one overlapping the last target box is the target, and the "
+                                      "place moves no track", min=0.0, max=2.0)
     target_depth_share: float = param(0.5, "share of a box's width and height, about its centre, whose median depth "
                                       "is the person's place", min=0.1, max=1.0)
     target_input_wait_s: float = param(0.05, "s: how long detections wait for their depth frame and camera pose, once "

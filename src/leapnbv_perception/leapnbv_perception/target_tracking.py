@@ -8,6 +8,10 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    occluder over less than half of the central part do not move the median), back-projected through the
    box centre with the depth camera's intrinsics, then taken to the fixed frame with the frame's camera pose
    (p_fixed = R p_camera + t). A box with fewer than ``min_depth_pixels`` valid readings has no position.
+   Besides that place, a box has the places of its depth layers (:func:`depth_layers`: the readings of the
+   whole box fall into layers, an occluder's, the person's, the background's): a track measures a box at the candidate
+   nearest its prediction, so an occluder over most of the target's central box does not move the target to
+   the occluder (nor start a track there that later claims the target's box).
 2. **Where the target should be.** A constant-velocity Kalman filter of the target's horizontal position
    (x, y of the fixed frame, whose z is up) and velocity, predicted to the frame's stamp.
 3. **Which detection it is.** The gate: a detection is the target only within
@@ -15,7 +19,10 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    place (horizontal distance). The other people in view are tracked too (same filter and gate, not
    published); detections are given to tracks nearest first (distances within :data:`DISTANCE_TIE_M` tie:
    the target first, then the lowest detection index), so a bystander standing next to a hidden target
-   keeps its own track and is never taken for it.
+   keeps its own track and is never taken for it. Boxes measured within ``ambiguity_m`` of one place in the
+   gate (a box mostly covered by another person's has only that person's depth) are told apart in the image:
+   the one overlapping the target's last box most is the target, and the place, which is neither person's
+   for certain, moves no track (the prediction stands).
 4. **States.** TRACKED (a detection is the target), NOT_SEEN (none is: the target is kept at its
    predicted place and only a detection inside the gate can be it again), LOST (not seen for longer than
    ``lost_after_s``: dropped), NONE (no target yet). A frame that finds the target lost takes a new one
@@ -36,16 +43,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Protocol, Set, Tuple
+from typing import AbstractSet, Any, Dict, List, Optional, Protocol, Set, Tuple
 
 import numpy as np
 
 from leapnbv_common.array_types import BoolArray, FloatArray, FloatingArray
-from leapnbv_perception.target_selection import acquisition_index, overlapping_index, usable_boxes
+from leapnbv_perception.target_selection import acquisition_index, box_iou, overlapping_index, usable_boxes
 
 __all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE_NAMES", "MODE_FIXED_FRAME",
            "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
-           "box_positions_camera"]
+           "box_positions_camera", "box_places_camera", "depth_layers"]
 
 # leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
 STATE_NONE = 0
@@ -60,6 +67,11 @@ MODE_IMAGE = "image"
 #: Distances (m) between a track's prediction and detections closer than this tie: the assignment then goes
 #: by track (the target first) and detection index, never by the last bit of a depth median or a pose.
 DISTANCE_TIE_M = 1e-3
+#: Depth layers of a box (:func:`depth_layers`): histogram bin (m), the share of readings a bin needs to join a
+#: layer, and the share a layer needs to be a candidate place.
+LAYER_BIN_M = 0.1
+LAYER_GAP_SHARE = 0.02
+MIN_LAYER_SHARE = 0.15
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -81,6 +93,8 @@ class TrackerConfig:
         min_depth_pixels: Valid readings a box needs for a position.
         measurement_sigma_m: m, standard deviation of a measured position (depth noise, the body turning).
         acceleration_sigma_m_s2: m/s^2, the filter's white-noise acceleration (people start, stop, turn).
+        ambiguity_m: m, boxes measured this near one another in the gate are one place, not two people:
+            told apart by their overlap with the target's last box.
     """
 
     fixed_frame: bool = True
@@ -95,6 +109,7 @@ class TrackerConfig:
     min_depth_pixels: int = 20
     measurement_sigma_m: float = 0.1
     acceleration_sigma_m_s2: float = 0.5
+    ambiguity_m: float = 0.3
 
 
 class CameraPoseLike(Protocol):
@@ -150,6 +165,75 @@ class TargetDecision:
         return STATE_NAMES[self.state]
 
 
+def depth_layers(values: FloatArray) -> List[float]:
+    """Depths (m) of the layers in a box's valid readings: each layer's median, the most populated first.
+
+    A layer is a run of :data:`LAYER_BIN_M` histogram bins each holding at least :data:`LAYER_GAP_SHARE` of
+    the readings (a few stray readings between an occluder and a person do not join them); layers with
+    less than :data:`MIN_LAYER_SHARE` of the readings are left out. Ties in population go to the nearer layer.
+    """
+    values = np.sort(np.asarray(values, dtype=np.float64).ravel())
+    if values.size == 0:
+        return []
+    bins = np.floor((values - values[0]) / LAYER_BIN_M).astype(np.int64)
+    counts = np.bincount(bins)
+    dense = counts >= max(1.0, LAYER_GAP_SHARE * values.size)
+    layers: List[Tuple[int, float]] = []
+    start = None
+    for b in range(len(counts) + 1):
+        if b < len(counts) and dense[b]:
+            start = b if start is None else start
+            continue
+        if start is not None:
+            members = values[(bins >= start) & (bins < b)]
+            if members.size >= MIN_LAYER_SHARE * values.size:
+                layers.append((int(members.size), float(np.median(members))))
+            start = None
+    layers.sort(key=lambda layer: (-layer[0], layer[1]))
+    return [depth for _, depth in layers]
+
+
+def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: FloatingArray, k: FloatArray,
+                      config: TrackerConfig) -> List[FloatArray]:
+    """Each box's candidate places in the depth camera's optical frame (m): a (M, 3) array per box.
+
+    Row 0 is the box's place (:func:`box_positions_camera`); the rest are the depth layers (:func:`depth_layers`)
+    of the whole box (every other pixel) that differ from it by more than half a bin, back-projected through
+    the box centre the same way: where an occluder covers the central part of a person's box, the person is
+    one of the layers (the parts of them around the occluder), and so is the background. (0, 3) for a box without
+    enough valid readings.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64)
+    boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
+    height, width = depth.shape[:2]
+    sx, sy = width / float(image_size[0]), height / float(image_size[1])
+    half = 0.5 * float(config.central_share)
+    out: List[FloatArray] = []
+    for box in boxes:
+        out.append(np.zeros((0, 3)))
+        if not np.all(np.isfinite(box[:4])):
+            continue
+        u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
+        hw, hh = half * (box[2] - box[0]) * sx, half * (box[3] - box[1]) * sy
+        u0, u1 = int(np.clip(np.floor(u - hw), 0, width)), int(np.clip(np.ceil(u + hw), 0, width))
+        v0, v1 = int(np.clip(np.floor(v - hh), 0, height)), int(np.clip(np.ceil(v + hh), 0, height))
+        values = np.asarray(depth[v0:v1, u0:u1], dtype=np.float64).ravel()
+        with np.errstate(invalid="ignore"):
+            values = values[np.isfinite(values) & (values >= config.min_depth_m) & (values <= config.max_depth_m)]
+        if values.size < max(1, int(config.min_depth_pixels)):
+            continue
+        median = float(np.median(values))
+        # The layers come from the whole box (every other pixel): an occluder may cover all of its central part.
+        b0, b1 = int(np.clip(np.floor(box[1] * sy), 0, height)), int(np.clip(np.ceil(box[3] * sy), 0, height))
+        a0, a1 = int(np.clip(np.floor(box[0] * sx), 0, width)), int(np.clip(np.ceil(box[2] * sx), 0, width))
+        whole = np.asarray(depth[b0:b1:2, a0:a1:2], dtype=np.float64).ravel()
+        with np.errstate(invalid="ignore"):
+            whole = whole[np.isfinite(whole) & (whole >= config.min_depth_m) & (whole <= config.max_depth_m)]
+        zs = [median] + [z for z in depth_layers(whole) if abs(z - median) > 0.5 * LAYER_BIN_M]
+        out[-1] = np.array([((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs])
+    return out
+
+
 def box_positions_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: FloatingArray, k: FloatArray,
                          config: TrackerConfig) -> FloatArray:
     """(N, 3) each box's position in the depth camera's optical frame (m); NaN rows for boxes without one.
@@ -166,26 +250,11 @@ def box_positions_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: 
         k: (3, 3) the depth camera's intrinsics.
         config: central_share, the valid depth range, min_depth_pixels.
     """
-    boxes = np.asarray(boxes, dtype=np.float64)
-    boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
-    height, width = depth.shape[:2]
-    sx, sy = width / float(image_size[0]), height / float(image_size[1])
-    out = np.full((len(boxes), 3), np.nan)
-    half = 0.5 * float(config.central_share)
-    for i, box in enumerate(boxes):
-        if not np.all(np.isfinite(box[:4])):
-            continue
-        u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
-        hw, hh = half * (box[2] - box[0]) * sx, half * (box[3] - box[1]) * sy
-        u0, u1 = int(np.clip(np.floor(u - hw), 0, width)), int(np.clip(np.ceil(u + hw), 0, width))
-        v0, v1 = int(np.clip(np.floor(v - hh), 0, height)), int(np.clip(np.ceil(v + hh), 0, height))
-        values = np.asarray(depth[v0:v1, u0:u1], dtype=np.float64).ravel()
-        with np.errstate(invalid="ignore"):
-            values = values[np.isfinite(values) & (values >= config.min_depth_m) & (values <= config.max_depth_m)]
-        if values.size < max(1, int(config.min_depth_pixels)):
-            continue
-        z = float(np.median(values))
-        out[i] = ((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z)
+    places = box_places_camera(boxes, image_size, depth, k, config)
+    out = np.full((len(places), 3), np.nan)
+    for i, candidates in enumerate(places):
+        if len(candidates):
+            out[i] = candidates[0]
     return out
 
 
@@ -250,6 +319,7 @@ class TargetTracker:
         self.lost: Optional[TargetDecision] = None  # the decision that found the target lost, repeated until one
         self.others: List[_Track] = []
         self.last_stamp_ns: Optional[int] = None
+        self._places: List[FloatArray] = []  # this frame's candidate places of each box, in the fixed frame
 
     # ------------------------------------------------------------------ the frame
 
@@ -303,13 +373,28 @@ class TargetTracker:
             return "no camera pose of this frame", None
         if depth is None or k is None or image_size is None:
             return "no depth frame of this frame", None
-        camera = box_positions_camera(boxes, image_size, depth, k, self.config)
-        camera[~usable] = np.nan
-        if np.any(usable) and not np.any(np.all(np.isfinite(camera), axis=1)):
+        places = [candidates if ok else np.zeros((0, 3)) for candidates, ok in
+                  zip(box_places_camera(boxes, image_size, depth, k, self.config), usable)]
+        if np.any(usable) and not any(len(candidates) for candidates in places):
             return "no valid depth in any box", None
         rotation = np.asarray(pose.rotation, dtype=np.float64).reshape(3, 3)
         position = np.asarray(pose.position, dtype=np.float64).reshape(3)
-        return "", camera @ rotation.T + position
+        self._places = [candidates @ rotation.T + position for candidates in places]
+        primary = np.full((len(places), 3), np.nan)
+        for i, candidates in enumerate(self._places):
+            if len(candidates):
+                primary[i] = candidates[0]
+        return "", primary
+
+    def _measured(self, j: int, xy: FloatArray) -> Tuple[float, FloatArray]:
+        """(horizontal distance, point): the candidate place of box j nearest ``xy``.
+
+        Distances within DISTANCE_TIE_M tie: the box's place first, then its most populated layer.
+        """
+        candidates = self._places[j]
+        distances = np.hypot(candidates[:, 0] - xy[0], candidates[:, 1] - xy[1])
+        best = int(np.flatnonzero(distances <= distances.min() + DISTANCE_TIE_M)[0])
+        return float(distances[best]), candidates[best]
 
     # ------------------------------------------------------------------ outcomes
 
@@ -352,7 +437,8 @@ class TargetTracker:
             else:  # a person already followed as another: their filter (their velocity) comes with them
                 track.filter = self.others[claimed].filter
                 assert track.filter is not None
-                track.filter.update(stamp_ns, positions[index], positions[index, 2], self.config)
+                point = self._measured(index, track.filter.predicted(stamp_ns, self.config)[0][0])[1]
+                track.filter.update(stamp_ns, point, point[2], self.config)
                 del assignment[claimed]
                 self._apply_others(stamp_ns, positions, str(frame), assignment, {index}, drop=claimed)
             if claimed is None:
@@ -415,16 +501,23 @@ class TargetTracker:
         assert target.filter is not None
         predicted, _ = target.filter.predicted(stamp_ns, cfg)
         gate = target.filter.gate_m(stamp_ns, cfg)
-        distances = np.hypot(positions[:, 0] - predicted[0, 0], positions[:, 1] - predicted[0, 1])
-        assignment = self._assign(stamp_ns, positions, with_position, with_target=True)
+        points = np.full_like(positions, np.nan)  # each box's candidate place nearest the prediction
+        distances = np.full(len(positions), np.nan)
+        for j in np.flatnonzero(with_position):
+            distances[j], points[j] = self._measured(int(j), predicted[0])
+        chosen, iou, group = self._disambiguated(boxes, points, with_position, distances, gate, target)
+        assignment = self._assign(stamp_ns, positions, with_position, with_target=True, target_detection=chosen)
         index = assignment.pop(-1, -1)
-        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index})
+        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index}, unmeasured=group)
         if index >= 0:
-            target.filter.update(stamp_ns, positions[index], positions[index, 2], cfg)
+            if chosen < 0:  # boxes measured at one place say where neither person is: the prediction stands
+                target.filter.update(stamp_ns, points[index], points[index, 2], cfg)
             target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
-            return self._decision(target, stamp_ns, STATE_TRACKED, index, f"nearest detection to the predicted "
-                                  f"place, {distances[index]:.2f} m (gate {gate:.2f} m)", MODE_FIXED_FRAME,
-                                  gate_m=gate)
+            how = (f"nearest detection to the predicted place, {distances[index]:.2f} m (gate {gate:.2f} m)"
+                   if chosen < 0 else f"{len(group)} detections measured within {cfg.ambiguity_m:g} m of one place "
+                   f"{distances[index]:.2f} m from the predicted one (gate {gate:.2f} m): the one overlapping the last "
+                   f"target box most, IoU {iou:.2f} (the place is not a measurement: the prediction kept)")
+            return self._decision(target, stamp_ns, STATE_TRACKED, index, how, MODE_FIXED_FRAME, gate_m=gate)
         if not np.any(with_position):
             what = "no detections" if len(boxes) == 0 else "no detection with depth"
         else:
@@ -437,13 +530,38 @@ class TargetTracker:
 
     # ------------------------------------------------------------------ the assignment and the other people
 
+    def _disambiguated(self, boxes: FloatArray, points: FloatArray, with_position: BoolArray,
+                       distances: FloatArray, gate: float, target: _Track) -> Tuple[int, float, Set[int]]:
+        """(the target's detection among boxes measured at one place, its IoU with the last target box, them).
+
+        The place is the nearest detection's in the gate; the boxes measured within ambiguity_m of it
+        (horizontally) are the group, and the one overlapping the target's last box most is the target
+        (IoUs within 1e-6 tie: the nearest to the prediction, then the lowest index). (-1, 0, {}) when the
+        group has one box, or the target has no last box.
+        """
+        inside = np.flatnonzero(with_position & (distances <= gate))
+        if inside.size < 2 or target.last_box is None:
+            return -1, 0.0, set()
+        nearest = int(inside[np.argmin(distances[inside])])
+        apart = np.hypot(points[inside, 0] - points[nearest, 0], points[inside, 1] - points[nearest, 1])
+        group = inside[apart <= self.config.ambiguity_m]
+        if group.size < 2:
+            return -1, 0.0, set()
+        overlaps = box_iou(np.asarray(target.last_box, dtype=np.float64), boxes[group])
+        best = float(overlaps.max())
+        tied = group[overlaps >= best - 1e-6]
+        lowest = float(np.min(distances[tied]))
+        chosen = int(min(j for j in tied if distances[j] <= lowest + DISTANCE_TIE_M))
+        return chosen, best, {int(j) for j in group}
+
     def _assign(self, stamp_ns: int, positions: Optional[FloatArray], candidates: BoolArray,
-                with_target: bool) -> Dict[int, int]:
+                with_target: bool, target_detection: int = -1) -> Dict[int, int]:
         """Detections given to tracks nearest first, within each track's gate: {track key: detection index}.
 
         The target's key is -1, another person's its index in ``self.others``. Distances within DISTANCE_TIE_M
         of the nearest pair left tie: then the target first, then the others in the order they were first
-        seen, then the lowest detection index.
+        seen, then the lowest detection index. ``target_detection`` >= 0: the target's detection, decided
+        before (:meth:`_disambiguated`); the others share the rest.
         """
         if positions is None:
             return {}
@@ -457,9 +575,12 @@ class TargetTracker:
         for rank, (key, filt) in enumerate(tracks):
             predicted, _ = filt.predicted(stamp_ns, cfg)
             gate = filt.gate_m(stamp_ns, cfg)
-            distances = np.hypot(positions[rows, 0] - predicted[0, 0], positions[rows, 1] - predicted[0, 1])
+            distances = [self._measured(int(j), predicted[0])[0] for j in rows]
             pairs.extend((float(d), rank, int(j), key) for d, j in zip(distances, rows) if d <= gate)
         assignment: Dict[int, int] = {}
+        if target_detection >= 0 and with_target:
+            assignment[-1] = int(target_detection)
+            pairs = [p for p in pairs if p[3] != -1 and p[2] != target_detection]
         while pairs:
             nearest = min(p[0] for p in pairs)
             _, _, j, key = min((p for p in pairs if p[0] <= nearest + DISTANCE_TIE_M), key=lambda p: (p[1], p[2]))
@@ -468,10 +589,11 @@ class TargetTracker:
         return assignment
 
     def _apply_others(self, stamp_ns: int, positions: Optional[FloatArray], frame: str, assignment: Dict[int, int],
-                      taken: Set[int], drop: Optional[int] = None) -> None:
+                      taken: Set[int], drop: Optional[int] = None, unmeasured: AbstractSet[int] = frozenset()) -> None:
         """The other people: update those given a detection, follow each detection nobody has as a new one.
 
-        Forget those not seen for lost_after_s (and ``drop``, who became the target).
+        A detection in ``unmeasured`` (measured at another box's place) marks its track seen without moving
+        it, and starts no new one. Forget those not seen for lost_after_s (and ``drop``, who became the target).
         """
         if positions is None:
             return
@@ -480,9 +602,11 @@ class TargetTracker:
             if key >= 0:
                 other = self.others[key]
                 assert other.filter is not None
-                other.filter.update(stamp_ns, positions[j], positions[j, 2], cfg)
+                if j not in unmeasured:
+                    point = self._measured(j, other.filter.predicted(stamp_ns, cfg)[0][0])[1]
+                    other.filter.update(stamp_ns, point, point[2], cfg)
                 other.last_seen_ns = stamp_ns
-        used = set(taken) | set(assignment.values())
+        used = set(taken) | set(assignment.values()) | set(unmeasured)
         self.others = [o for n, o in enumerate(self.others)
                        if n != drop and (stamp_ns - o.last_seen_ns) * 1e-9 <= cfg.lost_after_s]
         for j in np.flatnonzero(np.all(np.isfinite(positions), axis=1)):

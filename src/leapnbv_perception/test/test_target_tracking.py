@@ -22,6 +22,7 @@ from leapnbv_perception.target_tracking import (
     TargetTracker,
     TrackerConfig,
     box_positions_camera,
+    depth_layers,
 )
 
 WIDTH, HEIGHT = 640, 480
@@ -180,6 +181,64 @@ def test_a_person_crossing_between_the_camera_and_the_hidden_target_is_never_tak
             assert (d.state, d.track_id) == (STATE_NOT_SEEN, 1), d.reason
         else:
             assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 1, 1), d.reason
+
+
+def test_depth_layers_split_an_occluder_from_the_person_despite_stray_readings_between():
+    rng = np.random.default_rng(3)
+    person = rng.normal(3.0, 0.05, 700)
+    occluder = rng.normal(1.5, 0.02, 280)
+    stray = np.linspace(1.6, 2.9, 20)  # mixed pixels at the occluder's edge: 2 % of the readings, spread out
+    layers = depth_layers(np.concatenate([occluder, person, stray]))
+    assert len(layers) == 2
+    assert layers[0] == pytest.approx(3.0, abs=0.02) and layers[1] == pytest.approx(1.5, abs=0.02)  # most first
+    assert depth_layers(np.concatenate([person, rng.normal(5.0, 0.05, 100)])) == [pytest.approx(3.0, abs=0.02)]
+    assert depth_layers(np.zeros(0)) == []
+
+
+@pytest.mark.parametrize("with_bystander", [False, True])
+def test_an_occluder_over_the_targets_central_box_neither_loses_it_nor_hands_it_to_a_person_behind(with_bystander):
+    # The target at 3 m; a bystander at 4 m stands behind it, the target covering most of the central part of
+    # the bystander's box (whose median is then the target's depth). From frame 3 an occluder at 1.5 m covers
+    # all of the central part of the target's box (whose median is then the occluder's). A box's median alone
+    # would put the target at the occluder (out of its gate) and the bystander's box at the target's place.
+    tracker = TargetTracker()
+    target, bystander = (3.0, 0.0), (4.0, 0.3)
+    people = [target, bystander] if with_bystander else [target]
+    boxes, _ = render(camera(), people)
+    x0, y0, x1, y1 = boxes[0, :4]
+    cx, cy, w, h = 0.5 * (x0 + x1), 0.5 * (y0 + y1), x1 - x0, y1 - y0
+    occluder = (int(cx - 0.27 * w), int(cy - 0.27 * h), int(cx + 0.27 * w) + 1, int(cy + 0.27 * h) + 1, 1.5)
+    occluded_boxes, occluded_depth = render(camera(), people, occluders=[occluder])
+    medians = box_positions_camera(occluded_boxes, (WIDTH, HEIGHT), occluded_depth, K, TrackerConfig())
+    medians = medians @ camera().rotation.T + camera().position
+    assert medians[0, 0] == pytest.approx(1.5, abs=0.02)  # what the median alone says
+    if with_bystander:
+        assert np.hypot(*(medians[1, :2] - target)) < 0.3
+    for k in range(12):
+        d = step(tracker, k, camera(), people, occluders=[occluder] if k >= 3 else [])
+        assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 0, 1), (k, d.reason)
+        np.testing.assert_allclose(d.position[:2], target, atol=0.05)
+    if with_bystander:  # its box is measured at the target's place too: the image overlap told them apart
+        assert "overlapping the last target box most" in d.reason
+
+
+def test_two_boxes_measured_at_one_place_are_told_apart_by_the_last_box_and_move_no_track():
+    tracker = TargetTracker()
+    target = (3.0, 0.0)
+    step(tracker, 0, camera(), [target])
+    before = step(tracker, 1, camera(), [target])
+    boxes, depth = render(camera(), [target])
+    inner = boxes[0].copy()  # a second, smaller box inside the target's, over the target's pixels only
+    inner[:4] = [inner[0] + 10, inner[1] + 30, inner[2] - 25, inner[3] - 40]
+    for wanted, order in ((1, [inner, boxes[0]]), (0, [boxes[0], inner])):
+        d = tracker.update(2 * SECOND // 10, np.array(order), (WIDTH, HEIGHT), depth, K, camera())
+        assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, wanted, 1), d.reason
+        assert "the prediction kept" in d.reason
+    np.testing.assert_allclose(d.position[:2], before.position[:2], atol=1e-3)
+    off = TargetTracker(TrackerConfig(ambiguity_m=0.0))  # no ambiguity: the nearest box decides, as before
+    step(off, 0, camera(), [target])
+    d = off.update(SECOND // 10, np.array([inner, boxes[0]]), (WIDTH, HEIGHT), depth, K, camera())
+    assert "nearest detection" in d.reason
 
 
 def test_a_walking_target_is_followed_while_the_robot_drives_and_found_again_after_a_short_hiding():

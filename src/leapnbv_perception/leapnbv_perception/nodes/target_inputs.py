@@ -37,7 +37,8 @@ def tracker_config(p: HmrParams) -> TrackerConfig:
     """The tracker's settings from hmr_node's parameters (read per frame: live)."""
     return TrackerConfig(fixed_frame=p.track_in_fixed_frame, follow=p.track_previous_target, gate_m=p.target_gate_m,
                          gate_growth_m_s=p.target_gate_growth_m_s, lost_after_s=p.target_lost_after_s,
-                         min_track_iou=p.min_track_iou, central_share=p.target_depth_share)
+                         min_track_iou=p.min_track_iou, central_share=p.target_depth_share,
+                         ambiguity_m=p.target_ambiguity_m)
 
 
 def target_track_msg(decision: TargetDecision, header: Header) -> TargetTrack:
