@@ -170,8 +170,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--camera-rate", type=float, default=10.0, help="continuous: frames per second of sim time")
     parser.add_argument("--time-limit", type=float, default=30.0, help="continuous: sim seconds per episode at most")
     parser.add_argument("--obstacle-memory", action="store_true",
-                        help="continuous, with --no-obstacle-map: the planner gets the map built on the way from the "
-                        "frames' depth (leapnbv_planner.obstacle_memory)")
+                        help="continuous, with --no-obstacle-map: nbv_node plans with the map it builds on the way "
+                        "from the frames (its obstacle_memory parameter; leapnbv_planner.obstacle_memory)")
     parser.add_argument("--commit-hold", type=float, default=1.0,
                         help="continuous: arrival counts at a goal committed at least this many sim seconds")
     args = parser.parse_args(argv)

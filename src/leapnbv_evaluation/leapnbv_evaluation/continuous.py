@@ -94,9 +94,6 @@ class ContinuousSession(Protocol):
     def ticked_between(self, first_ns: int, last_ns: int) -> int:
         """How many frames stamped in [first_ns, last_ns] needed sim time to tick on before the graph answered."""
 
-    def remember_obstacles(self, stamp_ns: int, rendered: RenderedFrame, outputs: FrameOutputs) -> int:
-        """With options.obstacle_memory: take the frame's depth into the memory and publish it as the map."""
-
     def driven_robot(self) -> DrivenRobot:
         """The simulator's robot (continuous mode)."""
 
@@ -221,8 +218,6 @@ class ContinuousEpisodes:
             else:
                 rendered, outputs = session.run_frame(stamp)
                 session.settle_goal(stamp, outputs)
-            if o.obstacle_memory:  # the next plan has what this frame saw
-                session.remember_obstacles(stamp, rendered, outputs)
             all_outputs.append(outputs)
             robot = session.driven_robot()
             coverages.append(view_metrics(scene, rendered).surface_coverage)

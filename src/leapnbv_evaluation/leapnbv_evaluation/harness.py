@@ -16,8 +16,6 @@ from __future__ import annotations
 import time
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
-import cv2
-import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -34,7 +32,7 @@ from leapnbv_bringup.graph_runner import (
     perception_overrides,
 )
 from leapnbv_bringup.runner_cli import sim_time_overrides
-from leapnbv_common.conversions import image_to_numpy, stamp_to_ns
+from leapnbv_common.conversions import stamp_to_ns
 from leapnbv_common.power_monitor import PowerMonitor, start_power_monitor
 from leapnbv_common.stage import WAIT_CHECK_PERIOD_S
 from leapnbv_common.topics import (
@@ -71,7 +69,6 @@ from leapnbv_msgs.msg import (
     ViewCandidates,
 )
 from leapnbv_perception.smplx_layer import SMPLXModel
-from leapnbv_planner.obstacle_memory import ObstacleMemory, depth_points_in_fixed_frame
 from leapnbv_sim.nodes.simulator_node import SimulatorNode, clock_publisher
 from leapnbv_sim.poses import CameraPose, RobotModel
 from leapnbv_sim.render import RenderedFrame
@@ -79,8 +76,6 @@ from leapnbv_sim.scene import Scene
 from leapnbv_sim.simulator import DrivenRobot
 from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
-#: Obstacle memory: the graph's person mask grows by this many pixels before the depth is taken in (its edge).
-MASK_DILATION_PX = 4
 #: Continuous lockstep: while a frame is in flight, sim time moves on by the stages' wait-check period (their timers
 #: run on sim time: a companion that came after its frame is found only when one fires) every this many wall
 #: seconds, but never to the next frame's stamp.
@@ -134,8 +129,6 @@ class ClosedLoopEvaluator:
         self.collector: Optional[Node] = None
         self.executor: Optional[SingleThreadedExecutor] = None
         self.frames: Dict[int, FrameOutputs] = {}
-        #: Continuous with options.obstacle_memory: the map built on the way (one per scene).
-        self.memory: Optional[ObstacleMemory] = None
         #: Continuous lockstep: how far sim time ticked on (ns past the stamp) while each frame was in flight.
         self.clock_ticked_ns: Dict[int, int] = {}
         self._scene_body_model: Optional[SMPLXModel] = None
@@ -190,8 +183,10 @@ class ClosedLoopEvaluator:
         if o.real_models and not ((o.detector_model or not needs_detector) and o.hmr_model and o.body_model):
             raise EvaluationError("real perception needs --detector-model (unless --detector-backend ground_truth), "
                                   "--hmr-model and --body-model")
-        # The map in use: the room's (the simulator publishes it), the obstacle memory's (this evaluator does), or none.
-        map_switch = [] if o.obstacle_map or o.obstacle_memory else ["nbv_node.use_obstacle_map=false"]
+        # The map in use: the room's (the simulator publishes it), nbv_node's obstacle memory, or none.
+        map_switch = [] if o.obstacle_map else ["nbv_node.use_obstacle_map=false"]
+        if o.obstacle_memory:
+            map_switch.append("nbv_node.obstacle_memory=true")
         if not o.continuous:  # simulated stamps, not the clock's: no goal age limit
             map_switch.append("nbv_node.max_goal_age_s=0.0")
         # Continuous: the graph runs on the simulator's clock, with the deployed staleness rules.
@@ -346,10 +341,8 @@ class ClosedLoopEvaluator:
     # ------------------------------------------------------------------ the session (closed_loop.GraphSession)
 
     def set_scene(self, scene: Scene) -> None:
-        """Put the simulator in a scene, its camera at the scene's start view (and forget the obstacle memory)."""
+        """Put the simulator in a scene, its camera at the scene's start view."""
         self._simulator().set_scene(scene)
-        if self.memory is not None:
-            self.memory.clear()
 
     def run_frame(self, stamp_ns: int) -> Tuple[RenderedFrame, FrameOutputs]:
         """Publish the simulator's current view at ``stamp_ns`` and collect the graph's outputs.
@@ -464,7 +457,8 @@ class ClosedLoopEvaluator:
     # ------------------------------------------------------------------ continuous.ContinuousSession
 
     def forget_committed_goal(self, timeout_s: float = 5.0) -> None:
-        """Make nbv_node forget its committed goal: a change of a score weight does (and is undone at once).
+        """Make nbv_node forget its committed goal (and its obstacle memory): a change of a score weight does (and
+        is undone at once; the memory goes with obstacle_memory off and on).
 
         A new scene is another room with the person at the same fixed-frame place: a goal committed in the
         last one must not be re-scored and kept in it.
@@ -486,10 +480,13 @@ class ClosedLoopEvaluator:
         if not isinstance(value, float):
             raise EvaluationError(f"nbv_node's {name} is not a number: {value!r}")
         weight = value
-        for step in (weight + 0.5 if weight <= 0.5 else weight - 0.5, weight):
-            done = client.set_parameters([Parameter(name, value=step)])
+        steps = [(name, weight + 0.5 if weight <= 0.5 else weight - 0.5), (name, weight)]
+        if self.options.obstacle_memory:  # the last room's obstacles are no obstacles of this one
+            steps += [("obstacle_memory", False), ("obstacle_memory", True)]
+        for key, step in steps:
+            done = client.set_parameters([Parameter(key, value=step)])
             if not self._spin_until(done.done, timeout_s):
-                raise EvaluationError(f"nbv_node did not take {name}={step}")
+                raise EvaluationError(f"nbv_node did not take {key}={step}")
 
     def settle_goal(self, stamp_ns: int, outputs: FrameOutputs, timeout_s: float = 2.0) -> None:
         """Wait until the goal topics of the frame of ``stamp_ns`` have reached the simulator's motion stack.
@@ -519,31 +516,6 @@ class ClosedLoopEvaluator:
     def ticked_between(self, first_ns: int, last_ns: int) -> int:
         """How many frames stamped in [first_ns, last_ns] needed sim time to tick on before the graph answered."""
         return sum(1 for stamp, ticked in self.clock_ticked_ns.items() if first_ns <= stamp <= last_ns and ticked)
-
-    def remember_obstacles(self, stamp_ns: int, rendered: RenderedFrame, outputs: FrameOutputs) -> int:
-        """Obstacle memory: take the frame's depth in (the graph's person mask, dilated, left out) and publish the
-        memory as the obstacle map; how many voxels it holds. A frame without a mask is not taken in (its person
-        would become an obstacle)."""
-        o = self.options
-        if not (o.continuous and o.obstacle_memory):
-            return 0
-        if self.memory is None:
-            self.memory = ObstacleMemory()
-        mask_msg = outputs.messages.get(PERSON_MASK)
-        if mask_msg is None:
-            return len(self.memory)
-        mask = image_to_numpy(mask_msg) > 0
-        if mask.shape != rendered.depth_m.shape:
-            return len(self.memory)
-        kernel = np.ones((2 * MASK_DILATION_PX + 1,) * 2, np.uint8)
-        person = np.asarray(cv2.dilate(mask.astype(np.uint8), kernel), dtype=bool)
-        camera = rendered.camera_pose
-        points, distances = depth_points_in_fixed_frame(rendered.depth_m, rendered.K, camera.rotation,
-                                                        camera.position, exclude=person)
-        sim = self._simulator()
-        self.memory.add_points(points, distances, stamp_ns, sim.params.world_frame_id)
-        sim.publish_map_points(self.memory.occupied_centres(), stamp_ns)
-        return len(self.memory)
 
     def driven_robot(self) -> DrivenRobot:
         """The simulator's robot (continuous mode)."""

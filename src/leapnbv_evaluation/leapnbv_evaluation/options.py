@@ -57,10 +57,9 @@ class EvaluationOptions:
         time_limit_s: A continuous episode ends at this sim time without arrival ...
         commit_hold_s: ... or on arrival at a goal committed at least this long ...
         no_plan_limit_s: ... or when no goal came within this time.
-        obstacle_memory: Continuous, without the room's map: the planner gets a map built on the way instead,
-            the obstacle memory (:mod:`leapnbv_planner.obstacle_memory`) of every frame's depth without the
-            graph's person mask, published as the obstacle map after each frame (as a robot's mapping stack
-            fed by its camera would).
+        obstacle_memory: Continuous, without the room's map: nbv_node plans with the map it builds on the way
+            from the frames' background points (its ``obstacle_memory`` parameter; :mod:`leapnbv_planner.
+            obstacle_memory`), forgotten at each new scene.
     """
 
     perception: str = "ground_truth"

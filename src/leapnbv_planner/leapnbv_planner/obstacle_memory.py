@@ -35,7 +35,12 @@ import numpy as np
 
 from leapnbv_planner.arrays import Array
 
-__all__ = ["ObstacleMemory", "ObstacleMemoryParams", "depth_points_in_fixed_frame"]
+__all__ = ["ObstacleMemory", "ObstacleMemoryParams", "depth_points_in_fixed_frame", "frame_obstacle_points",
+           "PERSON_MARGIN_M"]
+
+#: m: background points this near the person's points (horizontally, by voxel column) are left out of the
+#: memory: the mask's edge leaves some of the person in the background, and the person is not an obstacle.
+PERSON_MARGIN_M = 0.15
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,45 @@ def depth_points_in_fixed_frame(depth_m: Array, K: Array, rotation: Array, posit
     k = np.asarray(K, dtype=np.float64)
     camera = np.stack([(u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z], axis=1)
     points = camera @ np.asarray(rotation, dtype=np.float64).T + np.asarray(position, dtype=np.float64)
+    return points, np.linalg.norm(camera, axis=1)
+
+
+def frame_obstacle_points(background: Array, person: Array, rotation: Array, position: Array,
+                          resolution: float, margin_m: float = PERSON_MARGIN_M) -> Tuple[Array, Array]:
+    """A frame's background points (the camera's optical frame) for the memory: fixed frame, the person left out.
+
+    Args:
+        background: (N, 3) the frame's points outside the person's mask, optical frame (TargetGeometry's).
+        person: (M, 3) the person's points, optical frame: the voxel columns (x, y cells of ``resolution``)
+            they occupy, grown by ``margin_m``, leave the background points in them out.
+        rotation: (3, 3) camera optical frame in the fixed frame.
+        position: (3,) camera centre in the fixed frame.
+        resolution: Voxel edge of the memory (m).
+        margin_m: How far around the person's columns the background is left out (m).
+
+    Returns:
+        ((K, 3) points in the fixed frame, (K,) their distance from the camera).
+    """
+    rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    pos = np.asarray(position, dtype=np.float64).reshape(3)
+    camera = np.asarray(background, dtype=np.float64).reshape(-1, 3)
+    camera = camera[np.isfinite(camera).all(axis=1)]
+    points = camera @ rot.T + pos
+    body = np.asarray(person, dtype=np.float64).reshape(-1, 3)
+    body = body[np.isfinite(body).all(axis=1)] @ rot.T + pos
+    if len(body) and len(points):
+        grow = int(math.ceil(max(0.0, margin_m) / resolution))
+        columns = np.unique(np.floor(body[:, :2] / resolution).astype(np.int64), axis=0)
+        offsets = np.stack(np.meshgrid(np.arange(-grow, grow + 1), np.arange(-grow, grow + 1)), -1).reshape(-1, 2)
+        near = np.unique((columns[:, None, :] + offsets[None, :, :]).reshape(-1, 2), axis=0)
+        cells = np.floor(points[:, :2] / resolution).astype(np.int64)
+        # Column membership by one integer key per (i, j).
+        low = np.minimum(near.min(axis=0), cells.min(axis=0))
+        span = int((np.maximum(near.max(axis=0), cells.max(axis=0)) - low).max() + 1)
+        keyed_near = (near[:, 0] - low[0]) * span + (near[:, 1] - low[1])
+        keyed = (cells[:, 0] - low[0]) * span + (cells[:, 1] - low[1])
+        keep = ~np.isin(keyed, keyed_near)
+        points, camera = points[keep], camera[keep]
     return points, np.linalg.norm(camera, axis=1)
 
 

@@ -146,6 +146,13 @@ class PlannerParams(CandidateRingParams, CommitmentParams, StageParams):
                                      " 40 x 40 m floor's walls and furniture at 0.1 m; a map of millions is a"
                                      " mapping fault, and each costs memory and time per plan)",
                                      min=1, max=100_000_000)
+    obstacle_memory: bool = param(False, "while no obstacle map is in use: plan with a map built from the frames' "
+                                  "background points and camera poses (leapnbv_planner.obstacle_memory; obstacles "
+                                  "seen on the way enter the plan); false forgets it")
+    obstacle_memory_half_life_s: float = param(20.0, "s: the obstacle memory's evidence halves in this much of the "
+                                               "frames' time (what is not seen again fades)", min=0.1, max=3600.0)
+    obstacle_memory_max_voxels: int = param(50_000, "voxels the obstacle memory keeps at most (the weakest go first)",
+                                            min=1, max=10_000_000)
     map_max_target_points: int = param(1500, "target points whose line of sight is walked through the map, per"
                                        " candidate", min=1, max=1_000_000)
     map_target_margin: float = param(0.1, "metres: the end of each line of sight, at the target, not checked in"

@@ -10,7 +10,7 @@ pose of its stamp in the map's frame.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, List, Optional, Tuple
+from typing import Any, List, Optional, Set, Tuple
 
 import numpy as np
 from sensor_msgs.msg import PointCloud2
@@ -19,7 +19,7 @@ from leapnbv_common import topics
 from leapnbv_common.array_types import Float32Array, FloatArray, IntArray
 from leapnbv_common.camera_pose import CameraPoseSource, StampedCameraPose
 from leapnbv_common.contracts import ContractError, check_same_frame, refused
-from leapnbv_common.conversions import GroundPlaneArrays, obstacle_map_to_points, stamp_to_ns
+from leapnbv_common.conversions import GroundPlaneArrays, TargetGeometryArrays, obstacle_map_to_points, stamp_to_ns
 from leapnbv_common.diagnostics import rejects_bad_input
 from leapnbv_common.mesh_faces import KnownMeshFaces
 from leapnbv_common.qos import latched_map_qos
@@ -28,6 +28,7 @@ from leapnbv_common.stage_inputs import checked_human_mesh
 from leapnbv_msgs.msg import HumanMesh, InputStamp
 from leapnbv_planner.floor_carry import carry_plane
 from leapnbv_planner.obstacle_map import VoxelObstacleMap, voxel_map_from_centres
+from leapnbv_planner.obstacle_memory import ObstacleMemory, ObstacleMemoryParams, frame_obstacle_points
 
 __all__ = ["body_mesh_arrays", "FrameFloor", "ObstacleMapInput"]
 
@@ -175,6 +176,57 @@ class ObstacleMapInput:
         self.diagnostics.reject(reason, why + ": planned without the obstacle map")
         self.diagnostics.count("planned_without.obstacle_map")
         return None, why
+
+
+class ObstacleMemoryInput:
+    """The obstacle memory (parameter ``obstacle_memory``): a map built from the frames, while no map is in use.
+
+    Each planned frame's background points (the target geometry's, the person left out) go into a
+    :class:`~leapnbv_planner.obstacle_memory.ObstacleMemory` in the camera pose's fixed frame, and its occupied
+    voxels are the map that frame is planned with. A frame without its camera pose is planned without the memory
+    (counted ``planned_without.obstacle_memory``, said on goal_status) and not taken in. The memory is forgotten
+    when the parameter goes off, its voxel size or limits change, or a frame's stamp goes back (a replay started
+    over); a new fixed frame starts it over.
+
+    Args:
+        node: The nbv node (``params.value``, ``diagnostics``, ``obstacle_map``).
+    """
+
+    def __init__(self, node: Any) -> None:
+        self.node = node
+        self.memory: Optional[ObstacleMemory] = None
+
+    def in_use(self) -> bool:
+        return bool(self.node.params.value.obstacle_memory) and not self.node.obstacle_map.in_use()
+
+    def forget(self) -> None:
+        self.memory = None
+
+    def params_changed(self, changed: Set[str]) -> None:
+        if changed & {"obstacle_memory", "obstacle_map_resolution", "obstacle_memory_half_life_s",
+                      "obstacle_memory_max_voxels"}:
+            self.forget()
+
+    def voxel_count(self) -> int:
+        return 0 if self.memory is None else len(self.memory)
+
+    def take(self, frame: Frame, target: TargetGeometryArrays
+             ) -> Tuple[Optional[StampedCameraPose], Optional[VoxelObstacleMap], str]:
+        """(the frame's camera pose, the memory's map with this frame in it, ""), or (None, None, why not)."""
+        p = self.node.params.value
+        pose: Optional[StampedCameraPose] = frame["camera_pose"]
+        if pose is None:
+            why = "no camera pose with this frame's stamp came"
+            self.node.diagnostics.count("planned_without.obstacle_memory")
+            return None, None, why
+        if self.memory is None or (self.memory.stamp_ns is not None and frame.stamp_ns < self.memory.stamp_ns):
+            self.memory = ObstacleMemory(ObstacleMemoryParams(
+                resolution=p.obstacle_map_resolution, half_life_s=p.obstacle_memory_half_life_s,
+                max_voxels=p.obstacle_memory_max_voxels))
+        points, distances = frame_obstacle_points(target.background_points, target.target_points, pose.rotation,
+                                                  pose.position, p.obstacle_map_resolution)
+        self.memory.add_points(points, distances, frame.stamp_ns, pose.frame_id)
+        return pose, voxel_map_from_centres(self.memory.occupied_centres(), p.obstacle_map_resolution), ""
 
 
 def check_map_size(count: int, limit: int, previous: Optional[VoxelObstacleMap]) -> None:

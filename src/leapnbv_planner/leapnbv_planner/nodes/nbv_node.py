@@ -57,7 +57,7 @@ from leapnbv_planner.inputs import PlanInputs
 from leapnbv_planner.nodes.goal_commitment import NodeCommitment, decision_path_frames, scores_changed
 from leapnbv_planner.nodes.latched_goal import LatchedGoal
 from leapnbv_planner.nodes.markers import candidate_markers
-from leapnbv_planner.nodes.nbv_inputs import FrameFloor, ObstacleMapInput, body_mesh_arrays
+from leapnbv_planner.nodes.nbv_inputs import FrameFloor, ObstacleMapInput, ObstacleMemoryInput, body_mesh_arrays
 from leapnbv_planner.nodes.target_status import TargetTrackInput
 from leapnbv_planner.obstacle_map import warm_up_obstacle_map
 from leapnbv_planner.params import PlannerParams, nbv_params_class
@@ -85,6 +85,7 @@ class NbvNode(ManagedNode):
         # Optional: the robot's map of static obstacles and the camera's pose in that map per frame. Without
         # them the planner sees only what the frame shows.
         self.obstacle_map = ObstacleMapInput(self)
+        self.obstacle_memory = ObstacleMemoryInput(self)  # without a map: the one the frames build on the way
         self.mesh_faces = MeshFacesInput(self)  # the triangles the metric meshes name by id
         self.commitment = NodeCommitment(self)
         self.target = TargetTrackInput(self, self.target_changed)
@@ -99,8 +100,8 @@ class NbvNode(ManagedNode):
                       stage_input_qos(PLANE_CACHE), wait_s=lambda f: self.params.value.ground_wait_s,
                       capacity=PLANE_CACHE),
             Companion("camera_pose", lookup=self.frame_camera_pose,
-                      needed=lambda f: self.commitment.needs_pose(self.obstacle_map.in_use()),
-                      wait_s=lambda f: self.commitment.pose_wait_s(self.obstacle_map.in_use()),
+                      needed=lambda f: self.commitment.needs_pose(self.map_in_use()),
+                      wait_s=lambda f: self.commitment.pose_wait_s(self.map_in_use()),
                       expect=lambda f: self.camera_poses.expect(f.stamp_ns, f.header.frame_id)),
             Companion(topics.HUMAN_MESH_METRIC, HumanMesh, topics.HUMAN_MESH_METRIC,
                       lambda msg: body_mesh_arrays(msg, self.mesh_faces.known),
@@ -130,9 +131,11 @@ class NbvNode(ManagedNode):
         self.stage.stop()
         self.goal.stop()
         self.commitment.clear()  # a goal committed before is no goal of the next activation
+        self.obstacle_memory.forget()
 
     def on_params_change(self, new: PlannerParams, changed: Set[str]) -> None:
         """Rebuild what depends on changed parameters (everything else is read at each plan)."""
+        self.obstacle_memory.params_changed(changed)
         if "obstacle_map_resolution" in changed:
             self.obstacle_map.rebuild(new.obstacle_map_resolution)  # a grid too large: the change is refused
         if "max_goal_age_s" in changed:
@@ -158,6 +161,10 @@ class NbvNode(ManagedNode):
         if self.count_publishers(topics.HUMAN_MESH_METRIC) == 0:
             return 0.0
         return float(self.params.value.body_mesh_wait_s)
+
+    def map_in_use(self) -> bool:
+        """Whether frames are planned with a map: the robot's, or the obstacle memory."""
+        return self.obstacle_map.in_use() or self.obstacle_memory.in_use()
 
     def frame_camera_pose(self, frame: Frame) -> Optional[Received]:
         pose = self.camera_poses.pose_at(frame.stamp_ns, frame.header.frame_id)
@@ -189,16 +196,22 @@ class NbvNode(ManagedNode):
             planned_without[topics.HUMAN_MESH_METRIC] = "no metric body mesh of this frame: " + \
                 missing_requirement_detail(BODY_MESH, self.params.value)
         camera_pose, without_map = self.obstacle_map.camera_pose_for(frame, self.camera_poses)
+        obstacle_map = self.obstacle_map.map if camera_pose is not None else None
         if without_map:
             planned_without["obstacle_map"] = without_map
+        elif self.obstacle_memory.in_use():
+            camera_pose, obstacle_map, without_memory = self.obstacle_memory.take(frame, frame["target_geometry"])
+            if without_memory:
+                planned_without["obstacle_memory"] = without_memory
         fixed_pose = self.commitment.camera_pose(frame)  # the committed goal's fixed frame
         if (camera_pose is not None or fixed_pose is not None) \
                 and ("camera_pose", stamp, InputStamp.SAME_FRAME) not in inputs:
             inputs.append(("camera_pose", stamp))
-        if camera_pose is not None:
+        if camera_pose is not None and obstacle_map is self.obstacle_map.map:
             inputs.append(("obstacle_map", self.obstacle_map.stamp_ns, InputStamp.STATIC))
-        plan = plan_views(PlanInputs(frame["target_geometry"], floor[0], self.params.value,
-                                     self.obstacle_map.map if camera_pose is not None else None, camera_pose,
+        elif obstacle_map is not None:
+            inputs.append(("obstacle_memory", stamp))  # built up to and with this frame
+        plan = plan_views(PlanInputs(frame["target_geometry"], floor[0], self.params.value, obstacle_map, camera_pose,
                                      body_mesh, extra_foot_points=self.commitment.extra_foot_points(fixed_pose)))
         decision = self.commitment.update(plan, fixed_pose, stamp)
         compute_time_ms = (time.perf_counter() - started) * 1e3
