@@ -132,6 +132,12 @@ class HmrParams(EngineParams):
                                       "place (a box mostly covered by another person measures that person's "
                                       "depth): the one overlapping the last target box is the target, and the "
                                       "place moves no track", min=0.0, max=2.0)
+    target_reacquire_window_s: float = param(10.0, "s: after the target is lost (with a place in the fixed frame), "
+                                             "only a detection near that place may become the target for this "
+                                             "long (the lost person found again, not a bystander in view); 0: the "
+                                             "acquisition rule takes anyone at once", min=0.0, max=600.0)
+    target_reacquire_radius_m: float = param(1.5, "m: how near the lost target's place a detection must be in the "
+                                             "re-acquisition window", min=0.1, max=20.0)
     target_depth_share: float = param(0.5, "share of a box's width and height, about its centre, whose median depth "
                                       "is the person's place", min=0.1, max=1.0)
     target_input_wait_s: float = param(0.05, "s: how long detections wait for their depth frame and camera pose, once "

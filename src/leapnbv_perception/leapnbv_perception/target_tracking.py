@@ -30,7 +30,9 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
 5. **Acquisition** (the first target, and after LOST), the only way another person becomes the target:
    :func:`leapnbv_perception.target_selection.acquisition_index` over the frame's candidates (the highest
    score, ties within 1e-3 to the box nearest the image centre, then the lowest index); each acquisition
-   has a new ``track_id``.
+   has a new ``track_id``. For ``reacquire_window_s`` after a target with a fixed-frame place was lost, the
+   candidates are only the detections within ``reacquire_radius_m`` of that place (the lost person found
+   again); after it, anyone in view.
 
 Without a camera pose, a depth frame or any box with depth (or with ``fixed_frame`` off) the frame is
 decided in the image only, by today's overlap rule (:func:`~leapnbv_perception.target_selection.select_target`):
@@ -95,6 +97,9 @@ class TrackerConfig:
         acceleration_sigma_m_s2: m/s^2, the filter's white-noise acceleration (people start, stop, turn).
         ambiguity_m: m, boxes measured this near one another in the gate are one place, not two people:
             told apart by their overlap with the target's last box.
+        reacquire_window_s: s after a target with a fixed-frame place is lost during which only a detection
+            near that place may become the target (0: anyone at once).
+        reacquire_radius_m: m, how near the lost target's place a detection must be in that window.
     """
 
     fixed_frame: bool = True
@@ -110,6 +115,8 @@ class TrackerConfig:
     measurement_sigma_m: float = 0.1
     acceleration_sigma_m_s2: float = 0.5
     ambiguity_m: float = 0.3
+    reacquire_window_s: float = 10.0
+    reacquire_radius_m: float = 1.5
 
 
 class CameraPoseLike(Protocol):
@@ -411,8 +418,13 @@ class TargetTracker:
     def _acquire(self, stamp_ns: int, boxes: FloatArray, candidates: BoolArray,
                  image_size: Optional[Tuple[int, int]], positions: Optional[FloatArray], frame: Optional[str],
                  why_image: str) -> TargetDecision:
-        """A new target by the acquisition rule among the candidates; NONE (or LOST, repeated) without one."""
+        """A new target by the acquisition rule among the candidates; NONE (or LOST, repeated) without one.
+
+        Within the re-acquisition window of a target lost with a fixed-frame place, only candidates measured
+        within reacquire_radius_m of that place may be taken (:meth:`_near_lost_place`).
+        """
         fixed = positions is not None and frame is not None
+        candidates, window = self._near_lost_place(stamp_ns, candidates, positions, frame)
         index = acquisition_index(boxes, candidates, image_size)
         assignment = self._assign(stamp_ns, positions, candidates, with_target=False) if fixed else {}
         if index < 0:
@@ -420,6 +432,8 @@ class TargetTracker:
                 self._apply_others(stamp_ns, positions, str(frame), assignment, set())
             what = "no detections" if len(boxes) == 0 else ("no usable detection" if not np.any(
                 usable_boxes(boxes)) else "no detection with depth")
+            if window:
+                what = window
             if self.lost is not None:
                 return dataclasses.replace(self.lost, reason=f"{self.lost.reason}; {what}")
             zero = np.zeros(3)
@@ -446,6 +460,8 @@ class TargetTracker:
         self.target, self.lost = track, None
         count = int(np.count_nonzero(candidates))
         reason = f"acquired track {track.track_id}: detection {index}, the highest score ({boxes[index, 4]:.3f})"
+        if window:
+            reason += f" of those {window}"
         if count > 1:
             reason += f" of {count} candidates (ties: nearest the image centre)"
         if previous is not None:
@@ -454,6 +470,30 @@ class TargetTracker:
             reason += f"; image only: {why_image}"
         return self._decision(track, stamp_ns, STATE_TRACKED, index, reason,
                               MODE_FIXED_FRAME if fixed else MODE_IMAGE, acquired=True)
+
+    def _near_lost_place(self, stamp_ns: int, candidates: BoolArray, positions: Optional[FloatArray],
+                         frame: Optional[str]) -> Tuple[BoolArray, str]:
+        """(the candidates the acquisition may take, what limited them or ""): the re-acquisition window.
+
+        For ``reacquire_window_s`` after the target was lost with a place in a fixed frame, a new target must
+        stand within ``reacquire_radius_m`` of that place (horizontally, at the box's candidate place nearest
+        it): the lost person coming back, not a bystander who happens to be in view. Frames without positions
+        in that fixed frame take nobody in the window.
+        """
+        cfg, lost = self.config, self.lost
+        if lost is None or not lost.fixed_frame or cfg.reacquire_window_s <= 0.0:
+            return candidates, ""
+        since_s = (stamp_ns - lost.last_seen_ns) * 1e-9 - cfg.lost_after_s  # time since it was found lost
+        if since_s > cfg.reacquire_window_s:
+            return candidates, ""
+        left = f"{cfg.reacquire_window_s - since_s:.1f} s of the re-acquisition window left"
+        if positions is None or frame != lost.fixed_frame:
+            return np.zeros_like(candidates), f"no detection placed in {lost.fixed_frame!r} ({left})"
+        near = np.zeros_like(candidates)
+        for j in np.flatnonzero(candidates & np.all(np.isfinite(positions), axis=1)):
+            near[j] = self._measured(int(j), lost.position[:2])[0] <= cfg.reacquire_radius_m
+        return near, (f"within {cfg.reacquire_radius_m:g} m of where track {lost.track_id} was lost "
+                      f"({int(np.count_nonzero(near))} of {int(np.count_nonzero(candidates))} detections; {left})")
 
     def _image_frame(self, stamp_ns: int, boxes: FloatArray, usable: BoolArray,
                      image_size: Optional[Tuple[int, int]], target: _Track, why_image: str) -> TargetDecision:

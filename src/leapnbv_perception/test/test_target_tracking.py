@@ -281,13 +281,26 @@ def test_lost_after_the_limit_then_a_new_target_with_a_new_track_id():
     np.testing.assert_allclose(lost.position[:2], (3.0, 0.0), atol=0.02)  # where it was last estimated
     again = tracker.update(13 * SECOND // 10, np.zeros((0, 5)), (WIDTH, HEIGHT), None, K, camera())
     assert (again.state, again.track_id) == (STATE_LOST, 1)
-    # Someone else, far from where the target was: taken by the acquisition rule, as a new track.
-    new = step(tracker, 14, camera(), [(5.0, 1.5)])
-    assert (new.state, new.track_id, new.detection_index, new.acquired) == (STATE_TRACKED, 2, 0, True)
+    # Someone else, far from where the target was, in the re-acquisition window (10 s): not taken.
+    bystander = (5.0, 1.5)
+    other = step(tracker, 14, camera(), [bystander])
+    assert (other.state, other.track_id, other.detection_index) == (STATE_LOST, 1, -1)
+    assert "within 1.5 m of where track 1 was lost (0 of 1 detections" in other.reason
+    # A person near where it was lost (it walked 0.36 m): taken, as a new track.
+    new = step(tracker, 15, camera(), [bystander, (3.3, 0.2)])
+    assert (new.state, new.track_id, new.detection_index, new.acquired) == (STATE_TRACKED, 2, 1, True)
     assert "acquired track 2" in new.reason and "lost: track 1" in new.reason
-    # A frame that finds the target lost and has a detection takes it at once (a new scene's first frame).
-    later = step(tracker, 40, camera(), [(2.0, -0.5)])
+    assert "of those within 1.5 m of where track 1 was lost (1 of 2 detections" in new.reason
+    # Lost again (last seen at 1.5 s; lost after 1 s): the bystander only after the window, 12.5 s on.
+    for k in (40, 124):
+        d = step(tracker, k, camera(), [bystander])
+        assert (d.state, d.track_id) == (STATE_LOST, 2), (k, d.reason)
+    later = step(tracker, 126, camera(), [bystander])
     assert (later.state, later.track_id, later.acquired) == (STATE_TRACKED, 3, True)
+    # Without the window, anyone in view at once (a new scene's first frame is far later in any case).
+    anyone = TargetTracker(TrackerConfig(lost_after_s=1.0, reacquire_window_s=0.0))
+    step(anyone, 1, camera(), [(3.0, 0.0)])
+    assert step(anyone, 30, camera(), [bystander]).track_id == 2
 
 
 def test_without_a_camera_pose_or_depth_the_frame_is_decided_in_the_image_and_says_so():
