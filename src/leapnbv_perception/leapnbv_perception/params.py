@@ -138,6 +138,9 @@ class HmrParams(EngineParams):
                                              "acquisition rule takes anyone at once", min=0.0, max=600.0)
     target_reacquire_radius_m: float = param(1.5, "m: how near the lost target's place a detection must be in the "
                                              "re-acquisition window", min=0.1, max=20.0)
+    target_max_person_extent_m: float = param(2.4, "m: the largest height or width a person's box can measure at "
+                                              "its place; a depth at which the box would be larger is not where "
+                                              "its person stands (a hidden person behind them)", min=0.5, max=10.0)
     target_depth_share: float = param(0.5, "share of a box's width and height, about its centre, whose median depth "
                                       "is the person's place", min=0.1, max=1.0)
     target_input_wait_s: float = param(0.05, "s: how long detections wait for their depth frame and camera pose, once "

@@ -11,7 +11,9 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    Besides that place, a box has the places of its depth layers (:func:`depth_layers`: the readings of the
    whole box fall into layers, an occluder's, the person's, the background's): a track measures a box at the candidate
    nearest its prediction, so an occluder over most of the target's central box does not move the target to
-   the occluder (nor start a track there that later claims the target's box).
+   the occluder (nor start a track there that later claims the target's box). A place at which the box
+   would be larger than ``max_person_extent_m`` (height or width) is no person's: a near person's box that
+   shows a hidden target behind them is not measured at the target's depth.
 2. **Where the target should be.** A constant-velocity Kalman filter of the target's horizontal position
    (x, y of the fixed frame, whose z is up) and velocity, predicted to the frame's stamp.
 3. **Which detection it is.** The gate: a detection is the target only within
@@ -100,6 +102,8 @@ class TrackerConfig:
         reacquire_window_s: s after a target with a fixed-frame place is lost during which only a detection
             near that place may become the target (0: anyone at once).
         reacquire_radius_m: m, how near the lost target's place a detection must be in that window.
+        max_person_extent_m: m, the largest height or width a person's box can have at its place: a depth at
+            which the box would be larger is not where the box's person stands.
     """
 
     fixed_frame: bool = True
@@ -117,6 +121,7 @@ class TrackerConfig:
     ambiguity_m: float = 0.3
     reacquire_window_s: float = 10.0
     reacquire_radius_m: float = 1.5
+    max_person_extent_m: float = 2.4
 
 
 class CameraPoseLike(Protocol):
@@ -207,8 +212,10 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     Row 0 is the box's place (:func:`box_positions_camera`); the rest are the depth layers (:func:`depth_layers`)
     of the whole box (every other pixel) that differ from it by more than half a bin, back-projected through
     the box centre the same way: where an occluder covers the central part of a person's box, the person is
-    one of the layers (the parts of them around the occluder), and so is the background. (0, 3) for a box without
-    enough valid readings.
+    one of the layers (the parts of them around the occluder), and so is the background. Places at which the box
+    would measure more than ``config.max_person_extent_m`` high or wide (size = pixels * depth / focal length)
+    are left out: a person in front of a hidden one has the hidden one's depth as a layer of their box, at
+    which their box is far too large. (0, 3) for a box without enough valid readings, or none that fits.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
@@ -237,7 +244,11 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
         with np.errstate(invalid="ignore"):
             whole = whole[np.isfinite(whole) & (whole >= config.min_depth_m) & (whole <= config.max_depth_m)]
         zs = [median] + [z for z in depth_layers(whole) if abs(z - median) > 0.5 * LAYER_BIN_M]
-        out[-1] = np.array([((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs])
+        # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).
+        fits = config.max_person_extent_m / max((box[2] - box[0]) * sx / k[0, 0], (box[3] - box[1]) * sy / k[1, 1],
+                                                1e-9)
+        out[-1] = np.array([((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs if z <= fits])
+        out[-1] = out[-1].reshape(-1, 3)
     return out
 
 

@@ -183,6 +183,34 @@ def test_a_person_crossing_between_the_camera_and_the_hidden_target_is_never_tak
             assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 1, 1), d.reason
 
 
+@pytest.mark.parametrize("max_extent_m", [2.4, 100.0])
+def test_a_near_persons_box_that_shows_the_hidden_target_behind_is_not_measured_at_the_target(max_extent_m):
+    # A passer-by 1.5 m from the camera hides the target at 3.5 m; between the passer's legs and arms the target
+    # shows through (a third of the passer's box reads the target's depth, a depth layer of that box). At 3.5 m
+    # the passer's box would be over 3 m tall: no person's place. Without that check (a 100 m limit) the layer is
+    # within the gate and the passer is taken for the target.
+    tracker = TargetTracker(TrackerConfig(max_person_extent_m=max_extent_m))
+    target, passer = (3.5, 0.0), (1.5, 0.0)
+    for k in range(3):
+        step(tracker, k, camera(), [target])
+    boxes, depth = render(camera(), [passer])
+    x0, y0, x1, y1 = (int(round(v)) for v in np.clip(boxes[0, :4], 0, [WIDTH, HEIGHT, WIDTH, HEIGHT]))
+    gaps = depth[y0:y1, x0:x1]
+    gaps[:, : (x1 - x0) // 6] = 3.5  # the target either side of the passer
+    gaps[:, -(x1 - x0) // 6:] = 3.5
+    d = tracker.update(3 * SECOND // 10, boxes, (WIDTH, HEIGHT), depth, K, camera())
+    if max_extent_m < 10.0:
+        assert (d.state, d.detection_index, d.track_id) == (STATE_NOT_SEEN, -1, 1), d.reason
+        np.testing.assert_allclose(d.position[:2], target, atol=0.05)
+    else:
+        assert (d.state, d.detection_index) == (STATE_TRACKED, 0), d.reason
+    # The target's own box, at its depth: 1.7 m x 0.5 m fits (and a box that fits nowhere has no place).
+    assert box_positions_camera(render(camera(), [target])[0], (WIDTH, HEIGHT), render(camera(), [target])[1], K,
+                                TrackerConfig())[0, 2] == pytest.approx(3.5, abs=0.02)
+    far_wall = np.full((HEIGHT, WIDTH), 7.0, np.float32)
+    assert np.all(np.isnan(box_positions_camera(boxes, (WIDTH, HEIGHT), far_wall, K, TrackerConfig())))
+
+
 def test_depth_layers_split_an_occluder_from_the_person_despite_stray_readings_between():
     rng = np.random.default_rng(3)
     person = rng.normal(3.0, 0.05, 700)

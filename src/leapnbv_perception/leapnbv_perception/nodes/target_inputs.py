@@ -39,7 +39,8 @@ def tracker_config(p: HmrParams) -> TrackerConfig:
                          gate_growth_m_s=p.target_gate_growth_m_s, lost_after_s=p.target_lost_after_s,
                          min_track_iou=p.min_track_iou, central_share=p.target_depth_share,
                          ambiguity_m=p.target_ambiguity_m, reacquire_window_s=p.target_reacquire_window_s,
-                         reacquire_radius_m=p.target_reacquire_radius_m)
+                         reacquire_radius_m=p.target_reacquire_radius_m,
+                         max_person_extent_m=p.target_max_person_extent_m)
 
 
 def target_track_msg(decision: TargetDecision, header: Header) -> TargetTrack:
