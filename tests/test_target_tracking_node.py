@@ -164,3 +164,19 @@ def test_a_frame_without_depth_or_pose_is_decided_in_the_image_and_says_so(graph
     track = track_of(graph, k)  # waited target_input_wait_s for its depth and pose, then decided without
     assert (track.state, track.detection_index, track.track_id) == (TargetTrack.STATE_TRACKED, 0, 1), track.reason
     assert "image only" in track.reason
+
+
+def test_switching_the_tracking_off_and_on_forgets_the_target(graph):
+    probe = graph["probe"]
+    k = 30
+    send_frame(graph, k, [TARGET, OTHER])  # 1 s after frame 20: the target is followed, the same track
+    kept = track_of(graph, k)
+    assert (kept.state, kept.detection_index, kept.track_id) == (TargetTrack.STATE_TRACKED, 0, 1), kept.reason
+    assert "acquired" not in kept.reason
+    results = harness.set_parameters(probe, f"{NS}/hmr_node", track_previous_target=False)
+    results += harness.set_parameters(probe, f"{NS}/hmr_node", track_previous_target=True)
+    assert all(r.successful for r in results), [r.reason for r in results]
+    send_frame(graph, k + 1, [OTHER, TARGET])  # what a new scene or an operator's reset gives: a new acquisition
+    fresh = track_of(graph, k + 1)
+    assert fresh.state == TargetTrack.STATE_TRACKED and fresh.reason.startswith("acquired"), fresh.reason
+    assert fresh.track_id > 1 and fresh.detection_index == 1, fresh.reason

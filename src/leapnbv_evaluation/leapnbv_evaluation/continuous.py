@@ -79,8 +79,8 @@ class ContinuousSession(Protocol):
     def set_scene(self, scene: Scene) -> None:
         """Put the simulator in a scene, the robot standing at its start view."""
 
-    def forget_committed_goal(self) -> None:
-        """Make nbv_node forget its committed goal (a new scene is no place to keep the last one's)."""
+    def forget_last_scene(self) -> None:
+        """Make the graph forget the last scene: nbv_node its committed goal, hmr_node its target and people."""
 
     def run_frame(self, stamp_ns: int) -> Tuple[RenderedFrame, FrameOutputs]:
         """Advance the robot and sim time to ``stamp_ns``, render and publish; the graph's outputs of it."""
@@ -193,7 +193,7 @@ class ContinuousEpisodes:
         o, session = self.options, self.session
         started = time.monotonic()
         session.set_scene(scene)
-        session.forget_committed_goal()
+        session.forget_last_scene()
         period_ns = int(round(1e9 / o.camera_rate_hz))
         limit_ns = int(round(o.time_limit_s * 1e9))
         hold_ns = int(round(o.commit_hold_s * 1e9))

@@ -456,15 +456,18 @@ class ClosedLoopEvaluator:
 
     # ------------------------------------------------------------------ continuous.ContinuousSession
 
-    def forget_committed_goal(self, timeout_s: float = 5.0) -> None:
-        """Make nbv_node forget its committed goal (and its obstacle memory): a change of a score weight does (and
-        is undone at once; the memory goes with obstacle_memory off and on).
+    def forget_last_scene(self, timeout_s: float = 5.0) -> None:
+        """Make the graph forget the last scene: nbv_node its committed goal (and its obstacle memory), hmr_node
+        its target and the people it followed.
 
         A new scene is another room with the person at the same fixed-frame place: a goal committed in the
-        last one must not be re-scored and kept in it.
+        last one must not be re-scored and kept in it, and neither the last target's place (its
+        re-acquisition window) nor the last bystanders' may decide who the new target is. A change of a
+        score weight, undone at once, ends the commitment; obstacle_memory off and on forgets the memory;
+        hmr_node's track_previous_target off and on forgets the tracks.
 
         Raises:
-            EvaluationError: nbv_node's parameter service did not answer.
+            EvaluationError: a node's parameter service did not answer.
         """
         from rclpy.parameter import parameter_value_to_python
         from rclpy.parameter_client import AsyncParameterClient
@@ -480,13 +483,16 @@ class ClosedLoopEvaluator:
         if not isinstance(value, float):
             raise EvaluationError(f"nbv_node's {name} is not a number: {value!r}")
         weight = value
-        steps = [(name, weight + 0.5 if weight <= 0.5 else weight - 0.5), (name, weight)]
+        nbv = ("nbv_node", client)
+        steps = [(nbv, name, weight + 0.5 if weight <= 0.5 else weight - 0.5), (nbv, name, weight)]
         if self.options.obstacle_memory:  # the last room's obstacles are no obstacles of this one
-            steps += [("obstacle_memory", False), ("obstacle_memory", True)]
-        for key, step in steps:
-            done = client.set_parameters([Parameter(key, value=step)])
+            steps += [(nbv, "obstacle_memory", False), (nbv, "obstacle_memory", True)]
+        hmr = ("hmr_node", AsyncParameterClient(self.collector, NAMESPACE + "/hmr_node"))
+        steps += [(hmr, "track_previous_target", False), (hmr, "track_previous_target", True)]
+        for (node_name, node_client), key, step in steps:
+            done = node_client.set_parameters([Parameter(key, value=step)])
             if not self._spin_until(done.done, timeout_s):
-                raise EvaluationError(f"nbv_node did not take {key}={step}")
+                raise EvaluationError(f"{node_name} did not take {key}={step}")
 
     def settle_goal(self, stamp_ns: int, outputs: FrameOutputs, timeout_s: float = 2.0) -> None:
         """Wait until the goal topics of the frame of ``stamp_ns`` have reached the simulator's motion stack.

@@ -368,6 +368,8 @@ class TargetTracker:
         frame = "" if positions is None or pose is None else str(pose.frame_id)
         if positions is not None and self.others and self.others[0].fixed_frame != frame:
             self.others = []  # another fixed frame: their places mean nothing in it
+        # People not seen for lost_after_s are forgotten before they can claim a detection (their gates have grown).
+        self.others = [o for o in self.others if (stamp_ns - o.last_seen_ns) * 1e-9 <= cfg.lost_after_s]
         with_position = usable if positions is None else usable & np.all(np.isfinite(positions), axis=1)
         target = self.target
         if target is not None and (stamp_ns - target.last_seen_ns) * 1e-9 > cfg.lost_after_s:

@@ -211,6 +211,22 @@ def test_a_near_persons_box_that_shows_the_hidden_target_behind_is_not_measured_
     assert np.all(np.isnan(box_positions_camera(boxes, (WIDTH, HEIGHT), far_wall, K, TrackerConfig())))
 
 
+def test_people_unseen_longer_than_the_limit_are_forgotten_before_they_can_claim_a_detection():
+    # A bystander followed beside the target; then no frames for 5 s (a dropped link, a new scene). Its gate has
+    # grown to 3.1 m: kept, it would claim the first detection near its old place and live on as that person.
+    tracker = TargetTracker()
+    target, other = (3.0, 0.0), (3.0, 1.0)
+    for k in range(5):
+        step(tracker, k, camera(), [target, other])
+    stale = list(tracker.others)
+    assert len(stale) == 1
+    d = step(tracker, 55, camera(), [(3.0, 0.0), (4.5, 2.0)])  # 5 s later: someone 1.8 m from the old place
+    assert d.acquired and d.detection_index == 0, d.reason  # the target was lost too: a new acquisition
+    assert not any(old is now for old in stale for now in tracker.others)
+    assert tracker.target is not None and tracker.target.filter is not stale[0].filter  # nor became the target
+    assert len(tracker.others) == 1 and tracker.others[0].last_seen_ns == 55 * SECOND // 10
+
+
 def test_depth_layers_split_an_occluder_from_the_person_despite_stray_readings_between():
     rng = np.random.default_rng(3)
     person = rng.normal(3.0, 0.05, 700)

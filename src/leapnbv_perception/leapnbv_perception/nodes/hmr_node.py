@@ -127,7 +127,10 @@ class HmrNode(ManagedNode):
 
     def on_params_change(self, params: HmrParams, changed: Set[str]) -> None:
         """The crop scale and the hand un-mirroring apply from the next frame; the tracking settings
-        are read per frame."""
+        are read per frame, and switching the tracking off or on forgets the target and the people followed
+        (the next frame takes a target by the acquisition rule)."""
+        if changed & {"track_previous_target", "track_in_fixed_frame"}:
+            self.target.reset()
         if self.engine is not None and not self.ground_truth:
             self.engine.box_scale = params.box_scale
             self.engine.unmirror_left_hand = params.unmirror_left_hand
