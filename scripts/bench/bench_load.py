@@ -45,7 +45,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -94,8 +94,10 @@ def render_path(args) -> Tuple[List, List[int], object]:
     return frames, schedule, scene
 
 
-def frame_cdrs(frame, body_model_id: str) -> List[Tuple[str, bytes]]:
-    """(topic, CDR bytes) of everything published for one rendered frame, stamp 0 (patched per tick)."""
+def frame_cdrs(frame, body_model_id: str, types: Dict[str, Any]) -> List[Tuple[str, bytes]]:
+    """(topic, CDR bytes) of everything published for one rendered frame, stamp 0 (patched per tick).
+
+    ``types`` gets each topic's message class (the publishers are made for what the frames carry)."""
     from geometry_msgs.msg import PoseStamped
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Header
@@ -107,10 +109,10 @@ def frame_cdrs(frame, body_model_id: str) -> List[Tuple[str, bytes]]:
     messages = camera_frame_messages(frame, Header(frame_id=FRAME_ID), body_model_id)
     pose = PoseStamped(header=Header(frame_id=WORLD),
                        pose=pose_msg(frame.camera_pose.rotation, frame.camera_pose.position))
-    out = [(COLOR_INFO_TOPIC, serialize_message(messages.pop(COLOR_INFO_TOPIC))),
-           (DEPTH_INFO_TOPIC, serialize_message(messages.pop(DEPTH_INFO_TOPIC))),
-           (CAMERA_POSE_TOPIC, serialize_message(pose))]
-    out += [(topic, serialize_message(msg)) for topic, msg in messages.items()]  # ground truth, colour, depth
+    ordered = [(COLOR_INFO_TOPIC, messages.pop(COLOR_INFO_TOPIC)), (DEPTH_INFO_TOPIC, messages.pop(DEPTH_INFO_TOPIC)),
+               (CAMERA_POSE_TOPIC, pose)] + list(messages.items())  # then ground truth, people, colour, depth
+    types.update((topic, type(msg)) for topic, msg in ordered)
+    out = [(topic, serialize_message(msg)) for topic, msg in ordered]
     for _, cdr in out:
         assert cdr[1] == 1, "little-endian CDR expected"
     return out
@@ -124,25 +126,11 @@ def with_stamp(cdr: bytes, stamp_ns: int) -> bytes:
 class CameraPublisher(threading.Thread):
     """Publishes the schedule at a fixed rate with wall-clock stamps, from its own thread."""
 
-    def __init__(self, node, cdrs: List[List[Tuple[str, bytes]]], schedule: List[int], fps: float,
-                 duration_s: float) -> None:
+    def __init__(self, node, cdrs: List[List[Tuple[str, bytes]]], types: Dict[str, Any], schedule: List[int],
+                 fps: float, duration_s: float) -> None:
         super().__init__(daemon=True)
-        from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import CameraInfo, Image
-
         from leapnbv_common.qos import camera_input_qos, stage_output_qos
-        from leapnbv_common.topics import (
-            CAMERA_POSE_TOPIC,
-            COLOR_IMAGE_TOPIC,
-            COLOR_INFO_TOPIC,
-            DEPTH_IMAGE_TOPIC,
-            DEPTH_INFO_TOPIC,
-            GROUND_TRUTH_TOPIC,
-        )
-        from leapnbv_msgs.msg import SceneGroundTruth
 
-        types = {COLOR_INFO_TOPIC: CameraInfo, DEPTH_INFO_TOPIC: CameraInfo, COLOR_IMAGE_TOPIC: Image,
-                 DEPTH_IMAGE_TOPIC: Image, GROUND_TRUTH_TOPIC: SceneGroundTruth, CAMERA_POSE_TOPIC: PoseStamped}
         self.publishers = {topic: node.create_publisher(
             kind, topic, camera_input_qos(5) if topic.startswith("/camera/") else stage_output_qos(10))
             for topic, kind in types.items()}
@@ -153,8 +141,15 @@ class CameraPublisher(threading.Thread):
         self.publish_delay_ms: List[float] = []
         self.started_wall_ns = 0
         self.stop_flag = threading.Event()
+        self.error: Optional[BaseException] = None
 
     def run(self) -> None:
+        try:
+            self._publish()
+        except Exception as error:  # noqa: BLE001 - the main thread reports it and fails the run
+            self.error = error
+
+    def _publish(self) -> None:
         start = time.monotonic()
         self.started_wall_ns = time.time_ns()
         tick = 0
@@ -412,7 +407,8 @@ def measure(args) -> int:
     from leapnbv_stand_ins.files import ensure_stand_in_body_model
 
     frames, schedule, scene = render_path(args)
-    cdrs = [frame_cdrs(f, scene.body_model_id) for f in frames]
+    types: Dict[str, Any] = {}
+    cdrs = [frame_cdrs(f, scene.body_model_id, types) for f in frames]
     overrides = merge_overrides(perception_overrides("ground_truth", body_model=ensure_stand_in_body_model("small")),
                                 parse_set_arguments(args.set))
     nbv_defaults = default_nbv_params()
@@ -432,7 +428,7 @@ def measure(args) -> int:
         monitor = Monitor(node)
         map_pub = node.create_publisher(PointCloud2, OBSTACLE_MAP_TOPIC, latched_map_qos())
         map_pub.publish(xyz_to_pointcloud2(scene.obstacle_voxel_centres(0.1), Header(frame_id=WORLD)))
-        publisher = CameraPublisher(node, cdrs, schedule, args.fps, args.duration)
+        publisher = CameraPublisher(node, cdrs, types, schedule, args.fps, args.duration)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         deadline = time.monotonic() + 10.0
@@ -542,9 +538,15 @@ def measure(args) -> int:
     if args.profile_s:
         report["profile_shares_percent"] = {name: summarize_profile(os.path.join(args.out, f"profile_{name}.txt"))
                                             for name in pids}
+    if publisher.error is not None:
+        print(f"bench_load: the camera publisher failed: {publisher.error!r}", file=sys.stderr)
+        return 1
     with open(os.path.join(args.out, "bench_load.json"), "w") as handle:
         json.dump(report, handle, indent=1, default=str)
     print_report(report)
+    if not goals:
+        print("bench_load: the graph published no goal", file=sys.stderr)
+        return 1
     return 0
 
 
