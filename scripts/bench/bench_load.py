@@ -141,7 +141,7 @@ class CameraPublisher(threading.Thread):
         self.publish_delay_ms: List[float] = []
         self.started_wall_ns = 0
         self.stop_flag = threading.Event()
-        self.error: Optional[BaseException] = None
+        self.error: Optional[Exception] = None
 
     def run(self) -> None:
         try:
