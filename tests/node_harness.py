@@ -26,10 +26,10 @@ NS = "/leapnbv"
 
 
 def start_node(module: str, log_path: str, namespace: str = NS, params: Optional[Dict[str, str]] = None,
-               remaps: Optional[Dict[str, str]] = None) -> subprocess.Popen:
+               remaps: Optional[Dict[str, str]] = None, env: Optional[Dict[str, str]] = None) -> subprocess.Popen:
     """Start one node process the way leapnbv_bringup.graph_runner does (params file + overrides).
 
-    ``module`` is a module name, or the path of a script (a test's own node).
+    ``module`` is a module name, or the path of a script (a test's own node); ``env`` adds to the environment.
     """
     program = [module] if module.endswith(".py") else ["-m", module]
     cmd = [sys.executable, *program, "--ros-args", "-r", f"__ns:={namespace}",
@@ -39,8 +39,8 @@ def start_node(module: str, log_path: str, namespace: str = NS, params: Optional
     for source, target in (remaps or {}).items():
         cmd += ["-r", f"{source}:={target}"]
     log = open(log_path, "w")  # noqa: SIM115 - the process owns it until stop_node
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                            start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})), start_new_session=True)
     proc.log_path = log_path
     proc.log_handle = log
     return proc

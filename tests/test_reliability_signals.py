@@ -95,9 +95,14 @@ def test_a_signal_while_the_node_is_being_built_ends_the_start_with_0(tmp_path, 
 
 
 def test_nbv_node_stopped_during_its_warm_up_exits_0(tmp_path):
-    """The issue's case: SIGINT while nbv_node compiles its kernels (before it serves)."""
+    """The issue's case: SIGINT while nbv_node compiles its kernels (before it serves).
+
+    An empty numba cache makes the node compile them all (seconds): with the shared cache warm, the warm-up
+    took less time than the probe needs to see the node, and the node was sometimes serving already.
+    """
     probe = harness.Probe("signal_probe")
-    proc = harness.start_node("leapnbv_planner.nodes.nbv_node", str(tmp_path / "nbv.log"), namespace="/signal_test")
+    proc = harness.start_node("leapnbv_planner.nodes.nbv_node", str(tmp_path / "nbv.log"), namespace="/signal_test",
+                              env={"NUMBA_CACHE_DIR": str(tmp_path / "numba_cache_cold")})
     try:
         assert probe.spin_until(lambda: "nbv_node" in probe.node.get_node_names(), 60.0)
         assert "/signal_test/nbv_node" not in probe.statuses  # still warming up: not serving yet
