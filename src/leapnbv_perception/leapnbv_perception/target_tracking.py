@@ -12,8 +12,9 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    whole box fall into layers, an occluder's, the person's, the background's): a track measures a box at the candidate
    nearest its prediction, so an occluder over most of the target's central box does not move the target to
    the occluder (nor start a track there that later claims the target's box). A place at which the box
-   would be larger than ``max_person_extent_m`` (height or width) is no person's: a near person's box that
-   shows a hidden target behind them is not measured at the target's depth.
+   would be larger than ``max_person_extent_m`` (height or width) is no person's, and neither is a layer found
+   in less than :data:`LAYER_MIN_COLUMNS` of the box's columns: a near person's box that shows a hidden target
+   behind them is not measured at the target's depth.
 2. **Where the target should be.** A constant-velocity Kalman filter of the target's horizontal position
    (x, y of the fixed frame, whose z is up) and velocity, predicted to the frame's stamp.
 3. **Which detection it is.** The gate: a detection is the target only within
@@ -34,7 +35,8 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    score, ties within 1e-3 to the box nearest the image centre, then the lowest index); each acquisition
    has a new ``track_id``. For ``reacquire_window_s`` after a target with a fixed-frame place was lost, the
    candidates are only the detections within ``reacquire_radius_m`` of that place (the lost person found
-   again); after it, anyone in view.
+   again), and not a detection of another person followed in a frame that also had the lost target (seen
+   side by side, they are someone else); after it, anyone in view.
 
 Without a camera pose, a depth frame or any box with depth (or with ``fixed_frame`` off) the frame is
 decided in the image only, by today's overlap rule (:func:`~leapnbv_perception.target_selection.select_target`):
@@ -56,7 +58,8 @@ from leapnbv_perception.target_selection import acquisition_index, box_iou, over
 
 __all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE_NAMES", "MODE_FIXED_FRAME",
            "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
-           "box_positions_camera", "box_places_camera", "depth_layers"]
+           "box_positions_camera", "box_places_camera", "depth_layers", "depth_layer_ranges", "layer_column_share",
+           "LAYER_MIN_COLUMNS"]
 
 # leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
 STATE_NONE = 0
@@ -76,6 +79,9 @@ DISTANCE_TIE_M = 1e-3
 LAYER_BIN_M = 0.1
 LAYER_GAP_SHARE = 0.02
 MIN_LAYER_SHARE = 0.15
+# A depth layer is a place of its box only if it is found in this share of the box's columns (a person fills
+# their box's width at their depth; an occluder over the lower body or one side of it leaves most columns).
+LAYER_MIN_COLUMNS = 0.7
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -177,8 +183,8 @@ class TargetDecision:
         return STATE_NAMES[self.state]
 
 
-def depth_layers(values: FloatArray) -> List[float]:
-    """Depths (m) of the layers in a box's valid readings: each layer's median, the most populated first.
+def depth_layer_ranges(values: FloatArray) -> List[Tuple[float, float, float]]:
+    """The layers in a box's valid readings as (median, nearest, farthest) depths (m), the most populated first.
 
     A layer is a run of :data:`LAYER_BIN_M` histogram bins each holding at least :data:`LAYER_GAP_SHARE` of
     the readings (a few stray readings between an occluder and a person do not join them); layers with
@@ -190,7 +196,7 @@ def depth_layers(values: FloatArray) -> List[float]:
     bins = np.floor((values - values[0]) / LAYER_BIN_M).astype(np.int64)
     counts = np.bincount(bins)
     dense = counts >= max(1.0, LAYER_GAP_SHARE * values.size)
-    layers: List[Tuple[int, float]] = []
+    layers: List[Tuple[int, float, float, float]] = []
     start = None
     for b in range(len(counts) + 1):
         if b < len(counts) and dense[b]:
@@ -199,10 +205,30 @@ def depth_layers(values: FloatArray) -> List[float]:
         if start is not None:
             members = values[(bins >= start) & (bins < b)]
             if members.size >= MIN_LAYER_SHARE * values.size:
-                layers.append((int(members.size), float(np.median(members))))
+                layers.append((int(members.size), float(np.median(members)), float(members[0]), float(members[-1])))
             start = None
     layers.sort(key=lambda layer: (-layer[0], layer[1]))
-    return [depth for _, depth in layers]
+    return [(median, near, far) for _, median, near, far in layers]
+
+
+def depth_layers(values: FloatArray) -> List[float]:
+    """Depths (m) of the layers in a box's valid readings (:func:`depth_layer_ranges`), most populated first."""
+    return [median for median, _, _ in depth_layer_ranges(values)]
+
+
+def layer_column_share(grid: FloatArray, near: float, far: float) -> float:
+    """Share of the columns with a valid reading in a box's depth ``grid`` that have one in [near, far] (m).
+
+    ``grid`` is rows x columns of the box's depth, NaN where a reading is not valid. A person fills their box
+    from side to side at their depth (a box is drawn around them); a person hidden behind a nearer one shows
+    only in the gaps beside the nearer one, in some of the nearer box's columns.
+    """
+    valid = int(np.count_nonzero(np.isfinite(grid).any(axis=0))) if grid.size else 0
+    if valid == 0:
+        return 0.0
+    with np.errstate(invalid="ignore"):
+        inside = (grid >= near) & (grid <= far)
+    return float(np.count_nonzero(inside.any(axis=0))) / float(valid)
 
 
 def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: FloatingArray, k: FloatArray,
@@ -212,10 +238,12 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     Row 0 is the box's place (:func:`box_positions_camera`); the rest are the depth layers (:func:`depth_layers`)
     of the whole box (every other pixel) that differ from it by more than half a bin, back-projected through
     the box centre the same way: where an occluder covers the central part of a person's box, the person is
-    one of the layers (the parts of them around the occluder), and so is the background. Places at which the box
-    would measure more than ``config.max_person_extent_m`` high or wide (size = pixels * depth / focal length)
-    are left out: a person in front of a hidden one has the hidden one's depth as a layer of their box, at
-    which their box is far too large. (0, 3) for a box without enough valid readings, or none that fits.
+    one of the layers (the parts of them around the occluder), and so is the background. Two checks keep a
+    hidden person's depth, seen in the gaps of a nearer person's box, from being a place of that box:
+    places at which the box would measure more than ``config.max_person_extent_m`` high or wide (size =
+    pixels * depth / focal length) are left out, and so are layers found in less than
+    :data:`LAYER_MIN_COLUMNS` of the box's columns (:func:`layer_column_share`). (0, 3) for a box without
+    enough valid readings, or none that fits.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
@@ -240,10 +268,13 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
         # The layers come from the whole box (every other pixel): an occluder may cover all of its central part.
         b0, b1 = int(np.clip(np.floor(box[1] * sy), 0, height)), int(np.clip(np.ceil(box[3] * sy), 0, height))
         a0, a1 = int(np.clip(np.floor(box[0] * sx), 0, width)), int(np.clip(np.ceil(box[2] * sx), 0, width))
-        whole = np.asarray(depth[b0:b1:2, a0:a1:2], dtype=np.float64).ravel()
+        grid = np.asarray(depth[b0:b1:2, a0:a1:2], dtype=np.float64)
         with np.errstate(invalid="ignore"):
-            whole = whole[np.isfinite(whole) & (whole >= config.min_depth_m) & (whole <= config.max_depth_m)]
-        zs = [median] + [z for z in depth_layers(whole) if abs(z - median) > 0.5 * LAYER_BIN_M]
+            grid = np.where(np.isfinite(grid) & (grid >= config.min_depth_m) & (grid <= config.max_depth_m),
+                            grid, np.nan)
+        whole = grid[np.isfinite(grid)]
+        zs = [median] + [z for z, near, far in depth_layer_ranges(whole) if abs(z - median) > 0.5 * LAYER_BIN_M
+                         and layer_column_share(grid, near, far) >= LAYER_MIN_COLUMNS]
         # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).
         fits = config.max_person_extent_m / max((box[2] - box[0]) * sx / k[0, 0], (box[3] - box[1]) * sy / k[1, 1],
                                                 1e-9)
@@ -317,6 +348,7 @@ class _Track:
     fixed_frame: str = ""
     filter: Optional[_Filter] = None
     last_box: Optional[FloatArray] = None
+    seen_with_target: int = 0  # another person's: the track_id of the target last seen in the same frame
 
 
 class TargetTracker:
@@ -437,12 +469,12 @@ class TargetTracker:
         within reacquire_radius_m of that place may be taken (:meth:`_near_lost_place`).
         """
         fixed = positions is not None and frame is not None
-        candidates, window = self._near_lost_place(stamp_ns, candidates, positions, frame)
-        index = acquisition_index(boxes, candidates, image_size)
         assignment = self._assign(stamp_ns, positions, candidates, with_target=False) if fixed else {}
+        candidates, window = self._near_lost_place(stamp_ns, candidates, positions, frame, assignment)
+        index = acquisition_index(boxes, candidates, image_size)
         if index < 0:
             if fixed:
-                self._apply_others(stamp_ns, positions, str(frame), assignment, set())
+                self._apply_others(stamp_ns, positions, str(frame), assignment, set(), with_target=0)
             what = "no detections" if len(boxes) == 0 else ("no usable detection" if not np.any(
                 usable_boxes(boxes)) else "no detection with depth")
             if window:
@@ -467,9 +499,10 @@ class TargetTracker:
                 point = self._measured(index, track.filter.predicted(stamp_ns, self.config)[0][0])[1]
                 track.filter.update(stamp_ns, point, point[2], self.config)
                 del assignment[claimed]
-                self._apply_others(stamp_ns, positions, str(frame), assignment, {index}, drop=claimed)
+                self._apply_others(stamp_ns, positions, str(frame), assignment, {index}, drop=claimed,
+                                   with_target=track.track_id)
             if claimed is None:
-                self._apply_others(stamp_ns, positions, str(frame), assignment, {index})
+                self._apply_others(stamp_ns, positions, str(frame), assignment, {index}, with_target=track.track_id)
         self.target, self.lost = track, None
         count = int(np.count_nonzero(candidates))
         reason = f"acquired track {track.track_id}: detection {index}, the highest score ({boxes[index, 4]:.3f})"
@@ -485,13 +518,15 @@ class TargetTracker:
                               MODE_FIXED_FRAME if fixed else MODE_IMAGE, acquired=True)
 
     def _near_lost_place(self, stamp_ns: int, candidates: BoolArray, positions: Optional[FloatArray],
-                         frame: Optional[str]) -> Tuple[BoolArray, str]:
+                         frame: Optional[str], assignment: Dict[int, int]) -> Tuple[BoolArray, str]:
         """(the candidates the acquisition may take, what limited them or ""): the re-acquisition window.
 
         For ``reacquire_window_s`` after the target was lost with a place in a fixed frame, a new target must
         stand within ``reacquire_radius_m`` of that place (horizontally, at the box's candidate place nearest
-        it): the lost person coming back, not a bystander who happens to be in view. Frames without positions
-        in that fixed frame take nobody in the window.
+        it): the lost person coming back, not a bystander who happens to be in view. Nor may it be a detection
+        that ``assignment`` gives to another person followed in a frame that also had the lost target: they
+        were seen side by side, so that person is not the lost one. Frames without positions in that fixed
+        frame take nobody in the window.
         """
         cfg, lost = self.config, self.lost
         if lost is None or not lost.fixed_frame or cfg.reacquire_window_s <= 0.0:
@@ -505,7 +540,11 @@ class TargetTracker:
         near = np.zeros_like(candidates)
         for j in np.flatnonzero(candidates & np.all(np.isfinite(positions), axis=1)):
             near[j] = self._measured(int(j), lost.position[:2])[0] <= cfg.reacquire_radius_m
-        return near, (f"within {cfg.reacquire_radius_m:g} m of where track {lost.track_id} was lost "
+        beside = [j for key, j in assignment.items() if key >= 0 and near[j]
+                  and self.others[key].seen_with_target == lost.track_id]
+        near[beside] = False
+        what = f", {len(beside)} of them seen beside it" if beside else ""
+        return near, (f"within {cfg.reacquire_radius_m:g} m of where track {lost.track_id} was lost{what} "
                       f"({int(np.count_nonzero(near))} of {int(np.count_nonzero(candidates))} detections; {left})")
 
     def _image_frame(self, stamp_ns: int, boxes: FloatArray, usable: BoolArray,
@@ -536,7 +575,8 @@ class TargetTracker:
         if index >= 0:
             candidates[index] = False
         assignment = self._assign(stamp_ns, positions, candidates, with_target=False)
-        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index})
+        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index},
+                           with_target=0 if index < 0 else target.track_id)
         if index < 0:  # the fixed frame changed: the old place means nothing in the new one
             target.filter = None
             return self._decision(target, stamp_ns, STATE_NOT_SEEN, -1, f"not seen: the fixed frame changed to "
@@ -561,7 +601,8 @@ class TargetTracker:
         chosen, iou, group = self._disambiguated(boxes, points, with_position, distances, gate, target)
         assignment = self._assign(stamp_ns, positions, with_position, with_target=True, target_detection=chosen)
         index = assignment.pop(-1, -1)
-        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index}, unmeasured=group)
+        self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index}, unmeasured=group,
+                           with_target=0 if index < 0 else target.track_id)
         if index >= 0:
             if chosen < 0:  # boxes measured at one place say where neither person is: the prediction stands
                 target.filter.update(stamp_ns, points[index], points[index, 2], cfg)
@@ -642,11 +683,14 @@ class TargetTracker:
         return assignment
 
     def _apply_others(self, stamp_ns: int, positions: Optional[FloatArray], frame: str, assignment: Dict[int, int],
-                      taken: Set[int], drop: Optional[int] = None, unmeasured: AbstractSet[int] = frozenset()) -> None:
+                      taken: Set[int], drop: Optional[int] = None, unmeasured: AbstractSet[int] = frozenset(),
+                      with_target: int = 0) -> None:
         """The other people: update those given a detection, follow each detection nobody has as a new one.
 
         A detection in ``unmeasured`` (measured at another box's place) marks its track seen without moving
         it, and starts no new one. Forget those not seen for lost_after_s (and ``drop``, who became the target).
+        ``with_target``: the track_id of the target seen in this frame (0: none), which every person seen in it
+        was seen beside.
         """
         if positions is None:
             return
@@ -659,12 +703,14 @@ class TargetTracker:
                     point = self._measured(j, other.filter.predicted(stamp_ns, cfg)[0][0])[1]
                     other.filter.update(stamp_ns, point, point[2], cfg)
                 other.last_seen_ns = stamp_ns
+                other.seen_with_target = with_target or other.seen_with_target
         used = set(taken) | set(assignment.values()) | set(unmeasured)
         self.others = [o for n, o in enumerate(self.others)
                        if n != drop and (stamp_ns - o.last_seen_ns) * 1e-9 <= cfg.lost_after_s]
         for j in np.flatnonzero(np.all(np.isfinite(positions), axis=1)):
             if int(j) not in used:
-                self.others.append(_Track(0, stamp_ns, frame, _Filter(stamp_ns, positions[j], positions[j, 2], cfg)))
+                self.others.append(_Track(0, stamp_ns, frame, _Filter(stamp_ns, positions[j], positions[j, 2], cfg),
+                                          seen_with_target=with_target))
 
     # ------------------------------------------------------------------ the decision
 

@@ -10,6 +10,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import pytest
 
+from leapnbv_perception import target_tracking
 from leapnbv_perception.target_selection import CENTRE_TIE_PX, SCORE_TIE, acquisition_index, select_target
 from leapnbv_perception.target_tracking import (
     MODE_FIXED_FRAME,
@@ -185,10 +186,11 @@ def test_a_person_crossing_between_the_camera_and_the_hidden_target_is_never_tak
 
 @pytest.mark.parametrize("max_extent_m", [2.4, 100.0])
 def test_a_near_persons_box_that_shows_the_hidden_target_behind_is_not_measured_at_the_target(max_extent_m):
-    # A passer-by 1.5 m from the camera hides the target at 3.5 m; between the passer's legs and arms the target
-    # shows through (a third of the passer's box reads the target's depth, a depth layer of that box). At 3.5 m
-    # the passer's box would be over 3 m tall: no person's place. Without that check (a 100 m limit) the layer is
-    # within the gate and the passer is taken for the target.
+    # A passer-by 1.5 m from the camera hides the target at 3.5 m; above the passer's shoulders, either side of
+    # the head, the target shows through (a fifth of the passer's box reads the target's depth, in 80 % of its
+    # columns: a depth layer of that box that passes the column check). At 3.5 m the passer's box would be over
+    # 3 m tall: no person's place. Without that check (a 100 m limit) the layer is within the gate and the
+    # passer is taken for the target.
     tracker = TargetTracker(TrackerConfig(max_person_extent_m=max_extent_m))
     target, passer = (3.5, 0.0), (1.5, 0.0)
     for k in range(3):
@@ -196,8 +198,10 @@ def test_a_near_persons_box_that_shows_the_hidden_target_behind_is_not_measured_
     boxes, depth = render(camera(), [passer])
     x0, y0, x1, y1 = (int(round(v)) for v in np.clip(boxes[0, :4], 0, [WIDTH, HEIGHT, WIDTH, HEIGHT]))
     gaps = depth[y0:y1, x0:x1]
-    gaps[:, : (x1 - x0) // 6] = 3.5  # the target either side of the passer
-    gaps[:, -(x1 - x0) // 6:] = 3.5
+    head = slice(int(0.4 * (x1 - x0)), int(0.6 * (x1 - x0)))
+    shoulders = gaps[: (y1 - y0) // 4]
+    shoulders[:, : head.start] = 3.5
+    shoulders[:, head.stop:] = 3.5
     d = tracker.update(3 * SECOND // 10, boxes, (WIDTH, HEIGHT), depth, K, camera())
     if max_extent_m < 10.0:
         assert (d.state, d.detection_index, d.track_id) == (STATE_NOT_SEEN, -1, 1), d.reason
@@ -209,6 +213,33 @@ def test_a_near_persons_box_that_shows_the_hidden_target_behind_is_not_measured_
                                 TrackerConfig())[0, 2] == pytest.approx(3.5, abs=0.02)
     far_wall = np.full((HEIGHT, WIDTH), 7.0, np.float32)
     assert np.all(np.isnan(box_positions_camera(boxes, (WIDTH, HEIGHT), far_wall, K, TrackerConfig())))
+
+
+@pytest.mark.parametrize("gap_share", [1 / 3, 0.6])
+def test_a_hidden_target_in_the_gaps_beside_a_near_person_does_not_make_their_box_the_target(gap_share, monkeypatch):
+    # A passer-by at 2.7 m hides the target at 3.5 m, who shows beside the passer's body down the whole height
+    # of the passer's box (``gap_share`` of its columns, half on each side): a depth layer of that box at the
+    # target's place, at which the box would still fit a person (2.2 m tall). A person fills their box's width
+    # at their depth: the layer, in less than LAYER_MIN_COLUMNS of the columns, is not the passer's place, and
+    # the passer (0.8 m from the prediction, outside the gate) is not the target.
+    target, passer = (3.5, 0.0), (2.7, 0.0)
+
+    def frame(tracker: TargetTracker) -> TargetDecision:
+        for k in range(3):
+            step(tracker, k, camera(), [target])
+        boxes, depth = render(camera(), [passer])
+        x0, y0, x1, y1 = (int(round(v)) for v in np.clip(boxes[0, :4], 0, [WIDTH, HEIGHT, WIDTH, HEIGHT]))
+        side = int(round(0.5 * gap_share * (x1 - x0)))
+        depth[y0:y1, x0:x0 + side] = 3.5
+        depth[y0:y1, x1 - side:x1] = 3.5
+        return tracker.update(3 * SECOND // 10, boxes, (WIDTH, HEIGHT), depth, K, camera())
+
+    d = frame(TargetTracker())
+    assert (d.state, d.detection_index, d.track_id) == (STATE_NOT_SEEN, -1, 1), d.reason
+    np.testing.assert_allclose(d.position[:2], target, atol=0.05)
+    monkeypatch.setattr(target_tracking, "LAYER_MIN_COLUMNS", 0.0)  # without the column check: taken
+    d = frame(TargetTracker())
+    assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 0, 1), d.reason
 
 
 def test_people_unseen_longer_than_the_limit_are_forgotten_before_they_can_claim_a_detection():
@@ -345,6 +376,32 @@ def test_lost_after_the_limit_then_a_new_target_with_a_new_track_id():
     anyone = TargetTracker(TrackerConfig(lost_after_s=1.0, reacquire_window_s=0.0))
     step(anyone, 1, camera(), [(3.0, 0.0)])
     assert step(anyone, 30, camera(), [bystander]).track_id == 2
+
+
+def test_a_bystander_seen_beside_the_target_is_not_taken_for_it_in_the_re_acquisition_window():
+    # The target and a bystander 1.0 m from it, side by side for half a second; then the target is hidden (no box)
+    # past lost_after_s while the bystander stays in view, inside the radius of the lost place. Seen in the same
+    # frames as the target, the bystander is someone else: not taken in the window; the target, back, is.
+    config = TrackerConfig(lost_after_s=1.0)
+    tracker = TargetTracker(config)
+    target, bystander = (3.0, 0.0), (3.0, 1.0)
+    for k in range(5):
+        d = step(tracker, k, camera(), [target, bystander])
+        assert (d.state, d.track_id, d.detection_index) == (STATE_TRACKED, 1, 0), d.reason
+    for k in range(5, 30):  # 2.5 s without the target: lost after 1 s, then the window
+        d = step(tracker, k, camera(), [bystander])
+        assert d.track_id == 1 and d.detection_index == -1, (k, d.reason)
+    assert d.state == STATE_LOST and "1 of them seen beside it (0 of 1 detections" in d.reason, d.reason
+    back = step(tracker, 30, camera(), [bystander, (3.2, 0.1)])
+    assert (back.state, back.track_id, back.detection_index, back.acquired) == (STATE_TRACKED, 2, 1, True)
+    # A person first seen after the target was lost may be the target coming back: taken in the window.
+    fresh = TargetTracker(config)
+    for k in range(5):
+        step(fresh, k, camera(), [target])
+    for k in range(5, 20):
+        step(fresh, k, camera(), [])
+    d = step(fresh, 20, camera(), [bystander])
+    assert (d.state, d.track_id, d.detection_index, d.acquired) == (STATE_TRACKED, 2, 0, True), d.reason
 
 
 def test_without_a_camera_pose_or_depth_the_frame_is_decided_in_the_image_and_says_so():
