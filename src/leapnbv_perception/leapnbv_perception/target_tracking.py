@@ -13,8 +13,8 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    nearest its prediction, so an occluder over most of the target's central box does not move the target to
    the occluder (nor start a track there that later claims the target's box). A place at which the box
    would be larger than ``max_person_extent_m`` (height or width) is no person's, and neither is a layer found
-   in less than :data:`LAYER_MIN_COLUMNS` of the box's columns: a near person's box that shows a hidden target
-   behind them is not measured at the target's depth.
+   in less than :data:`LAYER_MIN_COLUMNS` of the box's columns behind a nearer layer that fills that share: a
+   near person's box that shows a hidden target behind them is not measured at the target's depth.
 2. **Where the target should be.** A constant-velocity Kalman filter of the target's horizontal position
    (x, y of the fixed frame, whose z is up) and velocity, predicted to the frame's stamp.
 3. **Which detection it is.** The gate: a detection is the target only within
@@ -79,8 +79,8 @@ DISTANCE_TIE_M = 1e-3
 LAYER_BIN_M = 0.1
 LAYER_GAP_SHARE = 0.02
 MIN_LAYER_SHARE = 0.15
-# A depth layer is a place of its box only if it is found in this share of the box's columns (a person fills
-# their box's width at their depth; an occluder over the lower body or one side of it leaves most columns).
+# A depth layer found in less than this share of its box's columns, behind a nearer layer found in this share,
+# is no place of the box: a person fills their box's width at their depth, one behind shows only in its gaps.
 LAYER_MIN_COLUMNS = 0.7
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
@@ -241,9 +241,11 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     one of the layers (the parts of them around the occluder), and so is the background. Two checks keep a
     hidden person's depth, seen in the gaps of a nearer person's box, from being a place of that box:
     places at which the box would measure more than ``config.max_person_extent_m`` high or wide (size =
-    pixels * depth / focal length) are left out, and so are layers found in less than
-    :data:`LAYER_MIN_COLUMNS` of the box's columns (:func:`layer_column_share`). (0, 3) for a box without
-    enough valid readings, or none that fits.
+    pixels * depth / focal length) are left out, and so is a layer found in less than :data:`LAYER_MIN_COLUMNS`
+    of the box's columns (:func:`layer_column_share`) behind a nearer layer that fills that share: the nearer
+    person fills their box, the one behind shows in its gaps (a narrow occluder in front of a person, which
+    fills fewer columns, leaves the person's layer a place). (0, 3) for a box without enough valid readings,
+    or none that fits.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
@@ -272,9 +274,10 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
         with np.errstate(invalid="ignore"):
             grid = np.where(np.isfinite(grid) & (grid >= config.min_depth_m) & (grid <= config.max_depth_m),
                             grid, np.nan)
-        whole = grid[np.isfinite(grid)]
-        zs = [median] + [z for z, near, far in depth_layer_ranges(whole) if abs(z - median) > 0.5 * LAYER_BIN_M
-                         and layer_column_share(grid, near, far) >= LAYER_MIN_COLUMNS]
+        layers = [(z, near, far, layer_column_share(grid, near, far)) for z, near, far in
+                  depth_layer_ranges(grid[np.isfinite(grid)])]
+        zs = [median] + [z for z, near, _, share in layers if abs(z - median) > 0.5 * LAYER_BIN_M and not (
+            share < LAYER_MIN_COLUMNS and any(f < near and s >= LAYER_MIN_COLUMNS for _, _, f, s in layers))]
         # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).
         fits = config.max_person_extent_m / max((box[2] - box[0]) * sx / k[0, 0], (box[3] - box[1]) * sy / k[1, 1],
                                                 1e-9)

@@ -217,11 +217,12 @@ def test_a_near_persons_box_that_shows_the_hidden_target_behind_is_not_measured_
 
 @pytest.mark.parametrize("gap_share", [1 / 3, 0.6])
 def test_a_hidden_target_in_the_gaps_beside_a_near_person_does_not_make_their_box_the_target(gap_share, monkeypatch):
-    # A passer-by at 2.7 m hides the target at 3.5 m, who shows beside the passer's body down the whole height
-    # of the passer's box (``gap_share`` of its columns, half on each side): a depth layer of that box at the
-    # target's place, at which the box would still fit a person (2.2 m tall). A person fills their box's width
-    # at their depth: the layer, in less than LAYER_MIN_COLUMNS of the columns, is not the passer's place, and
-    # the passer (0.8 m from the prediction, outside the gate) is not the target.
+    # A passer-by at 2.7 m hides the target at 3.5 m, who shows beside the passer's body below their shoulders
+    # (``gap_share`` of the passer box's columns, half on each side; the shoulders fill the box's width): a
+    # depth layer of that box at the target's place, at which the box would still fit a person (2.2 m tall).
+    # A person fills their box's width at their depth: the layer, in less than LAYER_MIN_COLUMNS of the
+    # columns behind the passer's layer that fills them, is not the passer's place, and the passer (0.8 m from
+    # the prediction, outside the gate) is not the target.
     target, passer = (3.5, 0.0), (2.7, 0.0)
 
     def frame(tracker: TargetTracker) -> TargetDecision:
@@ -229,9 +230,9 @@ def test_a_hidden_target_in_the_gaps_beside_a_near_person_does_not_make_their_bo
             step(tracker, k, camera(), [target])
         boxes, depth = render(camera(), [passer])
         x0, y0, x1, y1 = (int(round(v)) for v in np.clip(boxes[0, :4], 0, [WIDTH, HEIGHT, WIDTH, HEIGHT]))
-        side = int(round(0.5 * gap_share * (x1 - x0)))
-        depth[y0:y1, x0:x0 + side] = 3.5
-        depth[y0:y1, x1 - side:x1] = 3.5
+        side, shoulders = int(round(0.5 * gap_share * (x1 - x0))), y0 + (y1 - y0) // 4
+        depth[shoulders:y1, x0:x0 + side] = 3.5
+        depth[shoulders:y1, x1 - side:x1] = 3.5
         return tracker.update(3 * SECOND // 10, boxes, (WIDTH, HEIGHT), depth, K, camera())
 
     d = frame(TargetTracker())
@@ -240,6 +241,23 @@ def test_a_hidden_target_in_the_gaps_beside_a_near_person_does_not_make_their_bo
     monkeypatch.setattr(target_tracking, "LAYER_MIN_COLUMNS", 0.0)  # without the column check: taken
     d = frame(TargetTracker())
     assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 0, 1), d.reason
+
+
+def test_a_narrow_occluder_down_the_middle_of_the_target_leaves_it_its_place():
+    # A pole at 1.5 m covers the middle 40 % of the target's box from top to bottom (all of the central part: the
+    # box's median is the pole). The target's layer is in 60 % of the box's columns, under LAYER_MIN_COLUMNS, but
+    # no nearer layer fills the box (the pole fills 40 %): it stays a place, and the target stays tracked.
+    tracker = TargetTracker()
+    target = (3.0, 0.0)
+    for k in range(3):
+        step(tracker, k, camera(), [target])
+    boxes, _ = render(camera(), [target])
+    x0, y0, x1, y1 = (int(round(v)) for v in boxes[0, :4])
+    pole = (x0 + int(0.3 * (x1 - x0)), 0, x0 + int(0.7 * (x1 - x0)), HEIGHT, 1.5)
+    for k in range(3, 6):
+        d = step(tracker, k, camera(), [target], occluders=[pole])
+        assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 0, 1), d.reason
+        np.testing.assert_allclose(d.position[:2], target, atol=0.05)
 
 
 def test_people_unseen_longer_than_the_limit_are_forgotten_before_they_can_claim_a_detection():
