@@ -36,6 +36,7 @@ from leapnbv_common.conversions import (
     target_geometry_to_arrays,
 )
 from leapnbv_common.power_monitor import PowerMonitor
+from leapnbv_common.procrustes import pa_mpvpe_mm
 from leapnbv_common.topics import GROUND_PLANE, HUMAN_MESH_METRIC, TARGET_GEOMETRY
 from leapnbv_evaluation.episode import (
     DEFAULT_METHOD,
@@ -48,7 +49,6 @@ from leapnbv_evaluation.episode import (
     view_metrics,
 )
 from leapnbv_evaluation.frame_outputs import END_TO_END, STAGES, FrameOutputs
-from leapnbv_evaluation.metrics import pa_mpvpe_mm
 from leapnbv_evaluation.options import EvaluationOptions
 from leapnbv_evaluation.results import ClosedLoopResult, MethodResult, MoveStep, PoseRecord, SceneResult
 from leapnbv_sim.poses import CameraPose

@@ -1,16 +1,18 @@
-"""Tests of leapnbv_evaluation.metrics: PA-MPVPE, coverage, area, latency percentiles, the success rule."""
+"""Tests of leapnbv_evaluation.metrics and leapnbv_common.procrustes.
+
+PA-MPVPE, coverage, area, latency percentiles, the success rule.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from leapnbv_common.procrustes import pa_mpvpe_mm, procrustes_align
 from leapnbv_evaluation.metrics import (
     body_coverage,
     is_success,
     latency_summary,
-    pa_mpvpe_mm,
-    procrustes_align,
     reconstructed_area,
 )
 from leapnbv_perception.rotations import axis_angle_to_matrix

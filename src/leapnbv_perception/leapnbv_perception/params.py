@@ -12,6 +12,7 @@ from typing import List
 from leapnbv_common.params import StageParams, param
 from leapnbv_perception.backends.onnxruntime_backend import GRAPH_OPTIMIZATIONS
 from leapnbv_perception.detector_families import DEFAULT_DETECTOR_FAMILY, detector_family_names
+from leapnbv_perception.truth_corruption import BoxCorruption, MeshCorruption
 
 # onnxruntime_last_bit_nudged: tests only, onnxruntime with every output moved by one ulp (the regression's
 # numeric-configuration test; leapnbv_perception.backends.LAST_BIT_NUDGED_BACKEND).
@@ -95,7 +96,28 @@ class DetectorParams(EngineParams):
                                   "are published), so that a whole-frame benchmark pays a real detector's cost "
                                   "with a network that has no weights (scripts/bench/bench_load.py)", read_only=True)
 
+    # The error budget (leapnbv_perception.truth_corruption): the truth's boxes made worse by a known amount.
+    truth_box_jitter: float = param(0.0, "error budget, backend ground_truth only: each box side moved by Gaussian "
+                                    "noise of this share of the box's width or height", min=0.0, max=1.0,
+                                    read_only=True)
+    truth_box_grow: float = param(0.0, "error budget, backend ground_truth only: each box grown about its centre "
+                                  "by this share of its width and height (a box too large)", min=0.0, max=2.0,
+                                  read_only=True)
+    truth_box_truncate: float = param(0.0, "error budget, backend ground_truth only: each box cut by this share of "
+                                      "its size on one random side (a box truncated)", min=0.0, max=0.9, read_only=True)
+    truth_miss_share: float = param(0.0, "error budget, backend ground_truth only: the share of frames with no "
+                                    "detection at all (missed)", min=0.0, max=1.0, read_only=True)
+    truth_corruption_seed: int = param(0, "error budget: the seed of the boxes' corruption (with each frame's "
+                                       "stamp: the same frames are corrupted the same way in every run)", min=0,
+                                       max=2**31 - 1, read_only=True)
+
+    def box_corruption(self) -> BoxCorruption:
+        return BoxCorruption(jitter=self.truth_box_jitter, grow=self.truth_box_grow,
+                             truncate=self.truth_box_truncate, miss_share=self.truth_miss_share,
+                             seed=self.truth_corruption_seed)
+
     def check(self) -> None:
+        _check_truth_corruption(self.backend, self.box_corruption().active)
         if self.timing_stand_in and (self.backend != "ground_truth" or not self.model_file_path):
             raise ValueError("timing_stand_in needs backend ground_truth and a model_file_path (the network whose "
                              f"cost is paid); got backend {self.backend!r}, model_file_path {self.model_file_path!r}")
@@ -157,3 +179,29 @@ class HmrParams(EngineParams):
     # 30 FPS, every frame's image was gone when its detections came (rejected.no_matching_image).
     cache_size: int = param(45, "images kept while waiting for their detections (45: 1.5 s of a 30 FPS camera)",
                             min=1, max=1000, read_only=True)
+    # The error budget (leapnbv_perception.truth_corruption): the truth's mesh made worse by a known amount.
+    truth_mesh_shift: float = param(0.0, "error budget, backend ground_truth only: the mesh moved across the image "
+                                    "by this share of the box's width and height, in a random direction",
+                                    min=0.0, max=1.0, read_only=True)
+    truth_mesh_depth_error: float = param(0.0, "error budget, backend ground_truth only: the mesh scaled about the "
+                                          "camera centre by 1 +- this (nearer or farther, the same projection)",
+                                          min=0.0, max=0.9, read_only=True)
+    truth_mesh_pa_mpvpe_mm: float = param(0.0, "mm, error budget, backend ground_truth only: pose and shape noise "
+                                          "that puts the mesh this far from the truth after Procrustes alignment",
+                                          min=0.0, max=500.0, read_only=True)
+    truth_corruption_seed: int = param(0, "error budget: the seed of the mesh's corruption (with each frame's "
+                                       "stamp: the same frames are corrupted the same way in every run)", min=0,
+                                       max=2**31 - 1, read_only=True)
+
+    def mesh_corruption(self) -> MeshCorruption:
+        return MeshCorruption(shift=self.truth_mesh_shift, depth=self.truth_mesh_depth_error,
+                              pa_mpvpe_mm=self.truth_mesh_pa_mpvpe_mm, seed=self.truth_corruption_seed)
+
+    def check(self) -> None:
+        _check_truth_corruption(self.backend, self.mesh_corruption().active)
+
+
+def _check_truth_corruption(backend: str, active: bool) -> None:
+    if active and backend != "ground_truth":
+        raise ValueError(f"the truth_* corruption parameters apply to backend ground_truth only (the error budget); "
+                         f"backend is {backend!r}")

@@ -20,6 +20,7 @@ from leapnbv_common.conversions import (  # noqa: E402
     scene_people_to_arrays,
 )
 from leapnbv_common.conversions.base import ConversionError  # noqa: E402
+from leapnbv_common.procrustes import pa_mpvpe_mm  # noqa: E402
 from leapnbv_common.topics import SCENE_PEOPLE  # noqa: E402
 from leapnbv_msgs.msg import PersonDetections  # noqa: E402
 from leapnbv_perception.backends.ground_truth import (  # noqa: E402
@@ -28,6 +29,7 @@ from leapnbv_perception.backends.ground_truth import (  # noqa: E402
     matched_person,
 )
 from leapnbv_perception.smplx_layer import SMPLXModel, SMPLXParams  # noqa: E402
+from leapnbv_perception.truth_corruption import MeshCorruption  # noqa: E402
 from leapnbv_stand_ins.stand_in_body_model import build_stand_in_body_model  # noqa: E402
 
 rng = np.random.default_rng(3)
@@ -96,6 +98,7 @@ class _Frame(dict):
         super().__init__({"ground_truth": dataclasses.replace(truth, others=[]), SCENE_PEOPLE: truth.others,
                           "camera_info": make_camera_info(K, 640, 480, HEADER)})
         self.key = type("Key", (), {"message": PersonDetections(header=HEADER, image_width=640, image_height=480)})
+        self.stamp_ns = 1_700_000_000_000_000_000
 
 
 def test_the_mesh_is_the_matched_persons():
@@ -144,3 +147,22 @@ def test_the_others_round_trip_and_are_checked():
     nan.translation = np.array([0.0, np.nan, 2.0])
     with pytest.raises(ConversionError, match="non-finite"):
         _through_the_message(_truth([200, 100, 300, 300, 1], [nan]))
+
+
+def test_a_corrupted_truth_mesh_is_as_far_off_as_asked_and_the_same_in_every_run():
+    """The error budget's mesh: PA-MPVPE, depth and placement errors of the asked size, seeded by the stamp."""
+    model = SMPLXModel(build_stand_in_body_model("small"), source="stand_in_small")
+    truth = _through_the_message(_truth([200, 100, 300, 300, 1], []))
+    frame = _Frame(truth)
+    box = np.array([200, 100, 300, 300, 1], np.float32)
+    clean = GroundTruthMeshBackend.mesh(model, frame, box, 1.2)
+    asked = MeshCorruption(shift=0.2, depth=0.25, pa_mpvpe_mm=60.0, seed=4)
+    worse = GroundTruthMeshBackend.mesh(model, frame, box, 1.2, asked)
+    assert pa_mpvpe_mm(worse.vertices, clean.vertices) == pytest.approx(60.0, abs=1.5)
+    assert np.any(worse.body_pose != clean.body_pose) and np.any(worse.betas != clean.betas)
+    depth_ratio = float(worse.vertices[:, 2].mean() / clean.vertices[:, 2].mean())
+    assert depth_ratio == pytest.approx(1.25, abs=0.01) or depth_ratio == pytest.approx(0.75, abs=0.01)
+    again = GroundTruthMeshBackend.mesh(model, frame, box, 1.2, asked)
+    np.testing.assert_array_equal(again.vertices, worse.vertices)
+    frame.stamp_ns += 1  # another frame: other draws
+    assert not np.array_equal(GroundTruthMeshBackend.mesh(model, frame, box, 1.2, asked).vertices, worse.vertices)

@@ -39,6 +39,14 @@ from leapnbv_common.stage_inputs import checked_camera_info
 from leapnbv_common.topics import GROUND_TRUTH, SCENE_PEOPLE
 from leapnbv_msgs.msg import SceneGroundTruth, ScenePeople
 from leapnbv_perception.target_selection import box_iou
+from leapnbv_perception.truth_corruption import (
+    MESH_STREAM,
+    NO_MESH_CORRUPTION,
+    MeshCorruption,
+    displaced_mesh,
+    frame_rng,
+    noisy_pose_and_shape,
+)
 
 __all__ = ["GROUND_TRUTH_BACKEND", "TRUTH_WAIT_S", "CAMERA_INFO_WAIT_S", "truth_companions", "people_published_on",
            "frame_truth",
@@ -153,7 +161,10 @@ class GroundTruthMeshBackend:
         return "camera_info", frame["camera_info"]
 
     @staticmethod
-    def mesh(body_model: object, frame: Frame, box: np.ndarray, box_scale: float) -> HumanMeshArrays:
+    def mesh(body_model: object, frame: Frame, box: np.ndarray, box_scale: float,
+             corruption: MeshCorruption = NO_MESH_CORRUPTION) -> HumanMeshArrays:
+        """The mesh of the person in ``box``; with a ``corruption`` (the error budget), as a worse model's
+        (:mod:`leapnbv_perception.truth_corruption`: the frame's stamp seeds its draws)."""
         from leapnbv_common.conversions import camera_info_to_k
         from leapnbv_perception.hmr_crop import process_box, xyxy_to_xywh
         from leapnbv_perception.smplx_layer import SMPLXParams
@@ -172,8 +183,21 @@ class GroundTruthMeshBackend:
             left, right = np.zeros(45, np.float32), np.zeros(45, np.float32)
             jaw, expression = np.zeros(3, np.float32), np.zeros(10, np.float32)
             root, body, betas, translation = person.root_pose, person.body_pose, person.betas, person.translation
+        if corruption.active:
+            rng = frame_rng(corruption.seed, frame.stamp_ns, MESH_STREAM)
+
+            def vertices_of(body_pose: np.ndarray, shape: np.ndarray) -> np.ndarray:
+                posed = SMPLXParams.from_axis_angle(root, body_pose, left, right, jaw, shape, expression)
+                return body_model.forward(posed).vertices  # type: ignore[attr-defined]
+
+            body, betas, _ = noisy_pose_and_shape(body, betas, vertices_of, corruption.pa_mpvpe_mm, rng)
+            body, betas = body.astype(np.float32), betas.astype(np.float32)
         params = SMPLXParams.from_axis_angle(root, body, left, right, jaw, betas, expression)
         vertices = body_model.forward(params).vertices + translation  # type: ignore[attr-defined]
+        if corruption.active:
+            vertices, translation = displaced_mesh(vertices, translation, box, k, corruption.shift,
+                                                   corruption.depth, rng)
+            vertices, translation = vertices.astype(np.float32), translation.astype(np.float32)
         return HumanMeshArrays(
             vertices=vertices, faces=body_model.faces,  # type: ignore[attr-defined]
             virtual_intrinsics=(k[0, 0], k[1, 1], k[0, 2], k[1, 2]), image_size=image_size, detection=box,

@@ -48,6 +48,7 @@ from leapnbv_perception.backends.ground_truth import (
 from leapnbv_perception.nodes.box_carrying import BoxCarrier
 from leapnbv_perception.nodes.engine_loading import load_in_configure, load_person_detector
 from leapnbv_perception.params import DetectorParams
+from leapnbv_perception.truth_corruption import BOX_STREAM, corrupted_boxes, frame_rng
 
 WAITING_CHECK_PERIOD_S = 0.05  # how often a waiting frame checks whether an in-flight frame timed out
 
@@ -63,6 +64,8 @@ class DetectorNode(ManagedNode):
         self.diagnostics.hardware_id = p.backend
         self.admission = Admission(self.diagnostics.drop)
         self.ground_truth = p.backend == GROUND_TRUTH_BACKEND
+        if self.ground_truth:  # the error budget's corrupted truth says so in every status
+            self.diagnostics.set_info("truth_corruption", p.box_corruption().describe())
         self.detector = None
         if not self.ground_truth:
             self.detector = load_in_configure(self, "detector model " + repr(p.model_file_path),
@@ -175,6 +178,10 @@ class DetectorNode(ManagedNode):
             except ContractError as error:
                 self.diagnostics.reject("bad_ground_truth", error.detail)
                 return
+            corruption = self.params.value.box_corruption()
+            if corruption.active:  # the error budget: a worse detector's boxes
+                boxes = corrupted_boxes(boxes, (image.width, image.height), corruption,
+                                        frame_rng(corruption.seed, frame.stamp_ns, BOX_STREAM))
         self.publish(image.header, image.width, image.height, boxes, started)
 
 

@@ -70,6 +70,8 @@ class HmrNode(ManagedNode):
         p = self.params.value
         self.diagnostics.hardware_id = p.backend
         self.ground_truth = p.backend == GROUND_TRUTH_BACKEND
+        if self.ground_truth:  # the error budget's corrupted truth says so in every status
+            self.diagnostics.set_info("truth_corruption", p.mesh_corruption().describe())
         self.engine = load_in_configure(self, f"HMR engine {p.model_file_path!r} with body model "
                                                        f"{p.body_model_path!r}", self.load_engine)
         self.publisher = self.create_lifecycle_publisher(HumanMesh, HUMAN_MESH, stage_output_qos())
@@ -157,7 +159,7 @@ class HmrNode(ManagedNode):
             return
         box = boxes[decision.detection_index]
         if self.ground_truth:
-            mesh = GroundTruthMeshBackend.mesh(self.engine, frame, box, p.box_scale)
+            mesh = GroundTruthMeshBackend.mesh(self.engine, frame, box, p.box_scale, p.mesh_corruption())
         else:
             mesh = self.engine_mesh(box, frame["image"])
         self.mesh_faces.name(mesh)  # its triangles on mesh_faces before the first mesh that names them
