@@ -24,7 +24,7 @@ fi
 declare -A PARAM=([mesh_shift]=hmr_node.truth_mesh_shift [mesh_depth]=hmr_node.truth_mesh_depth_error
   [mesh_pa]=hmr_node.truth_mesh_pa_mpvpe_mm [box_jitter]=detector_node.truth_box_jitter
   [box_grow]=detector_node.truth_box_grow [box_truncate]=detector_node.truth_box_truncate)
-declare -A LEVELS=([none]=0 [mesh_shift]="0.05 0.1 0.2 0.3" [mesh_depth]="0.1 0.2 0.4" [mesh_pa]="50 100 150"
+declare -A LEVELS=([none]=0 [mesh_shift]="0.05 0.1 0.2 0.3" [mesh_depth]="0.1 0.2 0.4" [mesh_pa]="50.0 100.0 150.0"
   [box_jitter]="0.05 0.1 0.2" [box_grow]="0.25 0.5" [box_truncate]="0.2 0.4" [second_person]="two_people three_people")
 for corruption in "${CORRUPTIONS[@]}"; do
   [ -n "${LEVELS[$corruption]:-}" ] || { echo "[error_budget] unknown corruption $corruption" >&2; exit 2; }

@@ -72,6 +72,9 @@ class GraphSession(Protocol):
     def set_scene(self, scene: Scene) -> None:
         """Put the simulator in a scene, its camera at the scene's start view."""
 
+    def forget_last_scene(self) -> None:
+        """Make the graph forget the last scene (its committed goal, its target and people followed)."""
+
     def run_frame(self, stamp_ns: int) -> Tuple[RenderedFrame, FrameOutputs]:
         """Publish the simulator's current view at ``stamp_ns``; the render and the graph's outputs of it."""
 
@@ -172,6 +175,9 @@ class ClosedLoopEpisodes:
         """
         session = self.session
         session.set_scene(scene)
+        # Every scene puts its person at the same fixed-frame place: the last scene's target (its
+        # re-acquisition window) and committed goal must not decide this one's.
+        session.forget_last_scene()
         stamp0 = frame_stamp_ns(stamp_base, scene_index, 0)
         before_frame, outputs0 = session.run_frame(stamp0)
         frames = [outputs0]

@@ -159,6 +159,10 @@ class _FakeSession:
 
     def set_scene(self, scene) -> None:
         self.scene, self.camera = scene, scene.start_camera.copy()
+        self.forgotten = getattr(self, "forgotten", 0)
+
+    def forget_last_scene(self) -> None:
+        self.forgotten += 1
 
     def run_frame(self, stamp_ns):
         plan = self.plans[len(self.stamps)](self.scene, self.camera)
@@ -198,6 +202,7 @@ def test_an_episode_moves_while_the_predicted_gain_holds_then_stops(scene) -> No
     result = episodes.run(scene, seed=3, scene_index=2, stamp_base=1_000_000_000_000)
     stamps = [frame_stamp_ns(1_000_000_000_000, 2, frame) for frame in range(3)]
     assert session.stamps == stamps and session.waited == stamps  # every planned frame's goal is consumed
+    assert session.forgotten == 1  # the graph forgot the last scene's target and goal before this one's frames
     assert result.graph_failure is None and result.stamp_ns == stamps[0]
     leap = result.per_method["leap_nbv"]
     assert leap.chosen_index == 2
