@@ -28,7 +28,14 @@ from leapnbv_common.conversions import (  # noqa: E402
     xyz_to_pointcloud2,
 )
 from leapnbv_common.qos import latched_goal_qos, stage_output_qos  # noqa: E402
-from leapnbv_msgs.msg import GoalStatus, GroundPlane, InputStamp, TargetGeometry, ViewCandidates  # noqa: E402
+from leapnbv_msgs.msg import (  # noqa: E402
+    GoalStatus,
+    GroundPlane,
+    InputStamp,
+    TargetGeometry,
+    TargetTrack,
+    ViewCandidates,
+)
 from leapnbv_planner.params import default_nbv_params  # noqa: E402
 
 pytestmark = [pytest.mark.ros]
@@ -290,6 +297,43 @@ def test_a_goal_that_ages_out_is_withdrawn_and_the_status_says_so(graph):
         assert probe.spin_until(lambda: status_of(graph, fresh, GoalStatus.STATE_CURRENT), 10.0)
     finally:
         assert set_parameters(probe, NODE, max_goal_age_s=MAX_GOAL_AGE_S)[0].successful
+
+
+def test_a_goal_to_a_target_out_of_view_is_held_longer_and_then_withdrawn(graph):
+    # hmr_node says NOT_SEEN (the drive passes behind furniture that hides the person): the goal may grow
+    # hidden_target_goal_hold_s older than max_goal_age_s, and valid_until says so; then it is withdrawn.
+    probe = graph["probe"]
+    track_pub = probe.node.create_publisher(TargetTrack, f"{NS}/target_track", stage_output_qos(5))
+    assert probe.spin_until(lambda: track_pub.get_subscription_count() >= 1, 5.0)
+    assert set_parameters(probe, NODE, max_goal_age_s=0.5, hidden_target_goal_hold_s=1.0)[0].successful
+    try:
+        rotation, position = camera_in_map(1.2, 10.0)
+        stamp = now_ns(graph)
+        target, plane = observation(stamp, rotation, position)
+        graph["ground_pub"].publish(plane)
+        probe.spin_for(0.05)
+        graph["target_pub"].publish(target)
+        assert probe.spin_until(lambda: of_stamp(graph["goals"], stamp), 10.0)
+        published = time.monotonic()
+        track_pub.publish(TargetTrack(header=header_with_stamp(stamp, FRAME_ID), state=TargetTrack.STATE_NOT_SEEN,
+                                      track_id=3, reason="not seen: no detections"))
+        assert probe.spin_until(lambda: any(stamp_to_ns(m.goal_stamp) == stamp and m.state == GoalStatus.STATE_CURRENT
+                                            and m.target.state == TargetTrack.STATE_NOT_SEEN for m in graph["status"]),
+                                5.0)
+        hidden = [m for m in graph["status"] if stamp_to_ns(m.goal_stamp) == stamp
+                  and m.target.state == TargetTrack.STATE_NOT_SEEN][-1]
+        assert stamp_to_ns(hidden.valid_until) == stamp + 1_500_000_000  # the age limit and the hold
+        probe.spin_for(max(0.0, 1.0 - (time.monotonic() - published)))  # past max_goal_age_s: still held
+        assert status_of(graph, stamp, GoalStatus.STATE_STALE) is None
+        assert probe.spin_until(lambda: status_of(graph, stamp, GoalStatus.STATE_STALE), 5.0)
+        stale = status_of(graph, stamp, GoalStatus.STATE_STALE)
+        assert stale.goal_age_s > 1.5 and "1.5 s" in stale.reason, stale.reason
+    finally:
+        track_pub.publish(TargetTrack(header=header_with_stamp(now_ns(graph), FRAME_ID),
+                                      state=TargetTrack.STATE_TRACKED, track_id=3))
+        probe.spin_for(0.2)
+        assert set_parameters(probe, NODE, max_goal_age_s=MAX_GOAL_AGE_S,
+                              hidden_target_goal_hold_s=default_nbv_params().hidden_target_goal_hold_s)[0].successful
 
 
 def test_a_burst_of_targets_is_served_newest_first_and_every_skipped_one_is_counted(graph):

@@ -1,14 +1,26 @@
 """When nbv_node's goal is too old to act on: the no-stale-goal rules, ROS-free (docs/ARCHITECTURE.md, "Timing").
 
 A frame older than ``max_goal_age_s`` by the node clock is not planned, its goal not published, and a
-latched goal that ages past it is withdrawn; a limit of 0 turns the rules off. ``goal_status.valid_until``
+latched goal that ages past it is withdrawn (past it plus ``hidden_target_goal_hold_s`` while the target is
+NOT_SEEN: :func:`goal_age_limit_s`); a limit of 0 turns the rules off. ``goal_status.valid_until``
 (:func:`valid_until_ns`) carries the same limit to a consumer, to check on its own clock.
 """
 from __future__ import annotations
 
 from typing import Optional
 
-__all__ = ["too_old", "expired_age_s", "valid_until_ns"]
+__all__ = ["too_old", "expired_age_s", "valid_until_ns", "goal_age_limit_s"]
+
+
+def goal_age_limit_s(max_age_s: float, hidden_hold_s: float, target_hidden: bool) -> float:
+    """How old a latched goal may grow before it is withdrawn (0: no limit stays none).
+
+    ``max_age_s``, plus ``hidden_hold_s`` while the target is out of view but not lost: no frame can be
+    planned then, and driving on is what brings the person back.
+    """
+    if max_age_s <= 0:
+        return 0.0
+    return max_age_s + (max(0.0, hidden_hold_s) if target_hidden else 0.0)
 
 
 def too_old(now_ns: int, stamp_ns: int, max_age_s: float) -> bool:

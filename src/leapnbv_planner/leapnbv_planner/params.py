@@ -137,6 +137,12 @@ class PlannerParams(CandidateRingParams, CommitmentParams, StageParams):
                                   " replaced by 'no goal' (goal_status STALE); 0 = no limit (only for offline"
                                   " runs whose stamps are not the clock's: regression, evaluation)",
                                   min=0.0, max=60.0)
+    hidden_target_goal_hold_s: float = param(3.0, "s: while hmr_node reports the target NOT_SEEN (out of view, not "
+                                             "yet lost), a CURRENT goal may be this much older than max_goal_age_s "
+                                             "before it is withdrawn (valid_until says so): the drive to it passes "
+                                             "behind furniture that hides the person, and no frame can be planned "
+                                             "until they are seen again; a LOST target withdraws it at once; 0 = "
+                                             "the plain age limit", min=0.0, max=60.0)
     use_obstacle_map: bool = param(True, "use the robot's obstacle map (obstacle_map + camera_pose topics) when"
                                    " they arrive", read_only=True)
     obstacle_map_resolution: float = param(0.1, "metres: voxel edge of the obstacle map (its points are voxel"

@@ -39,3 +39,15 @@ def test_a_plane_carried_to_a_camera_moved_up_and_turned_keeps_the_world_floor()
     normal, offset = carry_plane(np.array([0.0, -1.0, 0.0]), 1.2, a, b)
     np.testing.assert_allclose(normal, [0.0, -1.0, 0.0], atol=1e-12)  # up is still -y of the optical frame
     assert offset == pytest.approx(1.5, abs=1e-12)
+
+
+def test_a_hidden_target_extends_the_age_limit_by_the_hold_and_no_limit_stays_none():
+    from leapnbv_planner.goal_age import goal_age_limit_s
+
+    assert goal_age_limit_s(1.0, 3.0, target_hidden=False) == 1.0
+    assert goal_age_limit_s(1.0, 3.0, target_hidden=True) == 4.0
+    assert goal_age_limit_s(1.0, 0.0, target_hidden=True) == 1.0
+    assert goal_age_limit_s(0.0, 3.0, target_hidden=True) == 0.0  # offline runs: no limit, hidden or not
+    # A goal 2.5 s old: withdrawn with the person in view, kept while they are hidden.
+    assert expired_age_s(2_500_000_000, 0, goal_age_limit_s(1.0, 3.0, False)) == 2.5
+    assert expired_age_s(2_500_000_000, 0, goal_age_limit_s(1.0, 3.0, True)) is None

@@ -40,7 +40,8 @@ def test_defaults_are_the_robot_values_and_valid():
     names = {spec.name for spec in param_specs(type(params))}
     assert NODE_PARAMETER_NAMES <= names
     assert names - NODE_PARAMETER_NAMES == {
-        "score_terms", "camera_pose_source", "max_goal_age_s", "camera_pose_wait_s", "body_mesh_wait_s",
+        "score_terms", "camera_pose_source", "max_goal_age_s", "hidden_target_goal_hold_s", "camera_pose_wait_s",
+        "body_mesh_wait_s",
         "weight_travel", "weight_body_occlusion", "num_rings", "min_radius", "reachability", "max_path_length",
         "grid_resolution", "unknown_space", "camera_height", "camera_tilt", "score_infeasible", "fit_to_free_space",
         "min_free_radius", "max_stamp_ahead_s", "max_obstacle_voxels", "commit_goals", "commit_margin",

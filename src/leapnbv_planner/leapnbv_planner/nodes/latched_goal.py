@@ -4,7 +4,7 @@ No stale goal (docs/ARCHITECTURE.md, "Timing"): a goal goes out only from a fram
 ``max_goal_age_s``; ``goal_status`` says whether the latched goal may be acted on (CURRENT); a timer,
 running only while a goal is current, replaces a goal that ages out by an explicit "no goal" (STALE,
 and next_best_view / base_goal / base_path re-published with an empty frame_id), as deactivating the
-node does (NONE). Every status carries ``valid_until`` (the goal's stamp + max_goal_age_s while CURRENT, else
+node does (NONE). Every status carries ``valid_until`` (the goal's stamp + its age limit while CURRENT, else
 0), so a consumer checks the goal on its own clock also while this node is frozen, and ``planned_without``
 (the optional inputs in use that the goal's frame lacked, their why in ``reason``). The rules themselves:
 :mod:`leapnbv_planner.goal_age`.
@@ -32,7 +32,7 @@ from leapnbv_common.conversions import path_msg, pose_msg, set_stamp
 from leapnbv_common.qos import latched_goal_qos
 from leapnbv_msgs.msg import GoalStatus, TargetTrack
 from leapnbv_planner.commitment import CommitReason, GoalDecision
-from leapnbv_planner.goal_age import expired_age_s, too_old, valid_until_ns
+from leapnbv_planner.goal_age import expired_age_s, goal_age_limit_s, too_old, valid_until_ns
 
 __all__ = ["LatchedGoal", "GOAL_AGE_CHECK_PERIOD_S"]
 
@@ -68,6 +68,12 @@ class LatchedGoal:
     def now_ns(self) -> int:
         now: int = self.node.get_clock().now().nanoseconds
         return now
+
+    def age_limit_s(self) -> float:
+        """How old the latched goal may grow: max_goal_age_s, plus the hold while the target is NOT_SEEN."""
+        p = self.node.params.value
+        return goal_age_limit_s(p.max_goal_age_s, p.hidden_target_goal_hold_s,
+                                self.target().state == TargetTrack.STATE_NOT_SEEN)
 
     def too_old(self, stamp_ns: int) -> bool:
         """Whether a frame of this stamp is older than max_goal_age_s now (never with a limit of 0)."""
@@ -131,7 +137,7 @@ class LatchedGoal:
 
     def check_age(self) -> None:
         """The timer: a current goal whose frame is now older than max_goal_age_s is withdrawn."""
-        limit = self.node.params.value.max_goal_age_s
+        limit = self.age_limit_s()
         if self.state != GoalStatus.STATE_CURRENT or self.stamp is None or limit <= 0:
             self.age_timer.cancel()
             return
@@ -180,7 +186,7 @@ class LatchedGoal:
             set_stamp(msg.goal_stamp, self.stamp)
             msg.goal_age_s = float((now - self.stamp) * 1e-9)
         if self.stamp is not None and state == GoalStatus.STATE_CURRENT:
-            set_stamp(msg.valid_until, valid_until_ns(self.stamp, self.node.params.value.max_goal_age_s))
+            set_stamp(msg.valid_until, valid_until_ns(self.stamp, self.age_limit_s()))
             msg.planned_without = list(self.planned_without)
         if self.decision is not None and (state == GoalStatus.STATE_CURRENT or self.decision.goal is None):
             commitment_fields(msg, self.decision, self.stamp)

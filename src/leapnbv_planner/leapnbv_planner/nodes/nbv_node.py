@@ -138,7 +138,7 @@ class NbvNode(ManagedNode):
         self.obstacle_memory.params_changed(changed)
         if "obstacle_map_resolution" in changed:
             self.obstacle_map.rebuild(new.obstacle_map_resolution)  # a grid too large: the change is refused
-        if "max_goal_age_s" in changed:
+        if changed & {"max_goal_age_s", "hidden_target_goal_hold_s"}:
             self.goal.limit_changed(new.max_goal_age_s)
         if scores_changed(changed):
             self.commitment.clear()  # the committed goal's score is no longer comparable with the new ones

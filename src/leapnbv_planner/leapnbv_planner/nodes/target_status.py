@@ -14,8 +14,10 @@ hmr_node decides which person is the target and publishes a ``TargetTrack`` per 
 - forgets the committed goal when another person becomes the target (a new ``track_id``): it was planned
   around the previous one; the next plan commits afresh.
 
-While the target is NOT_SEEN the goal stays CURRENT until it ages out (``max_goal_age_s``): driving to it is
-what may bring the person back into view, and ``goal_status.target`` says where the track predicts them.
+While the target is NOT_SEEN the goal stays CURRENT until it ages out, with ``hidden_target_goal_hold_s`` more
+than ``max_goal_age_s`` (``valid_until`` says so): driving to it is what may bring the person back into view
+(the path passes behind furniture that hides them, and no frame can be planned meanwhile), and
+``goal_status.target`` says where the track predicts them.
 """
 from __future__ import annotations
 
