@@ -161,13 +161,30 @@ def test_two_people_the_target_hidden_while_the_other_stays_in_view_is_never_swa
     for k in range(10, 30):  # two seconds hidden (the other person still in view, the gate grows to 1.6 m)
         d = step(tracker, k, camera(), [other])
         assert (d.state, d.detection_index, d.track_id) == (STATE_NOT_SEEN, -1, 1), d.reason
-        assert d.gate_m == pytest.approx(0.6 + 0.5 * (k - 9) * 0.1)
+        assert d.gate_m == pytest.approx(min(0.6 + 0.5 * (k - 9) * 0.1, 1.5))  # at most the re-acquisition radius
         assert d.position_sigma_m > sigma  # the prediction grows less certain every unseen frame
         sigma = d.position_sigma_m
     assert "nearer other people" in d.reason
     back = step(tracker, 30, camera(), [other, target])
     assert (back.state, back.detection_index, back.track_id, back.acquired) == (STATE_TRACKED, 1, 1, False)
     assert "nearest detection to the predicted place" in back.reason
+
+
+def test_a_person_who_comes_into_view_far_from_a_long_hidden_target_is_not_taken_for_it():
+    # Two-people seed 26: the target hidden 2.6 s (both people out of view), then only the bystander comes into
+    # view 1.86 m from the target's place. An unbounded gate (0.6 + 0.5 * 2.6 = 1.9 m) took the bystander.
+    tracker = TargetTracker()
+    target, bystander = (3.0, 0.0), (3.0, 1.86)
+    for k in range(5):
+        assert step(tracker, k, camera(), [target]).state == STATE_TRACKED
+    for k in range(5, 30):  # 2.6 s with nobody in view
+        d = step(tracker, k, camera(), [])
+        assert (d.state, d.track_id) == (STATE_NOT_SEEN, 1)
+    assert d.gate_m == pytest.approx(1.5)
+    d = step(tracker, 30, camera(), [bystander])
+    assert (d.state, d.detection_index, d.track_id) == (STATE_NOT_SEEN, -1, 1), d.reason
+    d = step(tracker, 31, camera(), [bystander, target])  # the target back in view: found again, the same track
+    assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 1, 1), d.reason
 
 
 def test_a_person_crossing_between_the_camera_and_the_hidden_target_is_never_taken():
