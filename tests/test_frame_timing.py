@@ -84,6 +84,15 @@ def observation(stamp_ns: int, rotation: np.ndarray, position: np.ndarray) -> tu
     return target, plane
 
 
+def send_observation(graph, stamp_ns: int, rotation: np.ndarray, position: np.ndarray) -> tuple:
+    """Publish the frame's ground plane, then its target (as ground_node and raster_node would); returns both."""
+    target, plane = observation(stamp_ns, rotation, position)
+    graph["ground_pub"].publish(plane)
+    graph["probe"].spin_for(0.05)
+    graph["target_pub"].publish(target)
+    return target, plane
+
+
 def pose_message(stamp_ns: int, rotation: np.ndarray, position: np.ndarray) -> PoseStamped:
     return PoseStamped(header=header_with_stamp(stamp_ns, MAP), pose=pose_msg(rotation, position))
 
@@ -154,10 +163,7 @@ def test_a_frame_older_than_max_goal_age_gives_no_goal(graph):
     goals_before = len(real_goals(graph))
     rotation, position = camera_in_map(1.2, 10.0)
     old = now_ns(graph) - int(1.5 * MAX_GOAL_AGE_S * 1e9)  # a frame that spent 1.5 s somewhere upstream
-    target, plane = observation(old, rotation, position)
-    graph["ground_pub"].publish(plane)
-    probe.spin_for(0.05)
-    graph["target_pub"].publish(target)
+    send_observation(graph, old, rotation, position)
     assert counter_reaches(graph, "dropped.too_old_to_plan", before + 1)
     probe.spin_for(0.2)
     assert len(real_goals(graph)) == goals_before and not of_stamp(graph["candidates"], old)
@@ -167,10 +173,7 @@ def test_a_frame_is_planned_with_its_own_plane_and_records_it(graph):
     probe = graph["probe"]
     rotation, position = camera_in_map(1.2, 10.0)
     stamp = now_ns(graph)
-    target, plane = observation(stamp, rotation, position)
-    graph["ground_pub"].publish(plane)
-    probe.spin_for(0.05)
-    graph["target_pub"].publish(target)
+    target, plane = send_observation(graph, stamp, rotation, position)
     # the goal first, then the candidates
     assert probe.spin_until(lambda: of_stamp(graph["goals"], stamp) and of_stamp(graph["candidates"], stamp), 10.0), \
         read_log(graph["procs"][NODE])[-2000:]
@@ -268,10 +271,7 @@ def test_a_goal_that_ages_out_is_withdrawn_and_the_status_says_so(graph):
     try:
         rotation, position = camera_in_map(1.2, 10.0)
         stamp = now_ns(graph)
-        target, plane = observation(stamp, rotation, position)
-        graph["ground_pub"].publish(plane)
-        probe.spin_for(0.05)
-        graph["target_pub"].publish(target)
+        send_observation(graph, stamp, rotation, position)
         assert probe.spin_until(lambda: of_stamp(graph["goals"], stamp), 10.0)
         published = time.monotonic()
         assert probe.spin_until(lambda: status_of(graph, stamp, GoalStatus.STATE_STALE), 5.0)
@@ -290,10 +290,7 @@ def test_a_goal_that_ages_out_is_withdrawn_and_the_status_says_so(graph):
         assert counter_reaches(graph, "dropped.goal_withdrawn_stale", 1)
         # A fresh frame makes the goal current again.
         fresh = now_ns(graph)
-        target, plane = observation(fresh, rotation, position)
-        graph["ground_pub"].publish(plane)
-        probe.spin_for(0.05)
-        graph["target_pub"].publish(target)
+        send_observation(graph, fresh, rotation, position)
         assert probe.spin_until(lambda: status_of(graph, fresh, GoalStatus.STATE_CURRENT), 10.0)
     finally:
         assert set_parameters(probe, NODE, max_goal_age_s=MAX_GOAL_AGE_S)[0].successful
@@ -309,10 +306,7 @@ def test_a_goal_to_a_target_out_of_view_is_held_longer_and_then_withdrawn(graph)
     try:
         rotation, position = camera_in_map(1.2, 10.0)
         stamp = now_ns(graph)
-        target, plane = observation(stamp, rotation, position)
-        graph["ground_pub"].publish(plane)
-        probe.spin_for(0.05)
-        graph["target_pub"].publish(target)
+        send_observation(graph, stamp, rotation, position)
         assert probe.spin_until(lambda: of_stamp(graph["goals"], stamp), 10.0)
         published = time.monotonic()
         track_pub.publish(TargetTrack(header=header_with_stamp(stamp, FRAME_ID), state=TargetTrack.STATE_NOT_SEEN,
