@@ -4,7 +4,9 @@ Every module under src/<package>/<package>/ is parsed (imports inside functions 
 module may import its own package and packages of a lower layer only. docs/ARCHITECTURE.md
 explains the layers. A core module (any module outside a ``nodes/`` folder and outside the ROS
 glue listed in ``ROS_GLUE``) imports neither rclpy nor a message package. Tests (src/*/test,
-tests/) are not checked: they may use anything below or beside what they test.
+tests/) are not checked: they may use anything below or beside what they test. Every
+``from leapnbv_<package>... import name`` (in the packages, scripts/, tools/ and tests/) must name
+something its module defines: an import inside a function fails only when the function runs.
 """
 from __future__ import annotations
 
@@ -208,3 +210,77 @@ def test_the_ros_checks_see_what_they_should(tmp_path: Path) -> None:
     assert not is_core(SRC / "leapnbv_sim" / "leapnbv_sim" / "nodes" / "simulator_node.py")
     assert is_core(SRC / "leapnbv_sim" / "leapnbv_sim" / "sample_bags.py")
     assert is_core(SRC / "leapnbv_evaluation" / "leapnbv_evaluation" / "episode.py")
+
+
+# ------------------------------------------------------------------ imports that name what exists
+
+ROOT = SRC.parent
+# Code outside the packages that imports them, often inside a function (tools run in their own environment,
+# so their imports of the runtime packages are only executed when a command reaches them).
+IMPORTING_OUTSIDE_SRC = ("scripts", "tools/leapnbv_model_tools", "tools/tests", "tests")
+
+
+def module_file(dotted: str) -> Path:
+    """The file of a runtime package's module (its __init__.py for a package), which may not exist."""
+    parts = dotted.split(".")
+    base = SRC.joinpath(parts[0], *parts)
+    return base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
+
+
+def top_level_names(path: Path) -> Set[str]:
+    """Names a module defines or imports at its top level (inside top-level if / try blocks too)."""
+    names: Set[str] = {"__doc__", "__file__", "__name__"}
+    body = list(ast.parse(path.read_text(), filename=str(path)).body)
+    while body:
+        node = body.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(n.id for target in targets for n in ast.walk(target) if isinstance(n, ast.Name))
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((alias.asname or alias.name).split(".")[0] for alias in node.names)
+        elif isinstance(node, (ast.If, ast.Try)):
+            body.extend(node.body + node.orelse + getattr(node, "finalbody", []))
+            body.extend(n for handler in getattr(node, "handlers", []) for n in handler.body)
+    return names
+
+
+def missing_imported_names(path: Path) -> List[str]:
+    """'file:line: module.name' for each `from leapnbv_<package>... import name` that names nothing there."""
+    wrong = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if not (isinstance(node, ast.ImportFrom) and node.level == 0 and node.module):
+            continue
+        top = node.module.split(".")[0]
+        if top not in LAYERS or top == "leapnbv_msgs":  # leapnbv_msgs is generated at build time
+            continue
+        target = module_file(node.module)
+        where = f"{path.relative_to(ROOT) if ROOT in path.parents else path}:{node.lineno}"
+        if not target.is_file():
+            wrong.append(f"{where}: no module {node.module}")
+            continue
+        defined = top_level_names(target)
+        for alias in node.names:
+            submodule = module_file(f"{node.module}.{alias.name}")
+            if alias.name not in defined and not submodule.is_file():
+                wrong.append(f"{where}: {node.module} has no {alias.name}")
+    return wrong
+
+
+def test_every_project_import_names_what_exists() -> None:
+    # An import inside a function fails only when that function runs: a tool's command or a benchmark that
+    # no test reaches kept importing a helper after it moved to another package.
+    files = [path for package_dir in package_dirs() for path in python_files(package_dir)]
+    files += [path for folder in IMPORTING_OUTSIDE_SRC for path in sorted((ROOT / folder).rglob("*.py"))]
+    wrong = [entry for path in files for entry in missing_imported_names(path)]
+    assert not wrong, "imports of names that do not exist:\n" + "\n".join(wrong)
+
+
+def test_the_import_check_sees_a_moved_name(tmp_path: Path) -> None:
+    script = tmp_path / "s.py"
+    script.write_text("def f():\n    from leapnbv_evaluation.metrics import pa_mpvpe_mm, is_success\n"
+                      "    from leapnbv_common.procrustes import pa_mpvpe_mm\n"
+                      "    from leapnbv_common import procrustes\n    from leapnbv_common.nowhere import x\n")
+    found = [entry.split(": ", 1)[1] for entry in missing_imported_names(script)]
+    assert found == ["leapnbv_evaluation.metrics has no pa_mpvpe_mm", "no module leapnbv_common.nowhere"]

@@ -150,7 +150,7 @@ def hand_vertices(body) -> np.ndarray:
 def mesh_difference(reference: np.ndarray, other: np.ndarray, hands: np.ndarray) -> Dict[str, float]:
     """mm: mean / max vertex distance (no alignment) and PA-MPVPE over the whole mesh; mean / max over the hand
     vertices, without alignment and (``hand_pa_mean``) after the whole mesh's Procrustes alignment."""
-    from leapnbv_evaluation.metrics import procrustes_align
+    from leapnbv_common.procrustes import procrustes_align
 
     distance = np.linalg.norm(np.asarray(other, np.float64) - np.asarray(reference, np.float64), axis=1) * 1e3
     aligned = np.linalg.norm(procrustes_align(other, reference) - np.asarray(reference, np.float64), axis=1) * 1e3

@@ -229,7 +229,7 @@ KEEP_FP32_DEFAULT = {"hmr": "heads", "detector": "none"}
 
 def hmr_accuracy(fp32, int8, evaluation, frames) -> str:
     """PA-MPVPE between the INT8 and FP32 meshes through the same SMPL-X tail, and the largest output difference."""
-    from leapnbv_evaluation.metrics import pa_mpvpe_mm
+    from leapnbv_common.procrustes import pa_mpvpe_mm
     from leapnbv_perception.hmr import HumanMeshEstimator
     from leapnbv_perception.smplx_layer import SMPLXModel
     from leapnbv_stand_ins.files import ensure_stand_in_smplx_dense
