@@ -37,7 +37,7 @@ from typing import Dict, List, Optional, Protocol, Tuple
 
 import numpy as np
 
-from leapnbv_common.array_types import FloatArray
+from leapnbv_common.array_types import FloatArray, IntArray
 from leapnbv_common.conversions import ConversionError, detections_to_boxes, image_to_numpy
 from leapnbv_common.topics import DETECTIONS, PERSON_MASK, TARGET_TRACK
 from leapnbv_evaluation.continuous_results import (
@@ -51,6 +51,7 @@ from leapnbv_evaluation.continuous_results import (
 from leapnbv_evaluation.episode import view_metrics
 from leapnbv_evaluation.frame_outputs import FrameOutputs
 from leapnbv_evaluation.options import EvaluationOptions
+from leapnbv_perception.target_tracking import LAYER_BIN_M, TrackerConfig, box_depth_layers, box_places_camera
 from leapnbv_sim.motion_stack import path_length
 from leapnbv_sim.render import PERSON_ID, RenderedFrame
 from leapnbv_sim.scene import Scene
@@ -153,22 +154,71 @@ def detected_people(scene: Scene, rendered: RenderedFrame, outputs: FrameOutputs
     return found
 
 
+def _whose(ids: IntArray, depth: FloatArray, people: List[int], near: float, far: float) -> Optional[int]:
+    """The person object with most of the pixels whose depth is in [near, far] (None: no person's)."""
+    with np.errstate(invalid="ignore"):
+        at = (depth >= near) & (depth <= far)
+    counts = [int(np.count_nonzero(at & (ids == person))) for person in people]
+    return people[int(np.argmax(counts))] if counts and max(counts) > 0 else None
+
+
+def box_place_people(scene: Scene, rendered: RenderedFrame, boxes: FloatArray) -> List[List[Dict[str, object]]]:
+    """Per box, the tracker's candidate places of it (default TrackerConfig) and whose pixels each place is.
+
+    Each place: its floor position in the world ("xy", m) and the person object with most of the box's pixels
+    within LAYER_BIN_M of its depth ("person"; None: no person's). The evaluation's view of what the tracker
+    measured: a place of one person's box that is another person's pixels is how a box gets taken for the wrong
+    person. The last entry of each box's list is {"layers": [[z, columns, extent, behind_a_filler, person]]},
+    every depth layer of it (:func:`leapnbv_perception.target_tracking.box_depth_layers`).
+    """
+    ids = np.asarray(rendered.object_id)
+    depth = np.asarray(rendered.depth_m, dtype=np.float64)
+    height, width = ids.shape[:2]
+    people = person_ids(scene)
+    rotation, position = rendered.camera_pose.rotation, rendered.camera_pose.position
+    out: List[List[Dict[str, object]]] = []
+    for box, places in zip(boxes, box_places_camera(boxes, (width, height), depth, rendered.K, TrackerConfig())):
+        x0, y0 = int(np.clip(np.floor(box[0]), 0, width)), int(np.clip(np.floor(box[1]), 0, height))
+        x1, y1 = int(np.clip(np.ceil(box[2]), 0, width)), int(np.clip(np.ceil(box[3]), 0, height))
+        inside_ids, inside_depth = ids[y0:y1, x0:x1], depth[y0:y1, x0:x1]
+        records: List[Dict[str, object]] = []
+        for place in places:
+            world = rotation @ place + position
+            records.append({"xy": [round(float(world[0]), 2), round(float(world[1]), 2)],
+                            "person": _whose(inside_ids, inside_depth, people, place[2] - LAYER_BIN_M,
+                                             place[2] + LAYER_BIN_M)})
+        _, layers = box_depth_layers(np.asarray(box, dtype=np.float64), (1.0, 1.0), depth, TrackerConfig())
+        records.append({"layers": [[round(layer.z, 2), round(layer.columns, 2), round(layer.extent, 2),
+                                    layer.behind_a_filler,
+                                    _whose(inside_ids, inside_depth, people, layer.near, layer.far)]
+                                   for layer in layers]})
+        out.append(records)
+    return out
+
+
 def other_person_record(frame: int, person: int, scene: Scene, rendered: RenderedFrame,
                         outputs: FrameOutputs) -> Dict[str, object]:
-    """What explains a frame whose target was another person: the tracker's decision and who each detection was."""
+    """What explains a frame whose target was another person: the tracker's decision and who each detection was.
+
+    "places" lists each box's candidate places and whose pixels they are (:func:`box_place_people`),
+    "track_xy" the tracker's (predicted or filtered) target position in its fixed frame.
+    """
     track = outputs.messages.get(TARGET_TRACK)
     record: Dict[str, object] = {"frame": int(frame), "person": int(person),
                                  "detections": detected_people(scene, rendered, outputs)}
     msg = outputs.messages.get(DETECTIONS)
     if msg is not None:
         try:
-            record["boxes"] = [[round(float(v), 1) for v in box[:4]] for box in detections_to_boxes(msg)]
+            boxes = detections_to_boxes(msg)
+            record["boxes"] = [[round(float(v), 1) for v in box[:4]] for box in boxes]
+            record["places"] = box_place_people(scene, rendered, np.asarray(boxes, dtype=np.float64))
         except ConversionError:
             pass
     record["target_box"] = rendered.ground_truth.person_box_xyxy
     if track is not None:
         record.update(track_id=int(track.track_id), state=int(track.state),
-                      detection_index=int(track.detection_index), reason=str(track.reason))
+                      detection_index=int(track.detection_index), reason=str(track.reason),
+                      track_xy=[round(float(track.position.x), 2), round(float(track.position.y), 2)])
     return record
 
 

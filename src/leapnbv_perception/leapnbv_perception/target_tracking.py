@@ -12,9 +12,9 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    whole box fall into layers, an occluder's, the person's, the background's): a track measures a box at the candidate
    nearest its prediction, so an occluder over most of the target's central box does not move the target to
    the occluder (nor start a track there that later claims the target's box). A place at which the box
-   would be larger than ``max_person_extent_m`` (height or width) is no person's, and neither is a layer found
-   in less than :data:`LAYER_MIN_COLUMNS` of the box's columns behind a nearer layer that fills that share: a
-   near person's box that shows a hidden target behind them is not measured at the target's depth.
+   would be larger than ``max_person_extent_m`` (height or width) is no person's, and neither is a layer behind
+   one that fills the box (:func:`box_depth_layers`; the box's central median neither): a near person's box that
+   shows a hidden target behind them is not measured at the target's depth.
 2. **Where the target should be.** A constant-velocity Kalman filter of the target's horizontal position
    (x, y of the fixed frame, whose z is up) and velocity, predicted to the frame's stamp.
 3. **Which detection it is.** The gate: a detection is the target only within ``gate_m + gate_growth_m_s *
@@ -24,8 +24,10 @@ Each detections frame, :meth:`TargetTracker.update` decides which detection is t
    :data:`DISTANCE_TIE_M` tie: the target first, then the lowest detection index), so a bystander standing
    next to a hidden target keeps its own track and is never taken for it. Boxes measured within
    ``ambiguity_m`` of one place in the gate (a box mostly covered by another person's has only that person's
-   depth) are told apart in the image: the one overlapping the target's last box most is the target, and the
-   place, which is neither person's for certain, moves no track (the prediction stands).
+   depth) are told apart in the image: the one overlapping the target's expected box most is the target (its
+   last box as a rectangle at its depth, moved to the predicted place and seen from this frame's camera: the
+   robot may have moved or turned since), and the place, which is neither person's for certain, moves no track
+   (the prediction stands). When none of them overlaps that box by ``min_track_iou``, none is the target.
 4. **States.** TRACKED (a detection is the target), NOT_SEEN (none is: the target is kept at its
    predicted place and only a detection inside the gate can be it again), LOST (not seen for longer than
    ``lost_after_s``: dropped), NONE (no target yet). A frame that finds the target lost takes a new one
@@ -58,8 +60,9 @@ from leapnbv_perception.target_selection import acquisition_index, box_iou, over
 
 __all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE_NAMES", "MODE_FIXED_FRAME",
            "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
-           "box_positions_camera", "box_places_camera", "depth_layers", "depth_layer_ranges", "layer_column_share",
-           "LAYER_MIN_COLUMNS"]
+           "box_positions_camera", "box_places_camera", "box_depth_layers", "DepthLayer", "depth_layers",
+           "depth_layer_ranges", "layer_column_share", "layer_extent_share", "LAYER_MIN_COLUMNS",
+           "LAYER_FILLS_EXTENT"]
 
 # leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
 STATE_NONE = 0
@@ -79,9 +82,11 @@ DISTANCE_TIE_M = 1e-3
 LAYER_BIN_M = 0.1
 LAYER_GAP_SHARE = 0.02
 MIN_LAYER_SHARE = 0.15
-# A depth layer found in less than this share of its box's columns, behind a nearer layer found in this share,
-# is no place of the box: a person fills their box's width at their depth, one behind shows only in its gaps.
+# A depth layer found in at least LAYER_MIN_COLUMNS of its box's columns whose readings span at least
+# LAYER_FILLS_EXTENT of the box's area fills the box: it is the box's person (a detector draws the box around
+# them), and what lies behind it (a hidden person seen in its gaps, the background) is no place of the box.
 LAYER_MIN_COLUMNS = 0.7
+LAYER_FILLS_EXTENT = 0.8
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -231,6 +236,87 @@ def layer_column_share(grid: FloatArray, near: float, far: float) -> float:
     return float(np.count_nonzero(inside.any(axis=0))) / float(valid)
 
 
+def layer_extent_share(grid: FloatArray, near: float, far: float) -> float:
+    """Share of a box's ``grid`` that the readings in [near, far] (m) span: their bounding rectangle's area.
+
+    A detector draws a box around its person's visible pixels, so their layer spans the box (1.0 for a tight
+    box, occluded parts included in the span); a person farther behind, seen through a near person's box,
+    spans only the part of it where their own, smaller box lies.
+    """
+    if grid.size == 0:
+        return 0.0
+    with np.errstate(invalid="ignore"):
+        inside = (grid >= near) & (grid <= far)
+    rows, columns = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    if rows.size == 0:
+        return 0.0
+    return float((rows[-1] - rows[0] + 1) * (columns[-1] - columns[0] + 1)) / float(grid.shape[0] * grid.shape[1])
+
+
+@dataclass(frozen=True)
+class DepthLayer:
+    """One depth layer of a box (:func:`box_depth_layers`).
+
+    Attributes:
+        z: m, its median depth.
+        near: m, its nearest reading.
+        far: m, its farthest reading.
+        columns: share of the box's columns with a reading in it (:func:`layer_column_share`).
+        extent: share of the box its readings span (:func:`layer_extent_share`).
+        fills: it is in LAYER_MIN_COLUMNS of the columns and spans LAYER_FILLS_EXTENT of the box.
+        behind_a_filler: a nearer layer fills the box: this one is someone or something behind the box's person.
+    """
+
+    z: float
+    near: float
+    far: float
+    columns: float
+    extent: float
+    fills: bool
+    behind_a_filler: bool
+
+
+def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: FloatingArray,
+                     config: TrackerConfig) -> Tuple[Optional[float], List[DepthLayer]]:
+    """(the median of the box's central part or None without enough readings, the layers of the whole box).
+
+    ``scale``: (depth width / image width, depth height / image height). A layer ``fills`` the box when it is
+    in :data:`LAYER_MIN_COLUMNS` of its columns and its readings span :data:`LAYER_FILLS_EXTENT` of its area, and
+    is ``behind_a_filler`` when a nearer layer fills it. A person's box is drawn around them: a nearer layer
+    that fills it is the box's person, and a layer behind is a hidden person seen in their gaps or the
+    background. An occluder in front of a person's lower body (full width, part of the height), a narrow pole
+    down the middle or an occluder over the centre fills no box: the person behind stays a place.
+    """
+    height, width = depth.shape[:2]
+    sx, sy = scale
+    if not np.all(np.isfinite(box[:4])):
+        return None, []
+    half = 0.5 * float(config.central_share)
+    u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
+    hw, hh = half * (box[2] - box[0]) * sx, half * (box[3] - box[1]) * sy
+    u0, u1 = int(np.clip(np.floor(u - hw), 0, width)), int(np.clip(np.ceil(u + hw), 0, width))
+    v0, v1 = int(np.clip(np.floor(v - hh), 0, height)), int(np.clip(np.ceil(v + hh), 0, height))
+    values = np.asarray(depth[v0:v1, u0:u1], dtype=np.float64).ravel()
+    with np.errstate(invalid="ignore"):
+        values = values[np.isfinite(values) & (values >= config.min_depth_m) & (values <= config.max_depth_m)]
+    if values.size < max(1, int(config.min_depth_pixels)):
+        return None, []
+    # The layers come from the whole box (every other pixel): an occluder may cover all of its central part.
+    b0, b1 = int(np.clip(np.floor(box[1] * sy), 0, height)), int(np.clip(np.ceil(box[3] * sy), 0, height))
+    a0, a1 = int(np.clip(np.floor(box[0] * sx), 0, width)), int(np.clip(np.ceil(box[2] * sx), 0, width))
+    grid = np.asarray(depth[b0:b1:2, a0:a1:2], dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        grid = np.where(np.isfinite(grid) & (grid >= config.min_depth_m) & (grid <= config.max_depth_m), grid, np.nan)
+    ranges = depth_layer_ranges(grid[np.isfinite(grid)])
+    stats = [(z, near, far, layer_column_share(grid, near, far), layer_extent_share(grid, near, far))
+             for z, near, far in ranges]
+    fillers = [far for _, _, far, columns, extent in stats
+               if columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT]
+    layers = [DepthLayer(z, near, far, columns, extent, columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT,
+                         any(f < near for f in fillers)) for z, near, far, columns, extent in stats]
+    return float(np.median(values)), layers
+
+
 def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: FloatingArray, k: FloatArray,
                       config: TrackerConfig) -> List[FloatArray]:
     """Each box's candidate places in the depth camera's optical frame (m): a (M, 3) array per box.
@@ -239,50 +325,36 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     of the whole box (every other pixel) that differ from it by more than half a bin, back-projected through
     the box centre the same way: where an occluder covers the central part of a person's box, the person is
     one of the layers (the parts of them around the occluder), and so is the background. Two checks keep a
-    hidden person's depth, seen in the gaps of a nearer person's box, from being a place of that box:
+    hidden person's depth, seen through a nearer person's box, from being a place of that box (or its row 0):
     places at which the box would measure more than ``config.max_person_extent_m`` high or wide (size =
-    pixels * depth / focal length) are left out, and so is a layer found in less than :data:`LAYER_MIN_COLUMNS`
-    of the box's columns (:func:`layer_column_share`) behind a nearer layer that fills that share: the nearer
-    person fills their box, the one behind shows in its gaps (a narrow occluder in front of a person, which
-    fills fewer columns, leaves the person's layer a place). (0, 3) for a box without enough valid readings,
-    or none that fits.
+    pixels * depth / focal length) are left out, and so is every layer :func:`box_depth_layers` finds behind a
+    nearer layer that fills the box (a narrow occluder in front of a person, or one over their lower body, fills
+    no box and leaves the person's layer a place). A central median behind that layer is no place either: the
+    filling layer is row 0 then. (0, 3) for a box without enough valid readings, or none that fits.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
     height, width = depth.shape[:2]
     sx, sy = width / float(image_size[0]), height / float(image_size[1])
-    half = 0.5 * float(config.central_share)
     out: List[FloatArray] = []
     for box in boxes:
-        out.append(np.zeros((0, 3)))
-        if not np.all(np.isfinite(box[:4])):
+        median, layers = box_depth_layers(box, (sx, sy), depth, config)
+        if median is None:
+            out.append(np.zeros((0, 3)))
             continue
+        kept = [layer for layer in layers if not layer.behind_a_filler]
+        front = min((layer for layer in layers if layer.fills), key=lambda layer: layer.z, default=None)
+        # A central median behind the layer that fills the box (the hidden person through a gap in the middle of
+        # the box's person, even one too small to be a layer of the whole box) is not the box's place: its
+        # person is.
+        zs = [median] if front is None or median <= front.far else [front.z]
+        zs += [layer.z for layer in kept if all(abs(layer.z - z) > 0.5 * LAYER_BIN_M for z in zs)]
         u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
-        hw, hh = half * (box[2] - box[0]) * sx, half * (box[3] - box[1]) * sy
-        u0, u1 = int(np.clip(np.floor(u - hw), 0, width)), int(np.clip(np.ceil(u + hw), 0, width))
-        v0, v1 = int(np.clip(np.floor(v - hh), 0, height)), int(np.clip(np.ceil(v + hh), 0, height))
-        values = np.asarray(depth[v0:v1, u0:u1], dtype=np.float64).ravel()
-        with np.errstate(invalid="ignore"):
-            values = values[np.isfinite(values) & (values >= config.min_depth_m) & (values <= config.max_depth_m)]
-        if values.size < max(1, int(config.min_depth_pixels)):
-            continue
-        median = float(np.median(values))
-        # The layers come from the whole box (every other pixel): an occluder may cover all of its central part.
-        b0, b1 = int(np.clip(np.floor(box[1] * sy), 0, height)), int(np.clip(np.ceil(box[3] * sy), 0, height))
-        a0, a1 = int(np.clip(np.floor(box[0] * sx), 0, width)), int(np.clip(np.ceil(box[2] * sx), 0, width))
-        grid = np.asarray(depth[b0:b1:2, a0:a1:2], dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            grid = np.where(np.isfinite(grid) & (grid >= config.min_depth_m) & (grid <= config.max_depth_m),
-                            grid, np.nan)
-        layers = [(z, near, far, layer_column_share(grid, near, far)) for z, near, far in
-                  depth_layer_ranges(grid[np.isfinite(grid)])]
-        zs = [median] + [z for z, near, _, share in layers if abs(z - median) > 0.5 * LAYER_BIN_M and not (
-            share < LAYER_MIN_COLUMNS and any(f < near and s >= LAYER_MIN_COLUMNS for _, _, f, s in layers))]
         # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).
         fits = config.max_person_extent_m / max((box[2] - box[0]) * sx / k[0, 0], (box[3] - box[1]) * sy / k[1, 1],
                                                 1e-9)
-        out[-1] = np.array([((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs if z <= fits])
-        out[-1] = out[-1].reshape(-1, 3)
+        places = [((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs if z <= fits]
+        out.append(np.array(places, dtype=np.float64).reshape(-1, 3))
     return out
 
 
@@ -354,6 +426,10 @@ class _Track:
     fixed_frame: str = ""
     filter: Optional[_Filter] = None
     last_box: Optional[FloatArray] = None
+    # The last box as a rectangle in the fixed frame (4 corners at its place's depth) and that place's x, y: the
+    # box expected in a later frame from another camera pose (:meth:`TargetTracker._expected_box`).
+    box_corners: Optional[FloatArray] = None
+    box_xy: Optional[FloatArray] = None
     seen_with_target: int = 0  # another person's: the track_id of the target last seen in the same frame
 
 
@@ -376,6 +452,8 @@ class TargetTracker:
         self.others: List[_Track] = []
         self.last_stamp_ns: Optional[int] = None
         self._places: List[FloatArray] = []  # this frame's candidate places of each box, in the fixed frame
+        # This frame's camera (rotation, position, intrinsics, depth px per image px) when it has positions.
+        self._view: Optional[Tuple[FloatArray, FloatArray, FloatArray, float, float]] = None
 
     # ------------------------------------------------------------------ the frame
 
@@ -402,6 +480,7 @@ class TargetTracker:
         if not cfg.follow:
             self.target, self.others, self.lost = None, [], None
             return self._acquire(stamp_ns, boxes, usable, image_size, None, None, "track_previous_target is off")
+        self._view = None
         why_image, positions = self._positions(boxes, usable, image_size, depth, k, pose)
         frame = "" if positions is None or pose is None else str(pose.frame_id)
         if positions is not None and self.others and self.others[0].fixed_frame != frame:
@@ -438,6 +517,8 @@ class TargetTracker:
         rotation = np.asarray(pose.rotation, dtype=np.float64).reshape(3, 3)
         position = np.asarray(pose.position, dtype=np.float64).reshape(3)
         self._places = [candidates @ rotation.T + position for candidates in places]
+        self._view = (rotation, position, np.asarray(k, dtype=np.float64).reshape(3, 3),
+                      depth.shape[1] / float(image_size[0]), depth.shape[0] / float(image_size[1]))
         primary = np.full((len(places), 3), np.nan)
         for i, candidates in enumerate(self._places):
             if len(candidates):
@@ -453,6 +534,38 @@ class TargetTracker:
         distances = np.hypot(candidates[:, 0] - xy[0], candidates[:, 1] - xy[1])
         best = int(np.flatnonzero(distances <= distances.min() + DISTANCE_TIE_M)[0])
         return float(distances[best]), candidates[best]
+
+    def _remember_box(self, track: _Track, box: FloatArray, point: FloatArray) -> None:
+        """The track's last box, and that box as a rectangle in the fixed frame at ``point``'s depth."""
+        track.last_box = np.asarray(box[:4], dtype=np.float64).copy()
+        track.box_corners, track.box_xy = None, None
+        if self._view is None or not np.all(np.isfinite(point)):
+            return
+        rotation, position, k, sx, sy = self._view
+        z = float((rotation.T @ (np.asarray(point, dtype=np.float64) - position))[2])
+        if z <= 0.0:
+            return
+        corners = np.array([[u * sx, v * sy] for u in (box[0], box[2]) for v in (box[1], box[3])])
+        camera = np.column_stack([(corners[:, 0] - k[0, 2]) * z / k[0, 0], (corners[:, 1] - k[1, 2]) * z / k[1, 1],
+                                  np.full(4, z)])
+        track.box_corners, track.box_xy = camera @ rotation.T + position, np.asarray(point[:2], dtype=np.float64)
+
+    def _expected_box(self, track: _Track, stamp_ns: int) -> Optional[FloatArray]:
+        """The track's last box as this frame's camera sees it at the predicted place (None: cannot say).
+
+        The rectangle of :meth:`_remember_box`, moved by the prediction's displacement since, projected with this
+        frame's pose and intrinsics: after the robot moved or turned, the image box the target should have.
+        """
+        if self._view is None or track.box_corners is None or track.box_xy is None or track.filter is None:
+            return None
+        rotation, position, k, sx, sy = self._view
+        shift = np.append(track.filter.predicted(stamp_ns, self.config)[0][0] - track.box_xy, 0.0)
+        camera = (track.box_corners + shift - position) @ rotation
+        if np.any(camera[:, 2] <= 0.1):
+            return None
+        u = (k[0, 0] * camera[:, 0] / camera[:, 2] + k[0, 2]) / sx
+        v = (k[1, 1] * camera[:, 1] / camera[:, 2] + k[1, 2]) / sy
+        return np.array([u.min(), v.min(), u.max(), v.max()])
 
     # ------------------------------------------------------------------ outcomes
 
@@ -491,7 +604,8 @@ class TargetTracker:
             return TargetDecision(STATE_NONE, -1, 0, "", zero, zero.copy(), 0.0, 0, f"no target yet: {what}",
                                   MODE_FIXED_FRAME if fixed else MODE_IMAGE)
         previous = self.lost
-        track = _Track(self.next_id, stamp_ns, last_box=boxes[index, :4].copy())
+        track = _Track(self.next_id, stamp_ns)
+        self._remember_box(track, boxes[index], positions[index] if positions is not None else np.full(3, np.nan))
         self.next_id += 1
         if fixed:
             assert positions is not None and frame is not None
@@ -558,7 +672,8 @@ class TargetTracker:
         """An image-only frame of a live target: the box overlapping its last box."""
         index, iou = overlapping_index(boxes, target.last_box, self.config.min_track_iou, usable)
         if index >= 0:
-            target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
+            target.last_seen_ns = stamp_ns
+            self._remember_box(target, boxes[index], np.full(3, np.nan))
             return self._decision(target, stamp_ns, STATE_TRACKED, index, f"image only ({why_image}): overlaps the"
                                   f" last target box, IoU {iou:.2f}", MODE_IMAGE)
         if target.filter is None and np.any(usable):  # a track that never had a position: the image-only rule
@@ -589,7 +704,8 @@ class TargetTracker:
                                   f"{frame!r} and no box overlaps the last target box", MODE_FIXED_FRAME)
         target.filter = _Filter(stamp_ns, positions[index], positions[index, 2], self.config)
         target.fixed_frame = frame
-        target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
+        target.last_seen_ns = stamp_ns
+        self._remember_box(target, boxes[index], positions[index])
         return self._decision(target, stamp_ns, STATE_TRACKED, index, f"overlaps the last target box (IoU "
                               f"{iou:.2f}): its place in {frame!r} starts the track", MODE_FIXED_FRAME)
 
@@ -604,19 +720,24 @@ class TargetTracker:
         distances = np.full(len(positions), np.nan)
         for j in np.flatnonzero(with_position):
             distances[j], points[j] = self._measured(int(j), predicted[0])
-        chosen, iou, group = self._disambiguated(boxes, points, with_position, distances, gate, target)
-        assignment = self._assign(stamp_ns, positions, with_position, with_target=True, target_detection=chosen)
+        chosen, iou, group = self._disambiguated(stamp_ns, boxes, points, with_position, distances, gate, target)
+        refused: AbstractSet[int] = frozenset()
+        if chosen >= 0 and iou < cfg.min_track_iou:  # no box of the group is where the target's last box was
+            chosen, refused = -1, group
+        assignment = self._assign(stamp_ns, positions, with_position, with_target=True, target_detection=chosen,
+                                  not_target=refused)
         index = assignment.pop(-1, -1)
         self._apply_others(stamp_ns, positions, frame, assignment, set() if index < 0 else {index}, unmeasured=group,
                            with_target=0 if index < 0 else target.track_id)
         if index >= 0:
             if chosen < 0:  # boxes measured at one place say where neither person is: the prediction stands
                 target.filter.update(stamp_ns, points[index], points[index, 2], cfg)
-            target.last_seen_ns, target.last_box = stamp_ns, boxes[index, :4].copy()
+            target.last_seen_ns = stamp_ns
+            self._remember_box(target, boxes[index], points[index])
             how = (f"nearest detection to the predicted place, {distances[index]:.2f} m (gate {gate:.2f} m)"
                    if chosen < 0 else f"{len(group)} detections measured within {cfg.ambiguity_m:g} m of one place "
-                   f"{distances[index]:.2f} m from the predicted one (gate {gate:.2f} m): the one overlapping the last "
-                   f"target box most, IoU {iou:.2f} (the place is not a measurement: the prediction kept)")
+                   f"{distances[index]:.2f} m from the predicted one (gate {gate:.2f} m): the one overlapping the "
+                   f"target's expected box most, IoU {iou:.2f} (the place is not a measurement: the prediction kept)")
             return self._decision(target, stamp_ns, STATE_TRACKED, index, how, MODE_FIXED_FRAME, gate_m=gate)
         if not np.any(with_position):
             what = "no detections" if len(boxes) == 0 else "no detection with depth"
@@ -625,19 +746,24 @@ class TargetTracker:
             what = f"no detection within the gate {gate:.2f} m of the predicted place (nearest {nearest:.2f} m)"
             if nearest <= gate:
                 what = f"the detections within the gate {gate:.2f} m are nearer other people followed"
+            if refused:
+                what = (f"{len(refused)} detections measured within {cfg.ambiguity_m:g} m of one place in the gate "
+                        f"{gate:.2f} m, none overlapping the target's expected box by {cfg.min_track_iou:g} (best "
+                        f"IoU {iou:.2f}): none of them is taken for the target")
         return self._decision(target, stamp_ns, STATE_NOT_SEEN, -1, f"not seen: {what}", MODE_FIXED_FRAME,
                               gate_m=gate)
 
     # ------------------------------------------------------------------ the assignment and the other people
 
-    def _disambiguated(self, boxes: FloatArray, points: FloatArray, with_position: BoolArray,
+    def _disambiguated(self, stamp_ns: int, boxes: FloatArray, points: FloatArray, with_position: BoolArray,
                        distances: FloatArray, gate: float, target: _Track) -> Tuple[int, float, Set[int]]:
-        """(the target's detection among boxes measured at one place, its IoU with the last target box, them).
+        """(the target's detection among boxes measured at one place, its IoU with the expected box, them).
 
         The place is the nearest detection's in the gate; the boxes measured within ambiguity_m of it
-        (horizontally) are the group, and the one overlapping the target's last box most is the target
-        (IoUs within 1e-6 tie: the nearest to the prediction, then the lowest index). (-1, 0, {}) when the
-        group has one box, or the target has no last box.
+        (horizontally) are the group, and the one overlapping the target's expected box most is the target
+        (IoUs within 1e-6 tie: the nearest to the prediction, then the lowest index). The expected box is the
+        last target box as this frame's camera sees it at the predicted place (:meth:`_expected_box`), the last
+        box itself when that cannot be said. (-1, 0, {}) when the group has one box, or the target has no box.
         """
         inside = np.flatnonzero(with_position & (distances <= gate))
         if inside.size < 2 or target.last_box is None:
@@ -647,7 +773,9 @@ class TargetTracker:
         group = inside[apart <= self.config.ambiguity_m]
         if group.size < 2:
             return -1, 0.0, set()
-        overlaps = box_iou(np.asarray(target.last_box, dtype=np.float64), boxes[group])
+        expected = self._expected_box(target, stamp_ns)
+        reference = target.last_box if expected is None else expected
+        overlaps = box_iou(np.asarray(reference, dtype=np.float64), boxes[group])
         best = float(overlaps.max())
         tied = group[overlaps >= best - 1e-6]
         lowest = float(np.min(distances[tied]))
@@ -655,13 +783,15 @@ class TargetTracker:
         return chosen, best, {int(j) for j in group}
 
     def _assign(self, stamp_ns: int, positions: Optional[FloatArray], candidates: BoolArray,
-                with_target: bool, target_detection: int = -1) -> Dict[int, int]:
+                with_target: bool, target_detection: int = -1,
+                not_target: AbstractSet[int] = frozenset()) -> Dict[int, int]:
         """Detections given to tracks nearest first, within each track's gate: {track key: detection index}.
 
         The target's key is -1, another person's its index in ``self.others``. Distances within DISTANCE_TIE_M
         of the nearest pair left tie: then the target first, then the others in the order they were first
         seen, then the lowest detection index. ``target_detection`` >= 0: the target's detection, decided
-        before (:meth:`_disambiguated`); the others share the rest.
+        before (:meth:`_disambiguated`); the others share the rest. ``not_target``: detections the target may
+        not have (a group measured at one place, none of it overlapping the target's last box).
         """
         if positions is None:
             return {}
@@ -681,6 +811,7 @@ class TargetTracker:
         if target_detection >= 0 and with_target:
             assignment[-1] = int(target_detection)
             pairs = [p for p in pairs if p[3] != -1 and p[2] != target_detection]
+        pairs = [p for p in pairs if not (p[3] == -1 and p[2] in not_target)]
         while pairs:
             nearest = min(p[0] for p in pairs)
             _, _, j, key = min((p for p in pairs if p[0] <= nearest + DISTANCE_TIE_M), key=lambda p: (p[1], p[2]))
