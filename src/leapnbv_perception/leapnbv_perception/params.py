@@ -139,7 +139,8 @@ class HmrParams(EngineParams):
     track_previous_target: bool = param(True, "follow the target from frame to frame (false: every frame takes the "
                                         "acquisition rule's box, a new track each frame)")
     min_track_iou: float = param(0.3, "frames decided in the image only: the overlap with the last target box that "
-                                 "continues the target", min=0.0, max=1.0)
+                                 "continues the target; boxes measured at one place in the gate: the overlap with "
+                                 "the target's expected box one of them needs to be the target", min=0.0, max=1.0)
     track_in_fixed_frame: bool = param(True, "decide which detection is the target by its place in the camera pose's "
                                        "fixed frame (the box's depth and the frame's camera pose); false, or a frame "
                                        "without its pose or depth: by box overlap in the image only")
