@@ -329,8 +329,9 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     places at which the box would measure more than ``config.max_person_extent_m`` high or wide (size =
     pixels * depth / focal length) are left out, and so is every layer :func:`box_depth_layers` finds behind a
     nearer layer that fills the box (a narrow occluder in front of a person, or one over their lower body, fills
-    no box and leaves the person's layer a place). A central median behind that layer is no place either: the
-    filling layer is row 0 then. (0, 3) for a box without enough valid readings, or none that fits.
+    no box and leaves the person's layer a place). Row 0 is the nearest layer that fills the box when there is
+    one (the box's person), the central median otherwise. (0, 3) for a box without enough valid readings, or none
+    that fits.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
@@ -344,10 +345,10 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
             continue
         kept = [layer for layer in layers if not layer.behind_a_filler]
         front = min((layer for layer in layers if layer.fills), key=lambda layer: layer.z, default=None)
-        # A central median behind the layer that fills the box (the hidden person through a gap in the middle of
-        # the box's person, even one too small to be a layer of the whole box) is not the box's place: its
-        # person is.
-        zs = [median] if front is None or median <= front.far else [front.z]
+        # The layer that fills the box is its person: their place first, not the central median, which may be an
+        # occluder over the person's middle or, behind them, a hidden person seen through a gap in their middle
+        # (too small to be a layer of the whole box).
+        zs = [median] if front is None else [front.z]
         zs += [layer.z for layer in kept if all(abs(layer.z - z) > 0.5 * LAYER_BIN_M for z in zs)]
         u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
         # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).

@@ -338,7 +338,8 @@ def test_depth_layers_split_an_occluder_from_the_person_despite_stray_readings_b
 
 
 @pytest.mark.parametrize("with_bystander", [False, True])
-def test_an_occluder_over_the_targets_central_box_neither_loses_it_nor_hands_it_to_a_person_behind(with_bystander):
+def test_an_occluder_over_the_targets_central_box_neither_loses_it_nor_hands_it_to_a_person_behind(with_bystander,
+                                                                                                  monkeypatch):
     # The target at 3 m; a bystander at 4 m stands behind it, the target covering most of the central part of
     # the bystander's box (whose median is then the target's depth). From frame 3 an occluder at 1.5 m covers
     # all of the central part of the target's box (whose median is then the occluder's). A box's median alone
@@ -351,9 +352,14 @@ def test_an_occluder_over_the_targets_central_box_neither_loses_it_nor_hands_it_
     cx, cy, w, h = 0.5 * (x0 + x1), 0.5 * (y0 + y1), x1 - x0, y1 - y0
     occluder = (int(cx - 0.27 * w), int(cy - 0.27 * h), int(cx + 0.27 * w) + 1, int(cy + 0.27 * h) + 1, 1.5)
     occluded_boxes, occluded_depth = render(camera(), people, occluders=[occluder])
-    medians = box_positions_camera(occluded_boxes, (WIDTH, HEIGHT), occluded_depth, K, TrackerConfig())
-    medians = medians @ camera().rotation.T + camera().position
-    assert medians[0, 0] == pytest.approx(1.5, abs=0.02)  # what the median alone says
+    places = box_positions_camera(occluded_boxes, (WIDTH, HEIGHT), occluded_depth, K, TrackerConfig())
+    medians = places @ camera().rotation.T + camera().position
+    # The box's place is the layer that fills it (the target), not the occluder its central median reads.
+    assert medians[0, 0] == pytest.approx(3.0, abs=0.02)
+    monkeypatch.setattr(target_tracking, "LAYER_FILLS_EXTENT", 1.1)  # no layer fills a box: the median alone
+    alone = box_positions_camera(occluded_boxes, (WIDTH, HEIGHT), occluded_depth, K, TrackerConfig())
+    assert (alone @ camera().rotation.T + camera().position)[0, 0] == pytest.approx(1.5, abs=0.02)
+    monkeypatch.undo()
     if with_bystander:
         assert np.hypot(*(medians[1, :2] - target)) < 0.3
     for k in range(12):
