@@ -222,6 +222,15 @@ def other_person_record(frame: int, person: int, scene: Scene, rendered: Rendere
     return record
 
 
+def target_track_row(frame: int, person: Optional[int], outputs: FrameOutputs) -> List[object]:
+    """[frame, person, state, track_id, detection index, x, y] of a frame's target track (Nones: no message)."""
+    track = outputs.messages.get(TARGET_TRACK)
+    if track is None:
+        return [int(frame), person, None, None, None, None, None]
+    return [int(frame), person, int(track.state), int(track.track_id), int(track.detection_index),
+            round(float(track.position.x), 2), round(float(track.position.y), 2)]
+
+
 class ContinuousEpisodes:
     """The continuous episodes of an evaluation, one per scene, through one session.
 
@@ -251,6 +260,7 @@ class ContinuousEpisodes:
         coverages: List[float] = []
         targets: List[Optional[int]] = []
         other_frames: List[Dict[str, object]] = []
+        track_rows: List[List[object]] = []
         target_unseen = 0
         track: List[FloatArray] = []
         first_path_m: Optional[float] = None
@@ -274,6 +284,7 @@ class ContinuousEpisodes:
             targets.append(target_person(scene, rendered, outputs))
             if targets[-1] is not None and targets[-1] != PERSON_ID:
                 other_frames.append(other_person_record(k, int(targets[-1]), scene, rendered, outputs))
+            track_rows.append(target_track_row(k, targets[-1], outputs))
             target_unseen += rendered.ground_truth.person_box_xyxy is None
             track.append(np.array([robot.stack.state.x, robot.stack.state.y]))
             path = session.last_path()
@@ -316,7 +327,8 @@ class ContinuousEpisodes:
             goal_switches=max(0, changed - 1), withdrawals=int(robot.withdrawals),
             reversals=count_reversals(np.array(track)), target_swaps=count_swaps(targets, PERSON_ID),
             frames_other_person=sum(1 for person in targets if person is not None and person != PERSON_ID),
-            frames_target_unseen=int(target_unseen), other_person_frames=other_frames, frames=len(coverages),
+            frames_target_unseen=int(target_unseen), other_person_frames=other_frames, target_track=track_rows,
+            frames=len(coverages),
             frames_planned=planned, frames_failed=failed, commit_reasons=reasons,
             frames_ticked=session.ticked_between(start_stamp_ns, stamp),
             wall_s=round(time.monotonic() - started, 3))

@@ -123,6 +123,9 @@ class ContinuousEpisode:
         other_person_frames: For each frame that followed another person, what explains it
             (:func:`leapnbv_evaluation.continuous.other_person_record`: frame, person, the person each
             detection was, the target track's state, detection index and reason).
+        target_track: Per frame, [frame, person the graph followed (None: none), track state, track_id,
+            detection index, x, y of the track's place in its fixed frame] (None entries: no track message):
+            how a track drifted before a wrong-person frame.
     """
 
     seed: int
@@ -150,6 +153,7 @@ class ContinuousEpisode:
     frames_other_person: int = 0
     frames_target_unseen: int = 0
     other_person_frames: List[Dict[str, Any]] = field(default_factory=list)
+    target_track: List[List[Any]] = field(default_factory=list)
 
     @property
     def arrived(self) -> bool:
