@@ -62,7 +62,7 @@ __all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE
            "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
            "box_positions_camera", "box_places_camera", "box_depth_layers", "DepthLayer", "depth_layers",
            "depth_layer_ranges", "layer_column_share", "layer_extent_share", "LAYER_MIN_COLUMNS",
-           "LAYER_FILLS_EXTENT"]
+           "LAYER_FILLS_EXTENT", "LAYER_IN_ANOTHER_BOX"]
 
 # leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
 STATE_NONE = 0
@@ -87,6 +87,9 @@ MIN_LAYER_SHARE = 0.15
 # them), and what lies behind it (a hidden person seen in its gaps, the background) is no place of the box.
 LAYER_MIN_COLUMNS = 0.7
 LAYER_FILLS_EXTENT = 0.8
+# A layer of a box that does not fill it, at the depth of a layer that fills another box and inside that box (this
+# share of its readings' rectangle), is that other box's person seen in this box: no place of this box.
+LAYER_IN_ANOTHER_BOX = 0.8
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -265,6 +268,7 @@ class DepthLayer:
         extent: share of the box its readings span (:func:`layer_extent_share`).
         fills: it is in LAYER_MIN_COLUMNS of the columns and spans LAYER_FILLS_EXTENT of the box.
         behind_a_filler: a nearer layer fills the box: this one is someone or something behind the box's person.
+        rect: (u0, v0, u1, v1) image pixels: the rectangle its readings span.
     """
 
     z: float
@@ -274,6 +278,11 @@ class DepthLayer:
     extent: float
     fills: bool
     behind_a_filler: bool
+    rect: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+    def overlaps_depth(self, other: DepthLayer) -> bool:
+        """Whether the two layers' depth ranges overlap."""
+        return self.near <= other.far and other.near <= self.far
 
 
 def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: FloatingArray,
@@ -312,9 +321,38 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
              for z, near, far in ranges]
     fillers = [far for _, _, far, columns, extent in stats
                if columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT]
-    layers = [DepthLayer(z, near, far, columns, extent, columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT,
-                         any(f < near for f in fillers)) for z, near, far, columns, extent in stats]
+    layers = []
+    for z, near, far, columns, extent in stats:
+        with np.errstate(invalid="ignore"):
+            inside = (grid >= near) & (grid <= far)
+        rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+        rect = ((a0 + 2 * cols[0]) / sx, (b0 + 2 * rows[0]) / sy, (a0 + 2 * cols[-1] + 2) / sx,
+                (b0 + 2 * rows[-1] + 2) / sy)
+        layers.append(DepthLayer(z, near, far, columns, extent,
+                                 columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT,
+                                 any(f < near for f in fillers), (float(rect[0]), float(rect[1]), float(rect[2]),
+                                                                  float(rect[3]))))
     return float(np.median(values)), layers
+
+
+def _inside_share(rect: Tuple[float, float, float, float], box: FloatArray) -> float:
+    """Share of ``rect``'s area inside ``box`` (both [x0, y0, x1, y1])."""
+    width = max(0.0, min(rect[2], box[2]) - max(rect[0], box[0]))
+    height = max(0.0, min(rect[3], box[3]) - max(rect[1], box[1]))
+    area = max(rect[2] - rect[0], 1e-9) * max(rect[3] - rect[1], 1e-9)
+    return float(width * height / area)
+
+
+def _another_persons(layer: DepthLayer, j: int, boxes: FloatArray,
+                     box_layers: List[Tuple[Optional[float], List[DepthLayer]]]) -> bool:
+    """Whether box j's ``layer`` is another box's person.
+
+    It is at the depth of a layer that fills another box, and its readings' rectangle lies inside that box (at
+    least :data:`LAYER_IN_ANOTHER_BOX` of it).
+    """
+    return any(i != j and other.fills and other.overlaps_depth(layer)
+               and _inside_share(layer.rect, boxes[i]) >= LAYER_IN_ANOTHER_BOX
+               for i, (_, others) in enumerate(box_layers) for other in others)
 
 
 def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: FloatingArray, k: FloatArray,
@@ -329,26 +367,35 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     places at which the box would measure more than ``config.max_person_extent_m`` high or wide (size =
     pixels * depth / focal length) are left out, and so is every layer :func:`box_depth_layers` finds behind a
     nearer layer that fills the box (a narrow occluder in front of a person, or one over their lower body, fills
-    no box and leaves the person's layer a place). Row 0 is the nearest layer that fills the box when there is
-    one (the box's person), the central median otherwise. (0, 3) for a box without enough valid readings, or none
-    that fits.
+    no box and leaves the person's layer a place). Nor is a layer that does not fill the box but lies at the
+    depth of a layer that fills another box, inside that box (:data:`LAYER_IN_ANOTHER_BOX`): a near person
+    over most of the target's box, whose own box holds that part (three-people seed 74 measured the target's
+    box at the passer-by over it and followed the passer-by). Row 0 is the nearest layer that fills the box when
+    there is one (the box's person), the central median otherwise (the most populated place left when the
+    median is in another box's person). (0, 3) for a box without enough valid readings, or none that fits.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
     height, width = depth.shape[:2]
     sx, sy = width / float(image_size[0]), height / float(image_size[1])
+    box_layers = [box_depth_layers(box, (sx, sy), depth, config) for box in boxes]
     out: List[FloatArray] = []
-    for box in boxes:
-        median, layers = box_depth_layers(box, (sx, sy), depth, config)
+    for j, (box, (median, layers)) in enumerate(zip(boxes, box_layers)):
         if median is None:
             out.append(np.zeros((0, 3)))
             continue
-        kept = [layer for layer in layers if not layer.behind_a_filler]
+        others = [layer for layer in layers if not layer.fills and _another_persons(layer, j, boxes, box_layers)]
+        kept = [layer for layer in layers if not layer.behind_a_filler and layer not in others]
         front = min((layer for layer in layers if layer.fills), key=lambda layer: layer.z, default=None)
         # The layer that fills the box is its person: their place first, not the central median, which may be an
         # occluder over the person's middle or, behind them, a hidden person seen through a gap in their middle
-        # (too small to be a layer of the whole box).
-        zs = [median] if front is None else [front.z]
+        # (too small to be a layer of the whole box). Without one, a median in another box's person is no place.
+        if front is not None:
+            zs = [front.z]
+        elif any(layer.near <= median <= layer.far for layer in others):
+            zs = [layer.z for layer in kept[:1]]
+        else:
+            zs = [median]
         zs += [layer.z for layer in kept if all(abs(layer.z - z) > 0.5 * LAYER_BIN_M for z in zs)]
         u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
         # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).
