@@ -80,7 +80,7 @@ DISTANCE_TIE_M = 1e-3
 #: Depth layers of a box (:func:`depth_layers`): histogram bin (m), the share of readings a bin needs to join a
 #: layer, and the share a layer needs to be a candidate place.
 LAYER_BIN_M = 0.1
-LAYER_GAP_SHARE = 0.02
+LAYER_GAP_SHARE = 0.005
 MIN_LAYER_SHARE = 0.15
 # A depth layer found in at least LAYER_MIN_COLUMNS of its box's columns whose readings span at least
 # LAYER_FILLS_EXTENT of the box's area fills the box: it is the box's person (a detector draws the box around
@@ -90,6 +90,8 @@ LAYER_FILLS_EXTENT = 0.8
 # A layer of a box that does not fill it, at the depth of a layer that fills another box and inside that box (this
 # share of its readings' rectangle), is that other box's person seen in this box: no place of this box.
 LAYER_IN_ANOTHER_BOX = 0.8
+# Extents of two layers that fill a box within this of each other tie (the nearer is the box's person).
+EXTENT_TIE = 0.05
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -267,7 +269,8 @@ class DepthLayer:
         columns: share of the box's columns with a reading in it (:func:`layer_column_share`).
         extent: share of the box its readings span (:func:`layer_extent_share`).
         fills: it is in LAYER_MIN_COLUMNS of the columns and spans LAYER_FILLS_EXTENT of the box.
-        behind_a_filler: a nearer layer fills the box: this one is someone or something behind the box's person.
+        behind_a_filler: behind the box's person (the layer that fills the box and spans most of it): someone or
+            something seen through their gaps.
         rect: (u0, v0, u1, v1) image pixels: the rectangle its readings span.
     """
 
@@ -290,11 +293,12 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
     """(the median of the box's central part or None without enough readings, the layers of the whole box).
 
     ``scale``: (depth width / image width, depth height / image height). A layer ``fills`` the box when it is
-    in :data:`LAYER_MIN_COLUMNS` of its columns and its readings span :data:`LAYER_FILLS_EXTENT` of its area, and
-    is ``behind_a_filler`` when a nearer layer fills it. A person's box is drawn around them: a nearer layer
-    that fills it is the box's person, and a layer behind is a hidden person seen in their gaps or the
-    background. An occluder in front of a person's lower body (full width, part of the height), a narrow pole
-    down the middle or an occluder over the centre fills no box: the person behind stays a place.
+    in :data:`LAYER_MIN_COLUMNS` of its columns and its readings span :data:`LAYER_FILLS_EXTENT` of its area. A
+    person's box is drawn around them, so of the layers that fill it the one spanning most of it is the box's
+    person (the nearest within :data:`EXTENT_TIE`), and a layer behind them is ``behind_a_filler``: a hidden
+    person seen in their gaps, or the background. An occluder in front of a person's lower body (full width, part
+    of the height), a narrow pole down the middle or an occluder over the centre fills no box; one over most of
+    the person fills it but spans less than the person: the person behind stays a place either way.
     """
     height, width = depth.shape[:2]
     sx, sy = scale
@@ -319,8 +323,12 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
     ranges = depth_layer_ranges(grid[np.isfinite(grid)])
     stats = [(z, near, far, layer_column_share(grid, near, far), layer_extent_share(grid, near, far))
              for z, near, far in ranges]
-    fillers = [far for _, _, far, columns, extent in stats
+    # The box's person: of the layers that fill it, the one spanning most of it (the box is drawn around them; an
+    # occluder over most of a person also fills the box but spans less), the nearest within EXTENT_TIE.
+    fillers = [(extent, near, far) for _, near, far, columns, extent in stats
                if columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT]
+    widest = max((extent for extent, _, _ in fillers), default=0.0)
+    person_far = min((far for extent, _, far in fillers if extent >= widest - EXTENT_TIE), default=np.inf)
     layers = []
     for z, near, far, columns, extent in stats:
         with np.errstate(invalid="ignore"):
@@ -330,7 +338,7 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
                 (b0 + 2 * rows[-1] + 2) / sy)
         layers.append(DepthLayer(z, near, far, columns, extent,
                                  columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT,
-                                 any(f < near for f in fillers), (float(rect[0]), float(rect[1]), float(rect[2]),
+                                 near > person_far, (float(rect[0]), float(rect[1]), float(rect[2]),
                                                                   float(rect[3]))))
     return float(np.median(values)), layers
 
@@ -386,7 +394,10 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
             continue
         others = [layer for layer in layers if not layer.fills and _another_persons(layer, j, boxes, box_layers)]
         kept = [layer for layer in layers if not layer.behind_a_filler and layer not in others]
-        front = min((layer for layer in layers if layer.fills), key=lambda layer: layer.z, default=None)
+        fillers = [layer for layer in layers if layer.fills]
+        widest = max((layer.extent for layer in fillers), default=0.0)
+        front = min((layer for layer in fillers if layer.extent >= widest - EXTENT_TIE), key=lambda layer: layer.z,
+                    default=None)
         # The layer that fills the box is its person: their place first, not the central median, which may be an
         # occluder over the person's middle or, behind them, a hidden person seen through a gap in their middle
         # (too small to be a layer of the whole box). Without one, a median in another box's person is no place.

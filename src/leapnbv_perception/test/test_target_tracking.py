@@ -309,6 +309,23 @@ def test_a_near_person_over_most_of_the_targets_box_is_their_own_boxs_place_not_
     assert alone[0, 2] == pytest.approx(2.0, abs=0.02)  # the median: nothing says whose it is
 
 
+def test_a_target_turned_away_behind_a_wide_occluder_is_measured_at_its_own_depth():
+    # Three-people seeds 5 and 87: at the start view an occluder at 1.5 m hides the middle 80 % of the target's box;
+    # the target, turned, spreads its 20 % of the readings over 0.6 m of depth, thin at both ends (some 0.1 m bins
+    # under 2 % of the box's readings). Split there, its layer held under 15 % and was no layer at all: the box's
+    # place was the occluder, and the acquisition started the track 1.4 m in front of the target.
+    boxes, depth = render(camera(), [(3.0, 0.0)])
+    x0, y0, x1, y1 = (int(round(v)) for v in boxes[0, :4])
+    t = np.linspace(-1.0, 1.0, x1 - x0)
+    depth[y0:y1, x0:x1] = (3.0 + 0.3 * t ** 3)[None, :]  # the turned body: nearer on one side, farther on the other
+    height = y1 - y0
+    depth[y0 + height // 10:y1 - height // 10, x0 - 5:x1 + 5] = 1.5
+    place = box_positions_camera(boxes, (WIDTH, HEIGHT), depth, K, TrackerConfig())[0]
+    assert place[2] == pytest.approx(3.0, abs=0.05)
+    d = TargetTracker().update(0, boxes, (WIDTH, HEIGHT), depth, K, camera())
+    np.testing.assert_allclose(d.position[:2], (3.0, 0.0), atol=0.05)
+
+
 def test_a_narrow_occluder_down_the_middle_of_the_target_leaves_it_its_place():
     # A pole at 1.5 m covers the middle 40 % of the target's box from top to bottom (all of the central part: the
     # box's median is the pole). The pole is in 40 % of the box's columns: it fills no box, the target's layer
