@@ -51,7 +51,13 @@ from leapnbv_evaluation.continuous_results import (
 from leapnbv_evaluation.episode import view_metrics
 from leapnbv_evaluation.frame_outputs import FrameOutputs
 from leapnbv_evaluation.options import EvaluationOptions
-from leapnbv_perception.target_tracking import LAYER_BIN_M, TrackerConfig, box_depth_layers, box_places_camera
+from leapnbv_perception.target_tracking import (
+    LAYER_BIN_M,
+    TrackerConfig,
+    box_depth_layers,
+    box_places_camera,
+    person_fit_depth,
+)
 from leapnbv_sim.motion_stack import path_length
 from leapnbv_sim.render import PERSON_ID, RenderedFrame
 from leapnbv_sim.scene import Scene
@@ -187,7 +193,10 @@ def box_place_people(scene: Scene, rendered: RenderedFrame, boxes: FloatArray) -
             records.append({"xy": [round(float(world[0]), 2), round(float(world[1]), 2)],
                             "person": _whose(inside_ids, inside_depth, people, place[2] - LAYER_BIN_M,
                                              place[2] + LAYER_BIN_M)})
-        _, layers = box_depth_layers(np.asarray(box, dtype=np.float64), (1.0, 1.0), depth, TrackerConfig())
+        box = np.asarray(box, dtype=np.float64)
+        config = TrackerConfig()
+        _, layers = box_depth_layers(box, (1.0, 1.0), depth, config, person_fit_depth(box, (1.0, 1.0), rendered.K,
+                                                                                        config))
         records.append({"layers": [[round(layer.z, 2), round(layer.columns, 2), round(layer.extent, 2),
                                     layer.behind_a_filler,
                                     _whose(inside_ids, inside_depth, people, layer.near, layer.far)]

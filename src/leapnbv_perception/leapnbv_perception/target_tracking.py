@@ -62,7 +62,7 @@ __all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE
            "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
            "box_positions_camera", "box_places_camera", "box_depth_layers", "DepthLayer", "depth_layers",
            "depth_layer_ranges", "layer_column_share", "layer_extent_share", "LAYER_MIN_COLUMNS",
-           "LAYER_FILLS_EXTENT", "LAYER_IN_ANOTHER_BOX"]
+           "LAYER_FILLS_EXTENT", "LAYER_IN_ANOTHER_BOX", "person_fit_depth"]
 
 # leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
 STATE_NONE = 0
@@ -90,8 +90,6 @@ LAYER_FILLS_EXTENT = 0.8
 # A layer of a box that does not fill it, at the depth of a layer that fills another box and inside that box (this
 # share of its readings' rectangle), is that other box's person seen in this box: no place of this box.
 LAYER_IN_ANOTHER_BOX = 0.8
-# Extents of two layers that fill a box within this of each other tie (the nearer is the box's person).
-EXTENT_TIE = 0.05
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -268,7 +266,8 @@ class DepthLayer:
         far: m, its farthest reading.
         columns: share of the box's columns with a reading in it (:func:`layer_column_share`).
         extent: share of the box its readings span (:func:`layer_extent_share`).
-        fills: it is in LAYER_MIN_COLUMNS of the columns and spans LAYER_FILLS_EXTENT of the box.
+        fills: it is in LAYER_MIN_COLUMNS of the columns, spans LAYER_FILLS_EXTENT of the box, and the box fits a
+            person at its depth.
         behind_a_filler: behind the box's person (the layer that fills the box and spans most of it): someone or
             something seen through their gaps.
         rect: (u0, v0, u1, v1) image pixels: the rectangle its readings span.
@@ -288,17 +287,27 @@ class DepthLayer:
         return self.near <= other.far and other.near <= self.far
 
 
+def person_fit_depth(box: FloatArray, scale: Tuple[float, float], k: FloatArray, config: TrackerConfig) -> float:
+    """The largest depth (m) at which ``box`` still fits a person (``config.max_person_extent_m`` high and wide).
+
+    Size = pixels x depth / focal length; a box cut by the image border gives a lower bound of the size.
+    """
+    return float(config.max_person_extent_m / max((box[2] - box[0]) * scale[0] / k[0, 0],
+                                                  (box[3] - box[1]) * scale[1] / k[1, 1], 1e-9))
+
+
 def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: FloatingArray,
-                     config: TrackerConfig) -> Tuple[Optional[float], List[DepthLayer]]:
+                     config: TrackerConfig, fits_m: float = np.inf) -> Tuple[Optional[float], List[DepthLayer]]:
     """(the median of the box's central part or None without enough readings, the layers of the whole box).
 
     ``scale``: (depth width / image width, depth height / image height). A layer ``fills`` the box when it is
-    in :data:`LAYER_MIN_COLUMNS` of its columns and its readings span :data:`LAYER_FILLS_EXTENT` of its area. A
-    person's box is drawn around them, so of the layers that fill it the one spanning most of it is the box's
-    person (the nearest within :data:`EXTENT_TIE`), and a layer behind them is ``behind_a_filler``: a hidden
-    person seen in their gaps, or the background. An occluder in front of a person's lower body (full width, part
-    of the height), a narrow pole down the middle or an occluder over the centre fills no box; one over most of
-    the person fills it but spans less than the person: the person behind stays a place either way.
+    in :data:`LAYER_MIN_COLUMNS` of its columns, its readings span :data:`LAYER_FILLS_EXTENT` of its area, and it
+    is no farther than ``fits_m`` (where the box still fits a person). A person's box is drawn around them, so the
+    nearest layer that fills it is the box's person, and a layer behind them is ``behind_a_filler``: a hidden
+    person seen in their gaps, or the background (which can fill the box too, around the person). An occluder in
+    front of a person's lower body (full width, part of the height), a narrow pole down the middle or an occluder
+    over the centre fills no box: the person behind stays a place. One over 80 % of the person's box does, and
+    takes the person's place away (not seen, never someone else).
     """
     height, width = depth.shape[:2]
     sx, sy = scale
@@ -323,12 +332,11 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
     ranges = depth_layer_ranges(grid[np.isfinite(grid)])
     stats = [(z, near, far, layer_column_share(grid, near, far), layer_extent_share(grid, near, far))
              for z, near, far in ranges]
-    # The box's person: of the layers that fill it, the one spanning most of it (the box is drawn around them; an
-    # occluder over most of a person also fills the box but spans less), the nearest within EXTENT_TIE.
-    fillers = [(extent, near, far) for _, near, far, columns, extent in stats
-               if columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT]
-    widest = max((extent for extent, _, _ in fillers), default=0.0)
-    person_far = min((far for extent, _, far in fillers if extent >= widest - EXTENT_TIE), default=np.inf)
+    # The box's person: the nearest layer that fills it (the wall seen around a person can fill it too; it is
+    # behind them, and at its depth a tall box fits no person).
+    person_far = min((far for z, near, far, columns, extent in stats
+                      if columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT and z <= fits_m),
+                     default=np.inf)
     layers = []
     for z, near, far, columns, extent in stats:
         with np.errstate(invalid="ignore"):
@@ -337,7 +345,7 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
         rect = ((a0 + 2 * cols[0]) / sx, (b0 + 2 * rows[0]) / sy, (a0 + 2 * cols[-1] + 2) / sx,
                 (b0 + 2 * rows[-1] + 2) / sy)
         layers.append(DepthLayer(z, near, far, columns, extent,
-                                 columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT,
+                                 columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT and z <= fits_m,
                                  near > person_far, (float(rect[0]), float(rect[1]), float(rect[2]),
                                                                   float(rect[3]))))
     return float(np.median(values)), layers
@@ -386,7 +394,8 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
     boxes = boxes.reshape(len(boxes), -1) if len(boxes) else np.zeros((0, 4))
     height, width = depth.shape[:2]
     sx, sy = width / float(image_size[0]), height / float(image_size[1])
-    box_layers = [box_depth_layers(box, (sx, sy), depth, config) for box in boxes]
+    fits = [person_fit_depth(box, (sx, sy), k, config) if np.all(np.isfinite(box[:4])) else 0.0 for box in boxes]
+    box_layers = [box_depth_layers(box, (sx, sy), depth, config, fit) for box, fit in zip(boxes, fits)]
     out: List[FloatArray] = []
     for j, (box, (median, layers)) in enumerate(zip(boxes, box_layers)):
         if median is None:
@@ -394,10 +403,7 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
             continue
         others = [layer for layer in layers if not layer.fills and _another_persons(layer, j, boxes, box_layers)]
         kept = [layer for layer in layers if not layer.behind_a_filler and layer not in others]
-        fillers = [layer for layer in layers if layer.fills]
-        widest = max((layer.extent for layer in fillers), default=0.0)
-        front = min((layer for layer in fillers if layer.extent >= widest - EXTENT_TIE), key=lambda layer: layer.z,
-                    default=None)
+        front = min((layer for layer in layers if layer.fills), key=lambda layer: layer.z, default=None)
         # The layer that fills the box is its person: their place first, not the central median, which may be an
         # occluder over the person's middle or, behind them, a hidden person seen through a gap in their middle
         # (too small to be a layer of the whole box). Without one, a median in another box's person is no place.
@@ -409,10 +415,7 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
             zs = [median]
         zs += [layer.z for layer in kept if all(abs(layer.z - z) > 0.5 * LAYER_BIN_M for z in zs)]
         u, v = 0.5 * (box[0] + box[2]) * sx, 0.5 * (box[1] + box[3]) * sy
-        # The largest depth at which the box still fits a person (a box cut by the image border is a lower bound).
-        fits = config.max_person_extent_m / max((box[2] - box[0]) * sx / k[0, 0], (box[3] - box[1]) * sy / k[1, 1],
-                                                1e-9)
-        places = [((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs if z <= fits]
+        places = [((u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z) for z in zs if z <= fits[j]]
         out.append(np.array(places, dtype=np.float64).reshape(-1, 3))
     return out
 
