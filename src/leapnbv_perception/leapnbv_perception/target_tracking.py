@@ -62,7 +62,7 @@ __all__ = ["STATE_NONE", "STATE_TRACKED", "STATE_NOT_SEEN", "STATE_LOST", "STATE
            "MODE_IMAGE", "DISTANCE_TIE_M", "TrackerConfig", "CameraPoseLike", "TargetDecision", "TargetTracker",
            "box_positions_camera", "box_places_camera", "box_depth_layers", "DepthLayer", "depth_layers",
            "depth_layer_ranges", "layer_column_share", "layer_extent_share", "LAYER_MIN_COLUMNS",
-           "LAYER_FILLS_EXTENT", "LAYER_IN_ANOTHER_BOX", "person_fit_depth"]
+           "LAYER_FILLS_EXTENT", "LAYER_IN_ANOTHER_BOX", "SMALLER_BOX_SHARE", "person_fit_depth"]
 
 # leapnbv_msgs/TargetTrack's states, by value (this core imports no message package).
 STATE_NONE = 0
@@ -90,6 +90,8 @@ LAYER_FILLS_EXTENT = 0.8
 # A layer of a box that does not fill it, at the depth of a layer that fills another box and inside that box (this
 # share of its readings' rectangle), is that other box's person seen in this box: no place of this box.
 LAYER_IN_ANOTHER_BOX = 0.8
+# A box below this share of another's area, inside it and filled by that box's person, shows nobody of its own.
+SMALLER_BOX_SHARE = 0.8
 #: Initial standard deviation (m/s) of a new track's velocity (people walk at up to about 1.5 m/s).
 INITIAL_SPEED_SIGMA_M_S = 0.5
 
@@ -364,10 +366,16 @@ def _another_persons(layer: DepthLayer, j: int, boxes: FloatArray,
     """Whether box j's ``layer`` is another box's person.
 
     It is at the depth of a layer that fills another box, and its readings' rectangle lies inside that box (at
-    least :data:`LAYER_IN_ANOTHER_BOX` of it).
+    least :data:`LAYER_IN_ANOTHER_BOX` of it). A layer that fills box j itself is another's only when box j is
+    clearly the smaller box (:data:`SMALLER_BOX_SHARE` of the other's area: a hidden person's box inside the
+    target's, which the target fills); of two boxes about as large, each keeps its person.
     """
+    def area(box: FloatArray) -> float:
+        return float(max(box[2] - box[0], 0.0) * max(box[3] - box[1], 0.0))
+
     return any(i != j and other.fills and other.overlaps_depth(layer)
                and _inside_share(layer.rect, boxes[i]) >= LAYER_IN_ANOTHER_BOX
+               and (not layer.fills or area(boxes[j]) < SMALLER_BOX_SHARE * area(boxes[i]))
                for i, (_, others) in enumerate(box_layers) for other in others)
 
 
@@ -401,9 +409,12 @@ def box_places_camera(boxes: FloatArray, image_size: Tuple[int, int], depth: Flo
         if median is None:
             out.append(np.zeros((0, 3)))
             continue
-        others = [layer for layer in layers if not layer.fills and _another_persons(layer, j, boxes, box_layers)]
+        others = [layer for layer in layers if _another_persons(layer, j, boxes, box_layers)]
         kept = [layer for layer in layers if not layer.behind_a_filler and layer not in others]
         front = min((layer for layer in layers if layer.fills), key=lambda layer: layer.z, default=None)
+        if front is not None and front in others:  # the box's person is a larger box's: it shows nobody of its own
+            out.append(np.zeros((0, 3)))
+            continue
         # The layer that fills the box is its person: their place first, not the central median, which may be an
         # occluder over the person's middle or, behind them, a hidden person seen through a gap in their middle
         # (too small to be a layer of the whole box). Without one, a median in another box's person is no place.

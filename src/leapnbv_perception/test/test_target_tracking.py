@@ -22,6 +22,7 @@ from leapnbv_perception.target_tracking import (
     TargetDecision,
     TargetTracker,
     TrackerConfig,
+    box_places_camera,
     box_positions_camera,
     depth_layers,
 )
@@ -342,6 +343,25 @@ def test_a_wall_close_behind_that_fills_the_box_around_the_target_is_not_the_box
     np.testing.assert_allclose(d.position[:2], (3.0, 0.0), atol=0.05)
 
 
+def test_a_small_box_inside_the_targets_that_the_target_fills_has_no_place():
+    # Three-people seed 78: a person hidden behind the target shows a few pixels at the target's side; the box drawn
+    # around them lies inside the target's box, and the target fills it. Measured at the target's depth through its
+    # own centre, 0.37 m from the target's place, it was the detection nearest a drifted prediction and was taken
+    # (its mesh was the hidden person's). The target's box is the larger one filled by that layer: the small box
+    # shows nobody of its own. Two boxes about as large each keep their place.
+    boxes, depth = render(camera(), [(3.0, 0.0)])
+    x0, y0, x1, y1 = boxes[0, :4]
+    small = np.array([[x0, y0 + 0.3 * (y1 - y0), x0 + 0.2 * (x1 - x0), y0 + 0.6 * (y1 - y0), 1.0]])
+    places = box_places_camera(np.vstack([boxes, small]), (WIDTH, HEIGHT), depth, K, TrackerConfig())
+    assert places[0][0, 2] == pytest.approx(3.0, abs=0.02) and len(places[1]) == 0
+    alone = box_places_camera(small, (WIDTH, HEIGHT), depth, K, TrackerConfig())  # without the target's box
+    assert alone[0][0, 2] == pytest.approx(3.0, abs=0.02)
+    twin = boxes.copy()
+    twin[0, [0, 2]] += 0.1 * (x1 - x0)
+    assert [len(p) for p in box_places_camera(np.vstack([boxes, twin]), (WIDTH, HEIGHT), depth, K,
+                                              TrackerConfig())] == [1, 1]
+
+
 def test_a_narrow_occluder_down_the_middle_of_the_target_leaves_it_its_place():
     # A pole at 1.5 m covers the middle 40 % of the target's box from top to bottom (all of the central part: the
     # box's median is the pole). The pole is in 40 % of the box's columns: it fills no box, the target's layer
@@ -422,8 +442,8 @@ def test_an_occluder_over_the_targets_central_box_neither_loses_it_nor_hands_it_
 
 def test_after_a_turn_boxes_at_one_place_are_told_apart_by_the_box_expected_from_the_new_view():
     # The robot turns 0.3 rad left: the target's box moves ~150 px right in the image, and the last box (at the
-    # image centre) overlaps nothing. A second box inside the target's (the target's pixels only: measured at
-    # its place) comes first. The last box as a rectangle at the target's depth, seen from the turned camera,
+    # image centre) overlaps nothing. A second box as large, a little to the side (measured at the target's
+    # place), comes first. The last box as a rectangle at the target's depth, seen from the turned camera,
     # is where the target's box is: that box is taken.
     tracker = TargetTracker()
     target = (3.0, 0.0)
@@ -431,8 +451,8 @@ def test_after_a_turn_boxes_at_one_place_are_told_apart_by_the_box_expected_from
         step(tracker, k, camera(), [target])
     turned = camera(yaw=0.3)
     boxes, depth = render(turned, [target])
-    inner = boxes[0].copy()
-    inner[:4] = [inner[0] + 10, inner[1] + 30, inner[2] - 25, inner[3] - 40]
+    inner = boxes[0].copy()  # a second box of the same size, shifted a tenth of its width: measured at the target
+    inner[[0, 2]] -= 0.1 * (boxes[0, 2] - boxes[0, 0])
     assert float(box_iou(tracker.target.last_box, boxes[:, :4])[0]) == 0.0
     d = tracker.update(3 * SECOND // 10, np.array([inner, boxes[0]]), (WIDTH, HEIGHT), depth, K, turned)
     assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 1, 1), d.reason
@@ -448,9 +468,9 @@ def test_boxes_at_one_place_that_none_overlaps_the_expected_box_are_not_taken_fo
     for k in range(3):
         step(tracker, k, camera(), [target])
     boxes, depth = render(camera(), [bystander])
-    inner = boxes[0].copy()
-    inner[:4] = [inner[0] + 10, inner[1] + 30, inner[2] - 25, inner[3] - 40]
-    d = tracker.update(3 * SECOND // 10, np.array([boxes[0], inner]), (WIDTH, HEIGHT), depth, K, camera())
+    beside = boxes[0].copy()  # as large as the bystander's box, shifted: measured at the bystander's place
+    beside[[0, 2]] += 0.1 * (boxes[0, 2] - boxes[0, 0])
+    d = tracker.update(3 * SECOND // 10, np.array([boxes[0], beside]), (WIDTH, HEIGHT), depth, K, camera())
     assert (d.state, d.detection_index, d.track_id) == (STATE_NOT_SEEN, -1, 1), d.reason
     assert "none of them is taken for the target" in d.reason
     d = step(tracker, 4, camera(), [bystander, target])  # the target in view again: the same track
@@ -463,8 +483,8 @@ def test_two_boxes_measured_at_one_place_are_told_apart_by_the_last_box_and_move
     step(tracker, 0, camera(), [target])
     before = step(tracker, 1, camera(), [target])
     boxes, depth = render(camera(), [target])
-    inner = boxes[0].copy()  # a second, smaller box inside the target's, over the target's pixels only
-    inner[:4] = [inner[0] + 10, inner[1] + 30, inner[2] - 25, inner[3] - 40]
+    inner = boxes[0].copy()  # a second box as large, a tenth of its width to the side: measured at the target
+    inner[[0, 2]] += 0.1 * (boxes[0, 2] - boxes[0, 0])
     for wanted, order in ((1, [inner, boxes[0]]), (0, [boxes[0], inner])):
         d = tracker.update(2 * SECOND // 10, np.array(order), (WIDTH, HEIGHT), depth, K, camera())
         assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, wanted, 1), d.reason
