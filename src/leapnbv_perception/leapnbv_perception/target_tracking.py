@@ -268,8 +268,8 @@ class DepthLayer:
         far: m, its farthest reading.
         columns: share of the box's columns with a reading in it (:func:`layer_column_share`).
         extent: share of the box its readings span (:func:`layer_extent_share`).
-        fills: it is in LAYER_MIN_COLUMNS of the columns, spans LAYER_FILLS_EXTENT of the box, and the box fits a
-            person at its depth.
+        fills: it is in LAYER_MIN_COLUMNS of the columns, spans LAYER_FILLS_EXTENT of the box, the box fits a
+            person at its depth, and it is not the farthest of several layers (the background).
         behind_a_filler: behind the box's person (the layer that fills the box and spans most of it): someone or
             something seen through their gaps.
         rect: (u0, v0, u1, v1) image pixels: the rectangle its readings span.
@@ -303,10 +303,12 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
     """(the median of the box's central part or None without enough readings, the layers of the whole box).
 
     ``scale``: (depth width / image width, depth height / image height). A layer ``fills`` the box when it is
-    in :data:`LAYER_MIN_COLUMNS` of its columns, its readings span :data:`LAYER_FILLS_EXTENT` of its area, and it
-    is no farther than ``fits_m`` (where the box still fits a person). A person's box is drawn around them, so the
-    nearest layer that fills it is the box's person, and a layer behind them is ``behind_a_filler``: a hidden
-    person seen in their gaps, or the background (which can fill the box too, around the person). An occluder in
+    in :data:`LAYER_MIN_COLUMNS` of its columns, its readings span :data:`LAYER_FILLS_EXTENT` of its area, it is
+    no farther than ``fits_m`` (where the box still fits a person) and it is not the farthest of the box's layers
+    (the background: the wall around a person, cut by an occluder and the image border, can fill the box while
+    the person does not; furnished seed 22). A person's box is drawn around them, so the nearest layer that fills
+    it is the box's person, and a layer behind them is ``behind_a_filler``: a hidden person seen in their gaps, or
+    the background. An occluder in
     front of a person's lower body (full width, part of the height), a narrow pole down the middle or an occluder
     over the centre fills no box: the person behind stays a place. One over 80 % of the person's box does, and
     takes the person's place away (not seen, never someone else).
@@ -334,11 +336,14 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
     ranges = depth_layer_ranges(grid[np.isfinite(grid)])
     stats = [(z, near, far, layer_column_share(grid, near, far), layer_extent_share(grid, near, far))
              for z, near, far in ranges]
-    # The box's person: the nearest layer that fills it (the wall seen around a person can fill it too; it is
-    # behind them, and at its depth a tall box fits no person).
-    person_far = min((far for z, near, far, columns, extent in stats
-                      if columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT and z <= fits_m),
-                     default=np.inf)
+    # The box's person: the nearest layer that fills it. The wall seen around a person can fill the box too: the
+    # farthest of several layers is the background, never the person (and at its depth a tall box fits no person).
+    farthest = max(z for z, _, _, _, _ in stats) if len(stats) > 1 else np.inf
+
+    def fills(z: float, columns: float, extent: float) -> bool:
+        return columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT and z <= fits_m and z < farthest
+
+    person_far = min((far for z, near, far, columns, extent in stats if fills(z, columns, extent)), default=np.inf)
     layers = []
     for z, near, far, columns, extent in stats:
         with np.errstate(invalid="ignore"):
@@ -346,8 +351,7 @@ def box_depth_layers(box: FloatArray, scale: Tuple[float, float], depth: Floatin
         rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
         rect = ((a0 + 2 * cols[0]) / sx, (b0 + 2 * rows[0]) / sy, (a0 + 2 * cols[-1] + 2) / sx,
                 (b0 + 2 * rows[-1] + 2) / sy)
-        layers.append(DepthLayer(z, near, far, columns, extent,
-                                 columns >= LAYER_MIN_COLUMNS and extent >= LAYER_FILLS_EXTENT and z <= fits_m,
+        layers.append(DepthLayer(z, near, far, columns, extent, fills(z, columns, extent),
                                  near > person_far, (float(rect[0]), float(rect[1]), float(rect[2]),
                                                                   float(rect[3]))))
     return float(np.median(values)), layers
