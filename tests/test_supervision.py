@@ -203,7 +203,14 @@ def test_node_that_keeps_dying_is_reported_and_runner_exits_1(tmp_path):
     proc = runner_cli(tmp_path, *ground_truth_args(), "--set", "nbv_node.radius=-1.0", "--max-restarts", "2",
                       "--restart-backoff", "0.1", "--no-warm-spares", "--ready-timeout", "120")
     try:
-        out, _ = proc.communicate(timeout=150)
+        # Three cold starts of nbv_node take seconds alone; under CI's load they took longer once.
+        # Past --ready-timeout the runner itself must have exited, so the wait is the runner's
+        # limit plus its stop, and a hang fails with the runner's output (not a bare TimeoutExpired).
+        out, _ = proc.communicate(timeout=240)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # the runner and the nodes it started (its own session)
+        out, _ = proc.communicate()
+        pytest.fail(f"graph_runner still running 240 s after start (--ready-timeout 120):\n{out}")
     finally:
         if proc.poll() is None:
             proc.kill()
