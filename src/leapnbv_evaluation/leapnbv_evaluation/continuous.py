@@ -78,6 +78,7 @@ class StatusRecord:
     goal_changed: bool
     commitment: str
     committed_since_ns: int
+    reason: str = ""  # goal_status.reason: one line on why the goal is what it is
 
 
 class ContinuousSession(Protocol):
@@ -325,6 +326,9 @@ class ContinuousEpisodes:
             reasons[s.commitment] = reasons.get(s.commitment, 0) + 1
         robot = session.driven_robot()
         changed = sum(1 for s in current if s.goal_changed)
+        goal_changes: List[List[object]] = [
+            [int(round((s.goal_stamp_ns - start_stamp_ns) / period_ns)), s.commitment, s.reason]
+            for s in current if s.goal_changed or s.commitment == "FIRST_GOAL"]
         return ContinuousEpisode(
             seed=int(seed), scene_index=int(scene_index), start_stamp_ns=int(start_stamp_ns), outcome=outcome,
             coverage_start=round(coverages[0], 6), coverage_end=round(coverages[-1], 6),
@@ -337,6 +341,7 @@ class ContinuousEpisodes:
             reversals=count_reversals(np.array(track)), target_swaps=count_swaps(targets, PERSON_ID),
             frames_other_person=sum(1 for person in targets if person is not None and person != PERSON_ID),
             frames_target_unseen=int(target_unseen), other_person_frames=other_frames, target_track=track_rows,
+            goal_changes=goal_changes,
             frames=len(coverages),
             frames_planned=planned, frames_failed=failed, commit_reasons=reasons,
             frames_ticked=session.ticked_between(start_stamp_ns, stamp),

@@ -6,13 +6,16 @@ time limit, no plan), the coverage at the start, at arrival (or the episode's la
 on the way, the time and distance to arrival against the first plan's path length, and what the goal
 and the target did on the way (goal switches, direction reversals, target swaps, frames on another
 person, frames without the target in view, frames planned).
-The JSON form is lossless (``from_json(to_json(x)) == x``).
+The JSON form is lossless (``from_json(to_json(x)) == x``). :func:`compare_runs` says whether two runs hold the
+same episodes (their settings, and each seed's episode field by field, leaving out what depends on the
+machine's speed): two runs of the same seeds on sim time should.
 """
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Dict, FrozenSet, List, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -31,6 +34,16 @@ REVERSAL_SEGMENT_M = 0.10
 REVERSAL_ANGLE_RAD = math.radians(135.0)
 #: Version of the JSON layout of :class:`ContinuousRun`.
 CONTINUOUS_FORMAT = 1
+#: Fields that depend on how fast the machine is, left out of :func:`compare_runs`: the episode's wall seconds
+#: (``wall_s``) and frames a stage's wait-check timer found after sim time ticked on (``frames_ticked``: whether
+#: a stage was done before the tick depends on the CPU), and the run's ``total_wall_s``.
+WALL_CLOCK_FIELDS: FrozenSet[str] = frozenset({"wall_s", "frames_ticked", "total_wall_s"})
+#: Absolute and relative tolerance of floats in :func:`compare_runs`: the coverages are computed in float64
+#: from the same frames, so a difference past this is a different episode, not rounding.
+FLOAT_TOLERANCE = 1e-6
+FLOAT_REL_TOLERANCE = 1e-9
+#: :func:`compare_runs` lists at most this many differences of one seed's episode, then how many more.
+MAX_LINES_PER_EPISODE = 5
 
 
 def count_reversals(xy: FloatArray, segment_m: float = REVERSAL_SEGMENT_M,
@@ -126,6 +139,8 @@ class ContinuousEpisode:
         target_track: Per frame, [frame, person the graph followed (None: none), track state, track_id,
             detection index, x, y of the track's place in its fixed frame] (None entries: no track message):
             how a track drifted before a wrong-person frame.
+        goal_changes: [frame, goal_status.commitment, goal_status.reason] of each goal the graph committed or
+            changed to (the first goal and every switch): why the goal moved, in the planner's words.
     """
 
     seed: int
@@ -154,6 +169,7 @@ class ContinuousEpisode:
     frames_target_unseen: int = 0
     other_person_frames: List[Dict[str, Any]] = field(default_factory=list)
     target_track: List[List[Any]] = field(default_factory=list)
+    goal_changes: List[List[Any]] = field(default_factory=list)
 
     @property
     def arrived(self) -> bool:
@@ -216,6 +232,161 @@ class ContinuousRun:
     def write(self, path: str) -> str:
         """Write the run's JSON (atomically); the path."""
         return write_json_atomically(path, self.to_json())
+
+
+def _show(value: Any, width: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _differences(path: str, a: Any, b: Any, abs_tol: float, rel_tol: float, out: List[str]) -> None:
+    """Append ``"path: a != b"`` for each difference between ``a`` and ``b``, walking dicts and lists."""
+    # bool first: it is an Integral, but True is no 1 here. Tuples are lists (in memory; JSON has only lists).
+    a_bool, b_bool = isinstance(a, (bool, np.bool_)), isinstance(b, (bool, np.bool_))
+    if a_bool or b_bool:
+        same = a_bool and b_bool and bool(a) == bool(b)
+    elif isinstance(a, numbers.Integral) and isinstance(b, numbers.Integral):
+        same = int(a) == int(b)
+    elif isinstance(a, numbers.Real) and isinstance(b, numbers.Real):
+        x, y = float(a), float(b)
+        same = math.isclose(x, y, rel_tol=rel_tol, abs_tol=abs_tol) or (math.isnan(x) and math.isnan(y))
+    elif isinstance(a, Mapping) and isinstance(b, Mapping):
+        for key in sorted(set(a) | set(b), key=str):
+            where = f"{path}[{key!r}]"
+            if key not in b:
+                out.append(f"{where}: only in A")
+            elif key not in a:
+                out.append(f"{where}: only in B")
+            else:
+                _differences(where, a[key], b[key], abs_tol, rel_tol, out)
+        return
+    elif isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b):
+            out.append(f"{path}: {len(a)} items != {len(b)} items")
+        # The common items too: the first one that differs says where the episodes parted.
+        for k, (x, y) in enumerate(zip(a, b)):
+            _differences(f"{path}[{k}]", x, y, abs_tol, rel_tol, out)
+        return
+    else:
+        same = type(a) is type(b) and a == b
+    if not same:
+        out.append(f"{path}: {_show(a)} != {_show(b)}")
+
+
+def episode_differences(a: ContinuousEpisode, b: ContinuousEpisode, abs_tol: float = FLOAT_TOLERANCE,
+                        rel_tol: float = FLOAT_REL_TOLERANCE) -> List[str]:
+    """Every difference between two episodes, one ``"field path: a != b"`` each (:data:`WALL_CLOCK_FIELDS` left out).
+
+    Args:
+        a: The episode of run A.
+        b: The episode of run B (the same seed).
+        abs_tol: Absolute tolerance of floats (``math.isclose``).
+        rel_tol: Relative tolerance of floats.
+
+    Returns:
+        The differences, in field order (empty: the same episode).
+    """
+    out: List[str] = []
+    for f in fields(ContinuousEpisode):
+        if f.name not in WALL_CLOCK_FIELDS:
+            _differences(f.name, getattr(a, f.name), getattr(b, f.name), abs_tol, rel_tol, out)
+    return out
+
+
+@dataclass
+class RunDifferences:
+    """What differs between two runs (:func:`run_differences`).
+
+    Attributes:
+        settings: One line per run setting that differs (``"clock: 'lockstep' != 'wall'"``).
+        episodes: Per seed whose episodes differ, every difference (a seed in one run only: one line).
+        seeds: Seeds in either run.
+    """
+
+    settings: List[str]
+    episodes: Dict[int, List[str]]
+    seeds: int
+
+    @property
+    def count(self) -> int:
+        """Differences in all (0: the same runs)."""
+        return len(self.settings) + sum(len(lines) for lines in self.episodes.values())
+
+    def lines(self, max_per_episode: int = MAX_LINES_PER_EPISODE) -> List[str]:
+        """The settings' lines, then at most ``max_per_episode`` per seed (``"seed 10: ..."``), in seed order."""
+        out = list(self.settings)
+        for seed in sorted(self.episodes):
+            found = self.episodes[seed]
+            out.extend(f"seed {seed}: {line}" for line in found[:max_per_episode])
+            if len(found) > max_per_episode:
+                more = len(found) - max_per_episode
+                out.append(f"seed {seed}: ... and {more} more difference{'' if more == 1 else 's'}")
+        return out
+
+
+def run_differences(a: ContinuousRun, b: ContinuousRun, abs_tol: float = FLOAT_TOLERANCE,
+                    rel_tol: float = FLOAT_REL_TOLERANCE) -> RunDifferences:
+    """What differs between runs A and B: their settings, and their episodes matched by seed (not by position).
+
+    Args:
+        a: Run A.
+        b: Run B.
+        abs_tol: Absolute tolerance of floats (``math.isclose``).
+        rel_tol: Relative tolerance of floats.
+
+    Returns:
+        The differences, :data:`WALL_CLOCK_FIELDS` left out.
+    """
+    settings: List[str] = []
+    for f in fields(ContinuousRun):
+        if f.name != "episodes" and f.name not in WALL_CLOCK_FIELDS:
+            _differences(f.name, getattr(a, f.name), getattr(b, f.name), abs_tol, rel_tol, settings)
+    by_seed_a: Dict[int, List[ContinuousEpisode]] = {}
+    by_seed_b: Dict[int, List[ContinuousEpisode]] = {}
+    for episode in a.episodes:
+        by_seed_a.setdefault(episode.seed, []).append(episode)
+    for episode in b.episodes:
+        by_seed_b.setdefault(episode.seed, []).append(episode)
+    episodes: Dict[int, List[str]] = {}
+    for seed in sorted(set(by_seed_a) | set(by_seed_b)):
+        in_a, in_b = by_seed_a.get(seed, []), by_seed_b.get(seed, [])
+        if not in_b:
+            episodes[seed] = ["only in A"]
+            continue
+        if not in_a:
+            episodes[seed] = ["only in B"]
+            continue
+        found: List[str] = []
+        if len(in_a) != len(in_b):  # a seed run twice: its repeats are compared in order
+            found.append(f"{len(in_a)} episodes != {len(in_b)} episodes")
+        for x, y in zip(in_a, in_b):
+            found.extend(episode_differences(x, y, abs_tol, rel_tol))
+        if found:
+            episodes[seed] = found
+    return RunDifferences(settings=settings, episodes=episodes, seeds=len(set(by_seed_a) | set(by_seed_b)))
+
+
+def compare_runs(a: ContinuousRun, b: ContinuousRun, abs_tol: float = FLOAT_TOLERANCE,
+                 rel_tol: float = FLOAT_REL_TOLERANCE, max_per_episode: int = MAX_LINES_PER_EPISODE) -> List[str]:
+    """Whether runs A and B hold the same episodes: one readable line per difference (empty: the same).
+
+    The run settings (room, obstacle map, clock, camera rate, limits, obstacle memory) are compared, then the
+    episodes matched by seed: a seed in one run only is a line, and each field of a seed's two episodes that
+    differs is one (``"seed 10: target_track[3][5]: 1.2 != 1.3"``, A's value first), walking dicts and lists;
+    floats are equal within ``math.isclose(abs_tol, rel_tol)``, ints, strings, bools and None exactly.
+    :data:`WALL_CLOCK_FIELDS` depend on the machine's speed and are left out.
+
+    Args:
+        a: Run A.
+        b: Run B.
+        abs_tol: Absolute tolerance of floats.
+        rel_tol: Relative tolerance of floats.
+        max_per_episode: Lines per seed at most, then ``"seed 10: ... and N more differences"``.
+
+    Returns:
+        The lines: the settings', then each seed's in seed order.
+    """
+    return run_differences(a, b, abs_tol, rel_tol).lines(max_per_episode)
 
 
 def _percentile(values: Sequence[float], q: float) -> float:

@@ -534,7 +534,7 @@ class ClosedLoopEvaluator:
         """Every goal status the simulator received in this scene, in order."""
         return [StatusRecord(state=int(s.state), goal_stamp_ns=stamp_to_ns(s.goal_stamp),
                              goal_changed=bool(s.goal_changed), commitment=str(s.commitment),
-                             committed_since_ns=stamp_to_ns(s.committed_since))
+                             committed_since_ns=stamp_to_ns(s.committed_since), reason=str(s.reason))
                 for s in self._simulator().goal_statuses]
 
     def last_path(self) -> Optional[Tuple[int, Any]]:
