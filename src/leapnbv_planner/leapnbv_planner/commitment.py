@@ -8,7 +8,10 @@ re-scores it from the current view with the ring's rules and terms
 (``PlanInputs.extra_foot_points``, ``Plan.extra``), and :func:`decide` replaces it only
 
 - when another view beats it by more than ``commit_margin`` (BEATEN_BY_MARGIN),
-- when it became infeasible or unreachable (INFEASIBLE, UNREACHABLE),
+- when it became infeasible or unreachable (INFEASIBLE, UNREACHABLE) and no foot point within
+  ``commit_same_goal_m`` of its own is free and reachable (with ``fit_to_free_space``, the plan moves
+  a blocked goal there: ``ExtraViews.nudged_m``; the edge of free space moves by a fraction of a cell
+  between frames, and a goal on it would flip),
 - when the person moved more than ``commit_person_moved_m`` from where they stood at the commit
   (PERSON_MOVED), or
 - when staying is as good: the current view scores within the margin of the committed goal and of
@@ -202,6 +205,8 @@ class GoalDecision:
         best_score: its score (NaN without one).
         person_moved_m: the person's displacement since the commit (NaN: none was re-scored).
         margin: the commit_margin in force.
+        nudged_m: metres the kept goal's foot point moved to free space in this plan (``ExtraViews.nudged_m``: its
+            own foot point was blocked or had no path, one within commit_same_goal_m had); 0 when it did not.
     """
 
     reason: CommitReason
@@ -217,13 +222,15 @@ class GoalDecision:
     best_score: float = math.nan
     person_moved_m: float = math.nan
     margin: float = math.nan
+    nudged_m: float = 0.0
 
     def describe(self) -> str:
         """One line for goal_status.reason."""
         best = f"view {self.best_index} ({self.best_score:.4f})" if self.best_index >= 0 else "no feasible view"
         held = f"the committed goal scores {self.held_score:.4f}"
         if self.reason == CommitReason.KEPT:
-            return f"goal kept: {held}, the plan's best is {best}, margin {self.margin:g}"
+            nudge = f" ({self.nudged_m:.2f} m from its foot point, in free space)" if self.nudged_m > 0.0 else ""
+            return f"goal kept{nudge}: {held}, the plan's best is {best}, margin {self.margin:g}"
         if self.reason == CommitReason.BEATEN_BY_MARGIN:
             return f"goal changed: {best} beats it by more than {self.margin:g} ({held})"
         if self.reason == CommitReason.STAYING_AS_GOOD:
@@ -339,7 +346,8 @@ class GoalCommitment:
             return GoalDecision(reason=verdict.reason, changed=False, goal=extra.pose(0), base_goal=extra.base_goal(0),
                                 base_path=extra.base_paths[0], score=held_score, index=-1, committed=self.goal,
                                 held_score=held_score, best_index=best, best_score=best_score, person_moved_m=moved,
-                                margin=margin)
+                                margin=margin,
+                                nudged_m=float(extra.nudged_m[0]) if extra.nudged_m is not None else 0.0)
         committed = self._commit(plan, verdict.index, camera_pose, fixed_frame, stamp_ns)
         return self._plan_choice(plan, verdict, changed=had_goal and verdict.reason.replaces, committed=committed,
                                  held_score=held_score, best_score=best_score, person_moved_m=moved, margin=margin)

@@ -77,6 +77,8 @@ class ExtraViews:
         path_lengths: (E,) metres of the free path to each (inf: none), None when reachability is off.
         base_paths: per view, (P, 3) floor points of its path (as ``Plan.base_path``), None without one.
         up: (3,) the ground normal as the plane gives it (``Plan.up``).
+        nudged_m: (E,) metres each view's foot point moved to free space (:func:`_nudge_to_free_space`; 0: it
+            stayed), None from a caller that made the views otherwise.
     """
 
     candidates: CandidateSet
@@ -85,6 +87,7 @@ class ExtraViews:
     path_lengths: Optional[Array]
     base_paths: List[Optional[Array]]
     up: Array
+    nudged_m: Optional[Array] = None
 
     def __len__(self) -> int:
         return len(self.candidates)
@@ -336,6 +339,7 @@ def _plan_extra(inputs: PlanInputs, ring: CandidateSet, obstacles: Array, obstac
                          camera_height=ring.camera_height, is_current=np.zeros(len(feet), dtype=bool))
     feasibility = check_feasibility(views, obstacles, normal, float(ground.offset), params, obstacles_in_plane)
     path_lengths = None
+    nudged = np.zeros(len(feet))
     if reach is not None:
         path_lengths = reach.path_lengths_at(feet)
         reasons = np.asarray(feasibility.reasons).copy()
@@ -343,15 +347,85 @@ def _plan_extra(inputs: PlanInputs, ring: CandidateSet, obstacles: Array, obstac
         reachable = np.isfinite(path_lengths) & (path_lengths <= float(params.max_path_length))
         reasons[(reasons == int(FeasibilityReason.OK)) & ~reachable] = int(FeasibilityReason.UNREACHABLE)
         feasibility = FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons)
+        if params.fit_to_free_space and float(params.commit_same_goal_m) > 0.0:
+            views, feasibility, path_lengths, nudged = _nudge_to_free_space(
+                views, feasibility, path_lengths, reach, obstacles_in_plane,
+                np.asarray(inputs.target.centroid, dtype=np.float64).reshape(3), normal,
+                float(ground.offset), params)
     scored = np.ones(len(views), dtype=bool) if params.score_infeasible \
         else np.asarray(feasibility.feasible, dtype=bool)
     frame = PlanFrame(inputs=inputs, candidates=views, picked=np.flatnonzero(scored), target_points=target_points,
                       path_lengths=path_lengths)
     scores, _ = _score_picked(frame, background)
     base_paths = [reach.path_to(foot) if reach is not None and ok else None
-                  for foot, ok in zip(feet, np.asarray(feasibility.feasible, dtype=bool))]
+                  for foot, ok in zip(views.foot_points, np.asarray(feasibility.feasible, dtype=bool))]
     return ExtraViews(candidates=views, feasibility=feasibility, scores=scores, path_lengths=path_lengths,
-                      base_paths=base_paths, up=normal)
+                      base_paths=base_paths, up=normal, nudged_m=nudged)
+
+
+def _nudge_to_free_space(views: CandidateSet, feasibility: FeasibilityResult, path_lengths: Array,
+                         reach: Reachability, obstacles_in_plane: Array, centroid: Array, normal: Array,
+                         offset: float, params: PlannerParams) -> Tuple[CandidateSet, FeasibilityResult, Array, Array]:
+    """Extra views that stand in an obstacle or have no path move to the nearest free, reachable foot point within
+    ``commit_same_goal_m`` of their own (the same goal, by the commitment's rule).
+
+    A committed goal is often a ring candidate that fit_to_free_space moved to the edge of free space. The next
+    frame's grid is anchored at the robot's new foot point and its obstacle points come from a new view, so that
+    edge moves by a fraction of a cell and the goal's own cell or footprint flips between free and blocked from
+    one frame to the next (corridor seed 10: 18 goal switches, UNREACHABLE and back); the ring's own candidates
+    are refitted every frame and never see it. Probes are grid cells around the foot point (an exact square
+    lattice, so that their order by distance is an integer order, the same on every CPU), no nearer the target
+    than min_free_radius, within max_travel, reached by a path of at most max_path_length, and then pass the exact
+    footprint test; the nearest wins, then the shorter path (to the micrometre), then the first in lattice order.
+
+    Returns:
+        (views, feasibility, path lengths, metres each view moved: 0 for those that stayed).
+    """
+    reasons = np.asarray(feasibility.reasons)
+    movable = np.flatnonzero((reasons == int(FeasibilityReason.OBSTACLE))
+                             | (reasons == int(FeasibilityReason.UNREACHABLE)))
+    nudged = np.zeros(len(reasons))
+    if movable.size == 0:
+        return views, feasibility, path_lengths, nudged
+    step = float(reach.grid.cell)
+    reach_cells = int(np.floor(float(params.commit_same_goal_m) / step + 1e-9))
+    i, j = np.meshgrid(np.arange(-reach_cells, reach_cells + 1), np.arange(-reach_cells, reach_cells + 1),
+                       indexing="ij")
+    squared = (i * i + j * j).reshape(-1)
+    keep = (squared > 0) & (squared * step * step <= float(params.commit_same_goal_m) ** 2 + 1e-12)
+    i, j, squared = i.reshape(-1)[keep], j.reshape(-1)[keep], squared[keep]
+    unit_normal, unit_offset = normalize_plane(normal, offset)
+    e1, e2 = plane_basis(unit_normal)
+    current_foot = -unit_offset * unit_normal
+    fitted = CandidateSet(rotations=views.rotations.copy(), positions=views.positions.copy(),
+                          foot_points=views.foot_points.copy(), ring_center=views.ring_center,
+                          camera_height=views.camera_height, is_current=views.is_current)
+    reasons = reasons.copy()
+    path_lengths = np.asarray(path_lengths, dtype=np.float64).copy()
+    for index in movable:
+        feet = views.foot_points[index][None, :] + (i * step)[:, None] * e1[None, :] + (j * step)[:, None] * e2[None, :]
+        lengths = reach.path_lengths_at(feet)
+        ok = np.isfinite(lengths) & (lengths <= float(params.max_path_length)) \
+            & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel)) \
+            & (np.linalg.norm(feet - views.ring_center[None, :], axis=1) >= float(params.min_free_radius) - 1e-9)
+        order = np.lexsort((np.arange(len(feet)), np.round(np.where(ok, lengths, np.inf), 6), squared))
+        tested = order[ok[order]][:_EXACT_TESTS_PER_CANDIDATE]
+        if tested.size == 0:
+            continue
+        blocked = footprints_blocked_in_plane(obstacles_in_plane, np.ascontiguousarray(feet[tested] @ e1),
+                                              np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
+        free = tested[~blocked]
+        if free.size == 0:
+            continue
+        probe = int(free[0])
+        rotation, position = cameras_at_feet(feet[probe:probe + 1], centroid, unit_normal, views.camera_height, params)
+        fitted.rotations[index], fitted.positions[index] = rotation[0], position[0]
+        fitted.foot_points[index] = feet[probe]
+        path_lengths[index] = lengths[probe]
+        reasons[index] = int(FeasibilityReason.OK)
+        nudged[index] = step * float(np.sqrt(squared[probe]))
+    return fitted, FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons), path_lengths, \
+        nudged
 
 
 def _on_scored(values: Array, picked: Array, count: int, fill: float) -> Array:
@@ -483,18 +557,28 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
     return fitted, FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons)
 
 
-def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles_in_plane: Array,
-                 target: TargetArrays, target_points: Array, normal: Array, offset: float,
-                 params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
-    """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
+def _floor_reach(candidates: CandidateSet, obstacles_in_plane: Array, target: TargetArrays, target_points: Array,
+                 normal: Array, offset: float, params: PlannerParams, robot_radius: float,
+                 feet: Optional[Array] = None) -> Reachability:
+    """The path search from the robot over the floor grid around the ring's foot points, obstacles grown by
+    ``robot_radius``; the path lengths are those of ``feet`` (default: the ring's)."""
     unit_normal, unit_offset = normalize_plane(normal, offset)
     current_foot = -unit_offset * unit_normal
     grid = build_occupancy_grid(np.zeros((0, 3)), target_points, unit_normal, unit_offset,
                                 np.vstack([candidates.foot_points, current_foot[None]]), params.grid_resolution,
-                                params.robot_radius, params.floor_clearance, params.unknown_space,
+                                robot_radius, params.floor_clearance, params.unknown_space,
                                 camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),
                                         int(target.height)), obstacle_plane_points=obstacles_in_plane)
-    reach = reachability(grid, current_foot, candidates.foot_points, params.max_path_length, params.robot_radius)
+    return reachability(grid, current_foot, candidates.foot_points if feet is None else feet,
+                        params.max_path_length, robot_radius)
+
+
+def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles_in_plane: Array,
+                 target: TargetArrays, target_points: Array, normal: Array, offset: float,
+                 params: PlannerParams) -> Tuple[FeasibilityResult, Reachability]:
+    """Feasible candidates without a free path of at most max_path_length become UNREACHABLE."""
+    reach = _floor_reach(candidates, obstacles_in_plane, target, target_points, normal, offset, params,
+                         float(params.robot_radius))
     reasons = np.asarray(feasibility.reasons).copy()
     unreachable = (reasons == int(FeasibilityReason.OK)) & ~reach.reachable & ~np.asarray(candidates.is_current)
     reasons[unreachable] = int(FeasibilityReason.UNREACHABLE)

@@ -250,6 +250,39 @@ def test_an_obstacle_on_the_committed_goal_replaces_it():
     assert commitment.goal is not None and commitment.goal.index == plan.chosen_index
 
 
+def test_a_committed_goal_on_the_edge_of_an_obstacle_moves_within_the_same_goal_distance_and_is_kept():
+    # A post 0.22 m beside the committed foot point (the robot's radius is 0.3): the foot point itself is blocked,
+    # one 0.1 m away is free, well within commit_same_goal_m (0.25). The goal is kept there, its committed foot point
+    # unchanged (the next frame starts from it again, so that nudges do not add up), and goal_status says so.
+    commitment = GoalCommitment()
+    plan, _ = _step(commitment, 0.0)
+    goal = commitment.goal
+    foot = plan.candidates.foot_points[plan.chosen_index]
+    side = np.cross(UP, foot - plan.candidates.ring_center)
+    side /= np.linalg.norm(side)
+    rng = np.random.default_rng(3)
+    post = foot + 0.22 * side + np.column_stack([rng.uniform(-0.01, 0.01, 100), -rng.uniform(0.1, 0.6, 100),
+                                                 rng.uniform(-0.01, 0.01, 100)])
+    plan, decision = _step(commitment, 0.0, extra_background=post, stamp=1)
+    extra = plan.extra
+    assert extra is not None and extra.nudged_m is not None
+    assert extra.feasibility.reasons[0] == int(FeasibilityReason.OK)
+    assert 0.05 <= extra.nudged_m[0] <= 0.25 + 1e-12
+    assert decision.reason == CommitReason.KEPT and not decision.changed and commitment.goal is goal
+    assert decision.nudged_m == extra.nudged_m[0]
+    moved = extra.candidates.foot_points[0]
+    assert float(np.min(np.linalg.norm((post - moved)[:, [0, 2]], axis=1))) >= 0.3  # clear of the post
+    assert decision.base_path is not None
+    np.testing.assert_array_equal(decision.base_path[-1], moved)
+    np.testing.assert_array_equal(decision.base_goal[1], moved)
+    assert f"goal kept ({decision.nudged_m:.2f} m from its foot point, in free space)" in decision.describe()
+    # Without the post: back at its own foot point.
+    plan, decision = _step(commitment, 0.0, stamp=2)
+    assert decision.reason == CommitReason.KEPT and decision.nudged_m == 0.0
+    np.testing.assert_allclose(plan.extra.candidates.foot_points[0], foot, atol=1e-9)
+    assert decision.describe().startswith("goal kept: ")
+
+
 def test_a_person_who_moved_resets_and_a_still_one_does_not():
     commitment = GoalCommitment()
     _step(commitment, 0.0)

@@ -118,3 +118,52 @@ def test_the_old_call_form_has_no_extra_views():
     target, ground = frame()
     assert plan_views(target, ground).extra is None
     assert dataclasses.fields(PlanInputs)[-1].name == "extra_foot_points"  # optional, last: positional calls hold
+
+
+def _distance_to_plate(feet: np.ndarray) -> np.ndarray:
+    """Metres in the floor plane from foot points to frame()'s box (a plate at z = 2, |x| <= 0.4)."""
+    dx = np.maximum(np.abs(feet[:, 0]) - 0.4, 0.0)
+    return np.hypot(dx, feet[:, 2] - 2.0)
+
+
+def test_a_view_on_the_edge_of_free_space_moves_into_it_within_the_same_goal_distance():
+    # 0.15 m before the plate (the robot's radius is 0.3): the footprint holds it. Free space begins 0.15 m back,
+    # within commit_same_goal_m (0.25): the view moves there, as the ring's candidates do, and is feasible.
+    feet = np.array([[0.0, CAMERA_HEIGHT, 1.85], [0.0, CAMERA_HEIGHT, 2.0]])  # the second: on the plate, 0.3 deep
+    plan = _plan(feet, min_radius=1.0)
+    extra = plan.extra
+    assert extra is not None and extra.nudged_m is not None
+    assert extra.feasibility.reasons.tolist() == [int(FeasibilityReason.OK), int(FeasibilityReason.OBSTACLE)]
+    moved = extra.candidates.foot_points[0]
+    assert 0.15 <= extra.nudged_m[0] <= 0.25 + 1e-12 and extra.nudged_m[1] == 0.0
+    assert np.linalg.norm(moved - feet[0]) == pytest.approx(extra.nudged_m[0], abs=1e-9)
+    assert _distance_to_plate(moved[None])[0] >= 0.3 > _distance_to_plate(feet[:1])[0]
+    assert moved[1] == pytest.approx(CAMERA_HEIGHT, abs=1e-12)  # on the floor
+    np.testing.assert_array_equal(extra.candidates.foot_points[1], feet[1])  # nothing free within 0.25 m
+    # It is scored and has a path to where it now stands, and its camera is the mounting rule's at that foot point.
+    assert extra.scores.score[0] > 0.0 and extra.base_paths[0] is not None
+    np.testing.assert_allclose(extra.base_paths[0][-1], moved, atol=1e-9)
+    at_moved = _plan(moved[None], min_radius=1.0).extra
+    assert at_moved is not None and at_moved.nudged_m is not None and at_moved.nudged_m[0] == 0.0
+    np.testing.assert_allclose(extra.candidates.positions[0], at_moved.candidates.positions[0], atol=1e-12)
+    np.testing.assert_allclose(extra.scores.score[0], at_moved.scores.score[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("params", [dict(fit_to_free_space=False), dict(commit_same_goal_m=0.0),
+                                    dict(commit_same_goal_m=0.1)])
+def test_a_blocked_view_stays_blocked_without_the_fit_or_beyond_the_same_goal_distance(params):
+    feet = np.array([[0.0, CAMERA_HEIGHT, 1.85]])
+    extra = _plan(feet, min_radius=1.0, **params).extra
+    assert extra is not None and extra.nudged_m is not None
+    assert extra.feasibility.reasons.tolist() == [int(FeasibilityReason.OBSTACLE)]
+    assert extra.nudged_m.tolist() == [0.0]
+    np.testing.assert_array_equal(extra.candidates.foot_points, feet)
+
+
+def test_the_nudge_is_the_same_for_a_mirror_image():
+    # The plate is symmetric about x = 0: a foot point at x and its mirror at -x move to mirror images.
+    left = _plan(np.array([[-0.3, CAMERA_HEIGHT, 1.85]]), min_radius=1.0).extra
+    right = _plan(np.array([[0.3, CAMERA_HEIGHT, 1.85]]), min_radius=1.0).extra
+    assert left is not None and right is not None and left.nudged_m is not None and right.nudged_m is not None
+    assert left.nudged_m[0] == pytest.approx(right.nudged_m[0], abs=1e-9) and left.nudged_m[0] > 0.0
+    assert left.candidates.foot_points[0][2] == pytest.approx(right.candidates.foot_points[0][2], abs=1e-9)
