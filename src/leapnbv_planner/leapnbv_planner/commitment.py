@@ -11,7 +11,9 @@ re-scores it from the current view with the ring's rules and terms
 - when it became infeasible or unreachable (INFEASIBLE, UNREACHABLE) and no foot point within
   ``commit_same_goal_m`` of its own is free and reachable (with ``fit_to_free_space``, the plan moves
   a blocked goal there: ``ExtraViews.nudged_m``; the edge of free space moves by a fraction of a cell
-  between frames, and a goal on it would flip),
+  between frames, and a goal on it would flip) and it has stayed so for ``commit_blocked_s``
+  (until then KEPT_BLOCKED: it is kept on its last path, from the robot on; a narrow passage to it
+  closes for a frame as the robot moves),
 - when the person moved more than ``commit_person_moved_m`` from where they stood at the commit
   (PERSON_MOVED), or
 - when staying is as good: the current view scores within the margin of the committed goal and of
@@ -32,7 +34,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import numpy as np
@@ -50,6 +52,8 @@ __all__ = ["DISTANCE_TOLERANCE_M", "CommitReason", "CommitmentParams", "Committe
 # Metres: distances within this of a threshold are on the side of keeping the goal (as SCORE_TIE_TOLERANCE for
 # scores): far above the rounding of a transform, far below anything a robot can tell apart.
 DISTANCE_TOLERANCE_M = 1e-9
+# Seconds, the same for commit_blocked_s: stamps are whole nanoseconds, so a gate at exactly a frame's time keeps.
+TIME_TOLERANCE_S = 1e-9
 
 
 class CommitReason(enum.IntEnum):
@@ -66,11 +70,17 @@ class CommitReason(enum.IntEnum):
     FIXED_FRAME_CHANGED = 8  # the camera pose is in another frame than the committed goal: committed anew
     DISABLED = 9  # commit_goals is off: the plan's choice
     NO_GOAL = 10  # nothing committed and no feasible view
+    KEPT_BLOCKED = 11  # infeasible or unreachable in this plan, for less than commit_blocked_s: kept on its last path
 
     @property
     def replaces(self) -> bool:
         """A reason that replaces (or drops) a committed goal."""
         return self in _REPLACING
+
+    @property
+    def keeps(self) -> bool:
+        """A reason that keeps the committed goal (KEPT, KEPT_BLOCKED)."""
+        return self in (CommitReason.KEPT, CommitReason.KEPT_BLOCKED)
 
 
 _REPLACING = frozenset({CommitReason.BEATEN_BY_MARGIN, CommitReason.INFEASIBLE, CommitReason.UNREACHABLE,
@@ -88,6 +98,8 @@ class HeldView:
         person_moved_m: metres between the person's floor position now and at the commit.
         best_distance_m: metres between the plan's best view's foot point and the committed goal's (inf: no best).
         current_distance_m: metres between the robot's foot point and the committed goal's.
+        blocked_s: seconds since the first plan of the run of plans (this one included) that found it infeasible or
+            unreachable; 0 when it is feasible now or was not before this plan.
     """
 
     score: float
@@ -95,6 +107,12 @@ class HeldView:
     person_moved_m: float
     best_distance_m: float = math.inf
     current_distance_m: float = math.inf
+    blocked_s: float = 0.0
+
+    @property
+    def blocked(self) -> bool:
+        """Infeasible or unreachable in this plan (or without a score)."""
+        return self.reason != int(FeasibilityReason.OK) or not math.isfinite(self.score)
 
 
 @dataclass(frozen=True)
@@ -145,6 +163,8 @@ def decide(params: CommitmentParams, best_index: int, best_score: float, held: O
         return Verdict(CommitReason.FIRST_GOAL if best_index >= 0 else CommitReason.NO_GOAL, best_index)
     if held.person_moved_m > float(params.commit_person_moved_m) + DISTANCE_TOLERANCE_M:
         return Verdict(CommitReason.PERSON_MOVED, best_index)
+    if held.blocked and held.blocked_s < float(params.commit_blocked_s) - TIME_TOLERANCE_S:
+        return Verdict(CommitReason.KEPT_BLOCKED, -1)
     if held.reason == int(FeasibilityReason.UNREACHABLE):
         return Verdict(CommitReason.UNREACHABLE, best_index)
     if held.reason != int(FeasibilityReason.OK) or not math.isfinite(held.score):
@@ -174,6 +194,9 @@ class CommittedGoal:
         stamp_ns: the stamp of the frame it was committed on.
         score: its score on that frame.
         index: its candidate index in that frame's plan.
+        path: (P, 3) the last base path published to it, in the fixed frame (None: none was, reachability off);
+            a plan that finds it blocked keeps the robot on it (KEPT_BLOCKED).
+        blocked_since_ns: the stamp of the first plan of the current run of plans that found it blocked; -1: none.
     """
 
     fixed_frame: str
@@ -185,6 +208,8 @@ class CommittedGoal:
     stamp_ns: int
     score: float
     index: int
+    path: Optional[Array] = None
+    blocked_since_ns: int = -1
 
 
 @dataclass(frozen=True)
@@ -207,6 +232,7 @@ class GoalDecision:
         margin: the commit_margin in force.
         nudged_m: metres the kept goal's foot point moved to free space in this plan (``ExtraViews.nudged_m``: its
             own foot point was blocked or had no path, one within commit_same_goal_m had); 0 when it did not.
+        blocked_s: KEPT_BLOCKED: seconds the committed goal has been blocked (``HeldView.blocked_s``); 0 otherwise.
     """
 
     reason: CommitReason
@@ -223,6 +249,7 @@ class GoalDecision:
     person_moved_m: float = math.nan
     margin: float = math.nan
     nudged_m: float = 0.0
+    blocked_s: float = 0.0
 
     def describe(self) -> str:
         """One line for goal_status.reason."""
@@ -231,6 +258,9 @@ class GoalDecision:
         if self.reason == CommitReason.KEPT:
             nudge = f" ({self.nudged_m:.2f} m from its foot point, in free space)" if self.nudged_m > 0.0 else ""
             return f"goal kept{nudge}: {held}, the plan's best is {best}, margin {self.margin:g}"
+        if self.reason == CommitReason.KEPT_BLOCKED:
+            return f"goal kept on its last path: infeasible or unreachable in this plan for {self.blocked_s:.2f} s," \
+                   f" less than commit_blocked_s; the plan's best is {best}"
         if self.reason == CommitReason.BEATEN_BY_MARGIN:
             return f"goal changed: {best} beats it by more than {self.margin:g} ({held})"
         if self.reason == CommitReason.STAYING_AS_GOOD:
@@ -262,6 +292,28 @@ def _to_optical(pose: CameraPose, points: Array) -> Array:
     """Fixed-frame points (..., 3) in the frame's optical frame."""
     rotation = np.asarray(pose.rotation, dtype=np.float64)
     return (np.asarray(points, dtype=np.float64) - np.asarray(pose.position, dtype=np.float64)) @ rotation
+
+
+def _path_in_fixed(pose: CameraPose, path: Optional[Array]) -> Optional[Array]:
+    """A base path of the frame's optical frame in the fixed frame (None stays None)."""
+    return None if path is None else _to_fixed(pose, np.asarray(path, dtype=np.float64).reshape(-1, 3))
+
+
+def _path_on(pose: CameraPose, path_fixed: Array, up: Array) -> Array:
+    """The last path (fixed frame) in this frame's optical frame, from the robot on.
+
+    Its point nearest the robot's foot point (seen from above) is replaced by that foot point and the points before
+    it are left out, so that a motion stack that follows it goes on and never drives back to where the path began.
+    """
+    points = _to_optical(pose, path_fixed)
+    normal = np.asarray(up, dtype=np.float64).reshape(3)
+    normal = normal / max(float(np.linalg.norm(normal)), 1e-12)
+    heights = points @ normal
+    across = np.linalg.norm(points - heights[:, None] * normal[None, :], axis=1)  # from the camera's vertical
+    nearest = int(np.argmin(across))
+    foot = heights[nearest] * normal  # below the camera, on the path's floor
+    rest = points[nearest + 1:] if nearest + 1 < len(points) else points[-1:]
+    return np.vstack([foot[None, :], rest])
 
 
 def _distance(a: Array, b: Array) -> float:
@@ -337,12 +389,25 @@ class GoalCommitment:
         held: Optional[HeldView] = None
         if self.goal is not None:
             held = self._held_view(plan, camera_pose)
+            if held.blocked:
+                if self.goal.blocked_since_ns < 0:
+                    self.goal = replace(self.goal, blocked_since_ns=int(stamp_ns))
+                held = replace(held, blocked_s=(int(stamp_ns) - self.goal.blocked_since_ns) * 1e-9)
         current_score = float(plan.scores.score[0]) if plan.includes_current_view else None
         verdict = decide(params, best, best_score, held, current_score)
         held_score = held.score if held is not None else math.nan
         moved = held.person_moved_m if held is not None else math.nan
+        if verdict.reason == CommitReason.KEPT_BLOCKED and self.goal is not None and plan.extra is not None \
+                and held is not None:
+            extra = plan.extra
+            path = None if self.goal.path is None else _path_on(camera_pose, self.goal.path, plan.up)
+            return GoalDecision(reason=verdict.reason, changed=False, goal=extra.pose(0), base_goal=extra.base_goal(0),
+                                base_path=path, score=held_score, index=-1, committed=self.goal,
+                                held_score=held_score, best_index=best, best_score=best_score, person_moved_m=moved,
+                                margin=margin, blocked_s=held.blocked_s)
         if verdict.keep and self.goal is not None and plan.extra is not None:
             extra = plan.extra
+            self.goal = replace(self.goal, blocked_since_ns=-1, path=_path_in_fixed(camera_pose, extra.base_paths[0]))
             return GoalDecision(reason=verdict.reason, changed=False, goal=extra.pose(0), base_goal=extra.base_goal(0),
                                 base_path=extra.base_paths[0], score=held_score, index=-1, committed=self.goal,
                                 held_score=held_score, best_index=best, best_score=best_score, person_moved_m=moved,
@@ -384,7 +449,8 @@ class GoalCommitment:
             camera_rotation=rotation @ candidates.rotations[index],
             camera_position=_to_fixed(camera_pose, candidates.positions[index]),
             person_position=_to_fixed(camera_pose, candidates.ring_center), stamp_ns=int(stamp_ns),
-            score=float(plan.scores.score[index]), index=int(index))
+            score=float(plan.scores.score[index]), index=int(index),
+            path=_path_in_fixed(camera_pose, _candidate_goal(plan, index)[2]))
         return self.goal
 
     @staticmethod

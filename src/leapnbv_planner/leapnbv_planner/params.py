@@ -98,6 +98,12 @@ class CommitmentParams:
     # over bags/sample_a's frames.
     commit_person_moved_m: float = param(0.5, "metres: how far the person's floor position may move from where it"
                                          " was at the commit before the goal is planned anew", min=0.0, max=10.0)
+    # 0.6 s: three frames at the evaluation's 5 Hz. A passage one grid cell wider than the robot (beside a person
+    # in a 1.6-2.4 m corridor) closes for one frame in five or so as the grid shifts under the moving robot
+    # (corridor seed 10: 18 switches in 15 s without it); a real obstacle costs this long on the old path.
+    commit_blocked_s: float = param(0.6, "seconds: a committed goal found infeasible or unreachable is kept on its"
+                                    " last path this long before it is replaced (KEPT_BLOCKED); 0: at once",
+                                    min=0.0, max=10.0)
     commit_same_goal_m: float = param(0.25, "metres: a view whose foot point is this near the committed goal's is"
                                       " the same goal and never replaces it (0.25: Nav2's default xy goal"
                                       " tolerance)", min=0.0, max=5.0)

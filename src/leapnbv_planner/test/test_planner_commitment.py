@@ -30,18 +30,26 @@ OK = int(FeasibilityReason.OK)
 FAR = 1.0  # metres: farther than commit_same_goal_m
 
 
-def held(score, reason=OK, moved=0.0, best_distance=FAR, current_distance=FAR):
+def held(score, reason=OK, moved=0.0, best_distance=FAR, current_distance=FAR, blocked_s=0.0):
     return HeldView(score=score, reason=reason, person_moved_m=moved, best_distance_m=best_distance,
-                    current_distance_m=current_distance)
+                    current_distance_m=current_distance, blocked_s=blocked_s)
+
+
+def _same_commit(a, b) -> bool:
+    """The same committed goal (the commit's place and frame; its last path and blocked time move on)."""
+    return a is not None and b is not None and a.stamp_ns == b.stamp_ns and a.index == b.index \
+        and np.array_equal(a.foot_point, b.foot_point) and np.array_equal(a.camera_position, b.camera_position)
 
 
 # --- the decision ---
 
 def test_defaults_ranges_and_descriptions_are_declared_as_every_parameter():
     specs = {spec.name: spec for spec in param_specs(CommitmentParams)}
-    assert set(specs) == {"commit_goals", "commit_margin", "commit_person_moved_m", "commit_same_goal_m"}
-    assert (PARAMS.commit_goals, MARGIN, PARAMS.commit_person_moved_m, PARAMS.commit_same_goal_m) == \
-        (True, 0.02, 0.5, 0.25)
+    assert set(specs) == {"commit_goals", "commit_margin", "commit_person_moved_m", "commit_same_goal_m",
+                          "commit_blocked_s"}
+    assert (PARAMS.commit_goals, MARGIN, PARAMS.commit_person_moved_m, PARAMS.commit_same_goal_m,
+            PARAMS.commit_blocked_s) == (True, 0.02, 0.5, 0.25, 0.6)
+    assert (specs["commit_blocked_s"].min, specs["commit_blocked_s"].max) == (0.0, 10.0)
     assert all(spec.description and not spec.read_only for spec in specs.values())  # all change at runtime
     assert (specs["commit_margin"].min, specs["commit_margin"].max) == (0.0, 1.0)
     validate_params(PARAMS)
@@ -96,10 +104,22 @@ def test_a_view_better_by_more_than_the_margin_wins():
     (FeasibilityReason.UNREACHABLE, CommitReason.UNREACHABLE),
 ])
 def test_an_infeasible_or_unreachable_committed_goal_is_replaced(reason, expected):
-    # Even by a view that scores less than the committed goal did, and by nothing when the plan has nothing.
-    assert decide(PARAMS, 4, 0.5, held(0.9, reason=int(reason))) == Verdict(expected, 4)
-    assert decide(PARAMS, -1, math.nan, held(0.9, reason=int(reason))) == Verdict(expected, -1)
-    assert decide(PARAMS, 4, 0.5, held(math.nan)).reason == CommitReason.INFEASIBLE  # a score it could not get
+    # Once blocked for commit_blocked_s: even by a view that scores less than the committed goal did, and by nothing
+    # when the plan has nothing.
+    limit = PARAMS.commit_blocked_s
+    assert decide(PARAMS, 4, 0.5, held(0.9, reason=int(reason), blocked_s=limit)) == Verdict(expected, 4)
+    assert decide(PARAMS, -1, math.nan, held(0.9, reason=int(reason), blocked_s=limit)) == Verdict(expected, -1)
+    assert decide(PARAMS, 4, 0.5, held(math.nan, blocked_s=limit)).reason == CommitReason.INFEASIBLE  # no score
+    # Before that it is kept, on its last path (KEPT_BLOCKED), also against a far better view ...
+    for blocked in (0.0, 0.2, limit - 1e-6):
+        assert decide(PARAMS, 4, 0.99, held(0.0, reason=int(reason), blocked_s=blocked)) == \
+            Verdict(CommitReason.KEPT_BLOCKED, -1)
+    # ... the gate replaces to the last bit (0.6 s from whole nanoseconds), and 0 replaces at once.
+    assert decide(PARAMS, 4, 0.5, held(0.9, reason=int(reason), blocked_s=600_000_000 * 1e-9)).reason == expected
+    at_once = dataclasses.replace(PARAMS, commit_blocked_s=0.0)
+    assert decide(at_once, 4, 0.5, held(0.9, reason=int(reason))) == Verdict(expected, 4)
+    # A person who moved is planned anew at once, blocked or not.
+    assert decide(PARAMS, 4, 0.5, held(0.9, reason=int(reason), moved=1.0)).reason == CommitReason.PERSON_MOVED
 
 
 def test_a_person_who_moved_past_the_distance_resets_the_goal():
@@ -214,7 +234,7 @@ def test_the_goal_is_committed_in_the_fixed_frame_and_kept_while_the_robot_moves
         plan, decision = _step(commitment, shift, stamp=step)
         choices.append(plan.chosen_index)
         assert decision.reason == CommitReason.KEPT and not decision.changed and decision.index == -1
-        assert commitment.goal is goal
+        assert _same_commit(commitment.goal, goal)
         extra = plan.extra
         assert extra is not None and len(extra) == 1
         # The committed foot point in this frame: where the map puts it.
@@ -234,15 +254,26 @@ def goal_in_frame(point, shift):
     return rotation.T @ (point - position) - np.array([shift, 0.0, 0.0])
 
 
-def test_an_obstacle_on_the_committed_goal_replaces_it():
+def test_an_obstacle_on_the_committed_goal_keeps_it_on_its_last_path_then_replaces_it():
     commitment = GoalCommitment()
-    plan, _ = _step(commitment, 0.0)
+    plan, first = _step(commitment, 0.0)
     foot = plan.candidates.foot_points[plan.chosen_index]
+    first_path = first.base_path
+    assert first_path is not None and len(first_path) > 3
     rng = np.random.default_rng(5)
-    # A box 0.4 m high on the committed foot point (seen in the next frame).
+    # A box 0.4 m high on the committed foot point (seen in the next frames, 0.2 s apart).
     box = foot + np.column_stack([rng.uniform(-0.2, 0.2, 200), -rng.uniform(0.1, 0.4, 200),
                                   rng.uniform(-0.2, 0.2, 200)])
-    plan, decision = _step(commitment, 0.0, extra_background=box)
+    for stamp in (200_000_000, 400_000_000):  # blocked for 0 s, then 0.2 s: less than commit_blocked_s (0.6)
+        plan, decision = _step(commitment, 0.0, extra_background=box, stamp=stamp)
+        assert plan.extra.feasibility.reasons[0] == int(FeasibilityReason.OBSTACLE)
+        assert decision.reason == CommitReason.KEPT_BLOCKED and not decision.changed and decision.index == -1
+        assert decision.blocked_s == pytest.approx((stamp - 200_000_000) * 1e-9)
+        assert f"for {decision.blocked_s:.2f} s, less than commit_blocked_s" in decision.describe()
+        # The last path, from the robot's foot point (the camera did not move: the path's first point) on.
+        np.testing.assert_allclose(decision.base_path, first_path, atol=1e-9)
+        np.testing.assert_allclose(decision.base_goal[1], foot, atol=1e-9)
+    plan, decision = _step(commitment, 0.0, extra_background=box, stamp=800_000_000)  # 0.6 s blocked
     assert plan.extra.feasibility.reasons[0] == int(FeasibilityReason.OBSTACLE)
     assert decision.reason == CommitReason.INFEASIBLE and decision.changed
     assert decision.index == plan.chosen_index >= 0
@@ -268,7 +299,7 @@ def test_a_committed_goal_on_the_edge_of_an_obstacle_moves_within_the_same_goal_
     assert extra is not None and extra.nudged_m is not None
     assert extra.feasibility.reasons[0] == int(FeasibilityReason.OK)
     assert 0.05 <= extra.nudged_m[0] <= 0.25 + 1e-12
-    assert decision.reason == CommitReason.KEPT and not decision.changed and commitment.goal is goal
+    assert decision.reason == CommitReason.KEPT and not decision.changed and _same_commit(commitment.goal, goal)
     assert decision.nudged_m == extra.nudged_m[0]
     moved = extra.candidates.foot_points[0]
     assert float(np.min(np.linalg.norm((post - moved)[:, [0, 2]], axis=1))) >= 0.3  # clear of the post

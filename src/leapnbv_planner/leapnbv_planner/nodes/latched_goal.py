@@ -31,7 +31,7 @@ from leapnbv_common import topics
 from leapnbv_common.conversions import path_msg, pose_msg, set_stamp
 from leapnbv_common.qos import latched_goal_qos
 from leapnbv_msgs.msg import GoalStatus, TargetTrack
-from leapnbv_planner.commitment import CommitReason, GoalDecision
+from leapnbv_planner.commitment import GoalDecision
 from leapnbv_planner.goal_age import expired_age_s, goal_age_limit_s, too_old, valid_until_ns
 
 __all__ = ["LatchedGoal", "GOAL_AGE_CHECK_PERIOD_S"]
@@ -199,7 +199,7 @@ class LatchedGoal:
 def commitment_fields(msg: GoalStatus, decision: GoalDecision, stamp_ns: Optional[int]) -> None:
     """The commitment's fields of a goal status (GoalStatus.msg: commitment, goal_changed, committed_since, ...)."""
     msg.commitment = decision.reason.name
-    msg.goal_changed = decision.reason != CommitReason.KEPT  # a goal chosen (or dropped) by this plan, not kept
+    msg.goal_changed = not decision.reason.keeps  # a goal chosen (or dropped) by this plan, not kept
     since = decision.committed.stamp_ns if decision.committed is not None else stamp_ns
     if since is not None and decision.goal is not None:
         set_stamp(msg.committed_since, since)
