@@ -7,7 +7,9 @@ Here the goal is committed: it is kept in the fixed frame of the camera pose (th
 re-scores it from the current view with the ring's rules and terms
 (``PlanInputs.extra_foot_points``, ``Plan.extra``), and :func:`decide` replaces it only
 
-- when another view beats it by more than ``commit_margin`` (BEATEN_BY_MARGIN),
+- when another view beats it by more than ``commit_margin`` (BEATEN_BY_MARGIN), unless that view is
+  within ``commit_dropped_radius_m`` of a goal dropped as blocked in the last ``commit_dropped_s``
+  (the way to it flickers: taking it back would send the robot to and fro),
 - when it became infeasible or unreachable (INFEASIBLE, UNREACHABLE) and no foot point within
   ``commit_same_goal_m`` of its own is free and reachable (with ``fit_to_free_space``, the plan moves
   a blocked goal there: ``ExtraViews.nudged_m``; the edge of free space moves by a fraction of a cell
@@ -35,7 +37,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, replace
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -100,6 +102,8 @@ class HeldView:
         current_distance_m: metres between the robot's foot point and the committed goal's.
         blocked_s: seconds since the first plan of the run of plans (this one included) that found it infeasible or
             unreachable; 0 when it is feasible now or was not before this plan.
+        best_near_dropped: the plan's best view is within commit_dropped_radius_m of a goal dropped as infeasible
+            or unreachable less than commit_dropped_s ago: it may not beat the committed goal by the margin.
     """
 
     score: float
@@ -108,6 +112,7 @@ class HeldView:
     best_distance_m: float = math.inf
     current_distance_m: float = math.inf
     blocked_s: float = 0.0
+    best_near_dropped: bool = False
 
     @property
     def blocked(self) -> bool:
@@ -175,7 +180,8 @@ def decide(params: CommitmentParams, best_index: int, best_score: float, held: O
     if current_score is not None and held.current_distance_m > same_goal \
             and float(current_score) >= max(held.score, best) - margin - SCORE_TIE_TOLERANCE:
         return Verdict(CommitReason.STAYING_AS_GOOD, 0)
-    if best_index >= 0 and held.best_distance_m > same_goal and best > held.score + margin + SCORE_TIE_TOLERANCE:
+    if best_index >= 0 and held.best_distance_m > same_goal and best > held.score + margin + SCORE_TIE_TOLERANCE \
+            and not held.best_near_dropped:
         return Verdict(CommitReason.BEATEN_BY_MARGIN, best_index)
     return Verdict(CommitReason.KEPT, -1)
 
@@ -233,6 +239,7 @@ class GoalDecision:
         nudged_m: metres the kept goal's foot point moved to free space in this plan (``ExtraViews.nudged_m``: its
             own foot point was blocked or had no path, one within commit_same_goal_m had); 0 when it did not.
         blocked_s: KEPT_BLOCKED: seconds the committed goal has been blocked (``HeldView.blocked_s``); 0 otherwise.
+        best_near_dropped: the plan's best is near a goal dropped as blocked lately (``HeldView.best_near_dropped``).
     """
 
     reason: CommitReason
@@ -250,6 +257,7 @@ class GoalDecision:
     margin: float = math.nan
     nudged_m: float = 0.0
     blocked_s: float = 0.0
+    best_near_dropped: bool = False
 
     def describe(self) -> str:
         """One line for goal_status.reason."""
@@ -257,7 +265,8 @@ class GoalDecision:
         held = f"the committed goal scores {self.held_score:.4f}"
         if self.reason == CommitReason.KEPT:
             nudge = f" ({self.nudged_m:.2f} m from its foot point, in free space)" if self.nudged_m > 0.0 else ""
-            return f"goal kept{nudge}: {held}, the plan's best is {best}, margin {self.margin:g}"
+            dropped = " (near a goal dropped as blocked within commit_dropped_s)" if self.best_near_dropped else ""
+            return f"goal kept{nudge}: {held}, the plan's best is {best}{dropped}, margin {self.margin:g}"
         if self.reason == CommitReason.KEPT_BLOCKED:
             return f"goal kept on its last path: infeasible or unreachable in this plan for {self.blocked_s:.2f} s," \
                    f" less than commit_blocked_s; the plan's best is {best}"
@@ -332,10 +341,21 @@ class GoalCommitment:
 
     def __init__(self) -> None:
         self.goal: Optional[CommittedGoal] = None
+        # (fixed frame, foot point, stamp) of goals dropped as infeasible or unreachable (commit_dropped_s).
+        self.dropped: List[Tuple[str, Array, int]] = []
 
     def clear(self) -> None:
-        """Forget the committed goal (the next plan's choice is committed anew)."""
+        """Forget the committed goal and the dropped ones (the next plan's choice is committed anew)."""
         self.goal = None
+        self.dropped = []
+
+    def _near_dropped(self, params: CommitmentParams, foot_fixed: Array, fixed_frame: str, stamp_ns: int) -> bool:
+        """A floor point within commit_dropped_radius_m of a goal dropped less than commit_dropped_s ago."""
+        window_ns = float(params.commit_dropped_s) * 1e9
+        # Entries from the future (a replay, a simulator reset) and past the window go.
+        self.dropped = [d for d in self.dropped if 0 <= int(stamp_ns) - d[2] < window_ns]
+        radius = float(params.commit_dropped_radius_m) + DISTANCE_TOLERANCE_M
+        return any(frame == fixed_frame and _distance(foot, foot_fixed) <= radius for frame, foot, _ in self.dropped)
 
     def extra_foot_points(self, params: CommitmentParams, camera_pose: Optional[CameraPose],
                           fixed_frame: str) -> Optional[Array]:
@@ -393,6 +413,9 @@ class GoalCommitment:
                 if self.goal.blocked_since_ns < 0:
                     self.goal = replace(self.goal, blocked_since_ns=int(stamp_ns))
                 held = replace(held, blocked_s=(int(stamp_ns) - self.goal.blocked_since_ns) * 1e-9)
+            if best >= 0 and self.dropped:
+                best_foot = _to_fixed(camera_pose, plan.candidates.foot_points[best])
+                held = replace(held, best_near_dropped=self._near_dropped(params, best_foot, fixed_frame, stamp_ns))
         current_score = float(plan.scores.score[0]) if plan.includes_current_view else None
         verdict = decide(params, best, best_score, held, current_score)
         held_score = held.score if held is not None else math.nan
@@ -412,7 +435,10 @@ class GoalCommitment:
                                 base_path=extra.base_paths[0], score=held_score, index=-1, committed=self.goal,
                                 held_score=held_score, best_index=best, best_score=best_score, person_moved_m=moved,
                                 margin=margin,
-                                nudged_m=float(extra.nudged_m[0]) if extra.nudged_m is not None else 0.0)
+                                nudged_m=float(extra.nudged_m[0]) if extra.nudged_m is not None else 0.0,
+                                best_near_dropped=held is not None and held.best_near_dropped)
+        if verdict.reason in (CommitReason.INFEASIBLE, CommitReason.UNREACHABLE) and self.goal is not None:
+            self.dropped.append((self.goal.fixed_frame, self.goal.foot_point, int(stamp_ns)))
         committed = self._commit(plan, verdict.index, camera_pose, fixed_frame, stamp_ns)
         return self._plan_choice(plan, verdict, changed=had_goal and verdict.reason.replaces, committed=committed,
                                  held_score=held_score, best_score=best_score, person_moved_m=moved, margin=margin)

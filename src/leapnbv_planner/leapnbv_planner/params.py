@@ -104,6 +104,14 @@ class CommitmentParams:
     commit_blocked_s: float = param(0.6, "seconds: a committed goal found infeasible or unreachable is kept on its"
                                     " last path this long before it is replaced (KEPT_BLOCKED); 0: at once",
                                     min=0.0, max=10.0)
+    # 5 s and 1 m: in a corridor the way past the occluder closed for seconds as the robot turned toward it (the
+    # occluder came into view) and opened as it turned away; the far-side views beat the near goal right back, and
+    # the robot went to and fro (corridor seed 16: 28 switches in 30 s). 1 m covers the neighbouring candidates.
+    commit_dropped_s: float = param(5.0, "seconds: after a committed goal is dropped as infeasible or unreachable,"
+                                    " a view within commit_dropped_radius_m of it does not replace the goal by the"
+                                    " margin for this long (0: off)", min=0.0, max=60.0)
+    commit_dropped_radius_m: float = param(1.0, "metres: how near a dropped goal a view is refused (commit_dropped_s)",
+                                           min=0.0, max=10.0)
     commit_same_goal_m: float = param(0.25, "metres: a view whose foot point is this near the committed goal's is"
                                       " the same goal and never replaces it (0.25: Nav2's default xy goal"
                                       " tolerance)", min=0.0, max=5.0)

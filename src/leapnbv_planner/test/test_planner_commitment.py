@@ -46,7 +46,8 @@ def _same_commit(a, b) -> bool:
 def test_defaults_ranges_and_descriptions_are_declared_as_every_parameter():
     specs = {spec.name: spec for spec in param_specs(CommitmentParams)}
     assert set(specs) == {"commit_goals", "commit_margin", "commit_person_moved_m", "commit_same_goal_m",
-                          "commit_blocked_s"}
+                          "commit_blocked_s", "commit_dropped_s", "commit_dropped_radius_m"}
+    assert (PARAMS.commit_dropped_s, PARAMS.commit_dropped_radius_m) == (5.0, 1.0)
     assert (PARAMS.commit_goals, MARGIN, PARAMS.commit_person_moved_m, PARAMS.commit_same_goal_m,
             PARAMS.commit_blocked_s) == (True, 0.02, 0.5, 0.25, 0.6)
     assert (specs["commit_blocked_s"].min, specs["commit_blocked_s"].max) == (0.0, 10.0)
@@ -120,6 +121,17 @@ def test_an_infeasible_or_unreachable_committed_goal_is_replaced(reason, expecte
     assert decide(at_once, 4, 0.5, held(0.9, reason=int(reason))) == Verdict(expected, 4)
     # A person who moved is planned anew at once, blocked or not.
     assert decide(PARAMS, 4, 0.5, held(0.9, reason=int(reason), moved=1.0)).reason == CommitReason.PERSON_MOVED
+
+
+def test_a_view_near_a_goal_dropped_lately_does_not_beat_the_goal_by_the_margin():
+    near = dataclasses.replace(held(0.70), best_near_dropped=True)
+    assert decide(PARAMS, 7, 0.99, near) == Verdict(CommitReason.KEPT, -1)
+    assert decide(PARAMS, 7, 0.99, held(0.70)) == Verdict(CommitReason.BEATEN_BY_MARGIN, 7)
+    # The other rules stand: blocked long enough, the person moved, staying as good.
+    blocked = dataclasses.replace(near, reason=int(FeasibilityReason.UNREACHABLE), blocked_s=1.0)
+    assert decide(PARAMS, 7, 0.99, blocked) == Verdict(CommitReason.UNREACHABLE, 7)
+    assert decide(PARAMS, 7, 0.99, dataclasses.replace(near, person_moved_m=1.0)).reason == CommitReason.PERSON_MOVED
+    assert decide(PARAMS, 7, 0.99, near, current_score=0.99).reason == CommitReason.STAYING_AS_GOOD
 
 
 def test_a_person_who_moved_past_the_distance_resets_the_goal():
@@ -276,9 +288,22 @@ def test_an_obstacle_on_the_committed_goal_keeps_it_on_its_last_path_then_replac
     plan, decision = _step(commitment, 0.0, extra_background=box, stamp=800_000_000)  # 0.6 s blocked
     assert plan.extra.feasibility.reasons[0] == int(FeasibilityReason.OBSTACLE)
     assert decision.reason == CommitReason.INFEASIBLE and decision.changed
+    assert len(commitment.dropped) == 1 and commitment.dropped[0][0] == "map" and commitment.dropped[0][2] == 800_000_000
+    np.testing.assert_allclose(commitment.dropped[0][1], _in_map(foot), atol=1e-9)
     assert decision.index == plan.chosen_index >= 0
     assert np.linalg.norm(plan.candidates.foot_points[plan.chosen_index] - foot) > 0.3  # another goal
     assert commitment.goal is not None and commitment.goal.index == plan.chosen_index
+    # The box goes: the dropped place is the plan's best again (the new goal is its mirror image, 2e-5 below it: a
+    # margin of 0 lets it beat that), but does not take the goal back within commit_dropped_s (5 s) of the drop;
+    # after that it does.
+    no_margin = dataclasses.replace(PARAMS, commit_margin=0.0)
+    plan, decision = _step(commitment, 0.0, params=no_margin, stamp=1_000_000_000)
+    assert np.linalg.norm(plan.candidates.foot_points[plan.chosen_index] - foot) < 1e-9
+    assert decision.best_score > decision.held_score + 1e-6
+    assert decision.reason == CommitReason.KEPT and decision.best_near_dropped
+    assert "near a goal dropped as blocked within commit_dropped_s" in decision.describe()
+    plan, decision = _step(commitment, 0.0, params=no_margin, stamp=5_800_000_000)  # 5.0 s after: past it
+    assert decision.reason == CommitReason.BEATEN_BY_MARGIN and not commitment.dropped
 
 
 def test_a_committed_goal_on_the_edge_of_an_obstacle_moves_within_the_same_goal_distance_and_is_kept():
