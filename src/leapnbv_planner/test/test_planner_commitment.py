@@ -288,7 +288,8 @@ def test_an_obstacle_on_the_committed_goal_keeps_it_on_its_last_path_then_replac
     plan, decision = _step(commitment, 0.0, extra_background=box, stamp=800_000_000)  # 0.6 s blocked
     assert plan.extra.feasibility.reasons[0] == int(FeasibilityReason.OBSTACLE)
     assert decision.reason == CommitReason.INFEASIBLE and decision.changed
-    assert len(commitment.dropped) == 1 and commitment.dropped[0][0] == "map" and commitment.dropped[0][2] == 800_000_000
+    assert len(commitment.dropped) == 1
+    assert commitment.dropped[0][0] == "map" and commitment.dropped[0][2] == 800_000_000
     np.testing.assert_allclose(commitment.dropped[0][1], _in_map(foot), atol=1e-9)
     assert decision.index == plan.chosen_index >= 0
     assert np.linalg.norm(plan.candidates.foot_points[plan.chosen_index] - foot) > 0.3  # another goal
