@@ -111,3 +111,39 @@ def test_nbv_node_stopped_during_its_warm_up_exits_0(tmp_path):
         probe.close()
         harness.stop_node(proc)
     assert "Traceback" not in harness.read_log(proc), harness.read_log(proc)
+
+
+# A constructor whose stop arrives inside a Python callback called from C (as numba's compiler is
+# called back from llvmlite): ctypes drops the KeyboardInterrupt raised there, and the constructor
+# would then work on for 30 s (what CI met once: the cold-cache warm-up outlived the test's 20 s).
+NODE_STOPPED_IN_A_C_CALLBACK = r'''
+import ctypes, os, signal, time
+from rclpy.node import Node
+from leapnbv_common.node_params import run_node
+
+@ctypes.CFUNCTYPE(None)
+def called_from_c():
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(0.2)  # the handler runs here, inside the callback
+
+class Slow(Node):
+    def __init__(self):
+        super().__init__("slow_node")
+        called_from_c()
+        print("stop dropped", flush=True)
+        for _ in range(600):
+            time.sleep(0.05)  # the rest of the warm-up
+        print("spinning", flush=True)
+
+run_node(Slow)
+print("clean exit", flush=True)
+'''
+
+
+def test_a_stop_dropped_by_a_c_callback_during_the_start_is_raised_again():
+    proc = subprocess.run([sys.executable, "-c", NODE_STOPPED_IN_A_C_CALLBACK], capture_output=True, text=True,
+                          timeout=60, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log
+    assert "stop dropped" in log and "spinning" not in log and "clean exit" in log, log
+    assert "Traceback" not in log and "KeyboardInterrupt" not in log, log

@@ -117,7 +117,8 @@ def run_node(make_node, args=None) -> None:
     kernel's caller counting an ``internal_error``). Here SIGINT and SIGTERM only ask the spin loop
     to stop: the running callback finishes, then the node is destroyed and rclpy shut down, in that
     order. A signal while the node is still being built (an engine load, the numba warm-up) ends the
-    start at once; a second signal while stopping ends at once too.
+    start at once (raised again every STOP_RETRY_S until it takes, since a C library's callback drops
+    it); a second signal while stopping ends at once too.
 
     A parameter value the node refuses (:class:`ParamsError`, rclpy's range or type check of a
     declared parameter, or another ValueError raised while it is built) ends the process with one
@@ -139,13 +140,27 @@ def run_node(make_node, args=None) -> None:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    state = {"signals": 0, "spinning": False}
+    state = {"signals": 0, "spinning": False, "retrying": False}
 
     def on_signal(signum, frame) -> None:
         state["signals"] += 1
         if not state["spinning"] or state["signals"] > 1:
+            _retry_stop_while_starting(state)
             raise KeyboardInterrupt  # not spinning yet (or asked twice): unwind now
         # Spinning: the loop below sees the flag once the running callback returned.
+
+    def on_retry(signum, frame) -> None:
+        # The first one fell into a C callback, which drops it: again. Never in this function's own
+        # frame (between its statements, or catching the first one: a stop seen there is seen anyway).
+        if state["retrying"] and (frame is None or frame.f_code not in own_code):
+            raise KeyboardInterrupt
+
+    def on_unraisable(unraisable) -> None:
+        # A stop that lands in a C library's Python callback (llvmlite's, during the numba warm-up) is
+        # dropped there with a traceback on stderr; the retry above stops the start instead.
+        if issubclass(unraisable.exc_type, KeyboardInterrupt):
+            return
+        previous_unraisable(unraisable)
 
     # SIGUSR1 writes every thread's Python stack to stderr (the node's log), even while the main thread
     # is blocked in C: the graph runner sends it to a node that does not stop, before it escalates.
@@ -154,6 +169,11 @@ def run_node(make_node, args=None) -> None:
     for name in STOP_SIGNALS:
         number = getattr(signal, name)
         previous[number] = signal.signal(number, on_signal)
+    own_code = {run_node.__code__, on_signal.__code__, _stop_retrying.__code__,
+                _retry_stop_while_starting.__code__}
+    previous[signal.SIGALRM] = signal.signal(signal.SIGALRM, on_retry)
+    previous_unraisable = sys.unraisablehook
+    sys.unraisablehook = on_unraisable
     node = None
     executor = None
     exit_code = 0
@@ -167,6 +187,7 @@ def run_node(make_node, args=None) -> None:
         starting = False
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        _stop_retrying(state)
         state["spinning"] = True
         while not state["signals"] and rclpy.ok() and not getattr(node, "finalized", False):
             executor.spin_once(timeout_sec=0.1)  # wakes at least every 0.1 s to see a signal
@@ -178,6 +199,7 @@ def run_node(make_node, args=None) -> None:
         print(f"[{_node_name(args, make_node)}] cannot start: {error}", file=sys.stderr, flush=True)
         exit_code = EXIT_BAD_PARAMETERS
     finally:
+        _stop_retrying(state)
         state["spinning"] = False
         try:
             if executor is not None:
@@ -192,8 +214,31 @@ def run_node(make_node, args=None) -> None:
             pass
         for number, handler in previous.items():
             signal.signal(number, handler)
+        sys.unraisablehook = previous_unraisable
     if exit_code:
         sys.exit(exit_code)
+
+
+# While a node is being built, a stop is raised again every STOP_RETRY_S until it takes: a
+# KeyboardInterrupt raised inside a C library's Python callback is dropped there (numba's compiler
+# calls back from llvmlite), and the warm-up would run on for seconds.
+STOP_RETRY_S = 0.2
+
+
+def _retry_stop_while_starting(state) -> None:
+    import signal
+
+    if not state["spinning"] and not state["retrying"]:
+        state["retrying"] = True
+        signal.setitimer(signal.ITIMER_REAL, STOP_RETRY_S, STOP_RETRY_S)
+
+
+def _stop_retrying(state) -> None:
+    import signal
+
+    if state["retrying"]:
+        state["retrying"] = False
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
 
 
 def _node_name(args, make_node) -> str:
