@@ -396,36 +396,66 @@ def _nudge_to_free_space(views: CandidateSet, feasibility: FeasibilityResult, pa
     i, j, squared = i.reshape(-1)[keep], j.reshape(-1)[keep], squared[keep]
     unit_normal, unit_offset = normalize_plane(normal, offset)
     e1, e2 = plane_basis(unit_normal)
-    current_foot = -unit_offset * unit_normal
-    fitted = CandidateSet(rotations=views.rotations.copy(), positions=views.positions.copy(),
-                          foot_points=views.foot_points.copy(), ring_center=views.ring_center,
-                          camera_height=views.camera_height, is_current=views.is_current)
+    offsets = (i * step)[:, None] * e1[None, :] + (j * step)[:, None] * e2[None, :]
+    feet = (views.foot_points[movable][:, None, :] + offsets[None, :, :]).reshape(-1, 3)  # (movable x probes, 3)
+    owners = np.repeat(movable, len(offsets))
+    squared_all = np.tile(squared, len(movable))
+    lengths = reach.path_lengths_at(feet)
+    ok = _probe_passes_grid(feet, lengths, -unit_offset * unit_normal, params) \
+        & (np.linalg.norm(feet - views.ring_center[None, :], axis=1) >= float(params.min_free_radius) - 1e-9)
+    order = np.lexsort((np.arange(len(feet)), np.round(np.where(ok, lengths, np.inf), 6), squared_all, owners))
+    moved = _nearest_free_probes(feet, owners, order[ok[order]], obstacles_in_plane, unit_normal, params)
+    if not moved:
+        return views, feasibility, path_lengths, nudged
+    indices = np.fromiter(moved.keys(), dtype=np.int64)
+    chosen = np.fromiter(moved.values(), dtype=np.int64)
+    fitted = _moved_to(views, indices, feet[chosen], centroid, unit_normal, params)
     reasons = reasons.copy()
+    reasons[indices] = int(FeasibilityReason.OK)
     path_lengths = np.asarray(path_lengths, dtype=np.float64).copy()
-    for index in movable:
-        feet = views.foot_points[index][None, :] + (i * step)[:, None] * e1[None, :] + (j * step)[:, None] * e2[None, :]
-        lengths = reach.path_lengths_at(feet)
-        ok = np.isfinite(lengths) & (lengths <= float(params.max_path_length)) \
-            & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel)) \
-            & (np.linalg.norm(feet - views.ring_center[None, :], axis=1) >= float(params.min_free_radius) - 1e-9)
-        order = np.lexsort((np.arange(len(feet)), np.round(np.where(ok, lengths, np.inf), 6), squared))
-        tested = order[ok[order]][:_EXACT_TESTS_PER_CANDIDATE]
-        if tested.size == 0:
-            continue
-        blocked = footprints_blocked_in_plane(obstacles_in_plane, np.ascontiguousarray(feet[tested] @ e1),
-                                              np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
-        free = tested[~blocked]
-        if free.size == 0:
-            continue
-        probe = int(free[0])
-        rotation, position = cameras_at_feet(feet[probe:probe + 1], centroid, unit_normal, views.camera_height, params)
-        fitted.rotations[index], fitted.positions[index] = rotation[0], position[0]
-        fitted.foot_points[index] = feet[probe]
-        path_lengths[index] = lengths[probe]
-        reasons[index] = int(FeasibilityReason.OK)
-        nudged[index] = step * float(np.sqrt(squared[probe]))
+    path_lengths[indices] = lengths[chosen]
+    nudged[indices] = step * np.sqrt(squared_all[chosen].astype(np.float64))
     return fitted, FeasibilityResult(feasible=reasons == int(FeasibilityReason.OK), reasons=reasons), path_lengths, \
         nudged
+
+
+def _probe_passes_grid(feet: Array, lengths: Array, current_foot: Array, params: PlannerParams) -> Array:
+    """Probe foot points reached by a path of at most max_path_length and within max_travel of the robot."""
+    passes: Array = np.isfinite(lengths) & (lengths <= float(params.max_path_length)) \
+        & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel))
+    return passes
+
+
+def _nearest_free_probes(feet: Array, owners: Array, order: Array, obstacles_in_plane: Array, unit_normal: Array,
+                         params: PlannerParams) -> Dict[int, int]:
+    """The first free probe of each owner: ``order`` lists the probes that passed the grid's tests, grouped by owner
+    and best first; each owner's first _EXACT_TESTS_PER_CANDIDATE go to the exact footprint test (one call).
+
+    Returns:
+        {owner: index of its chosen probe in ``feet``}, for the owners with a free probe.
+    """
+    if order.size == 0:
+        return {}
+    tested = np.concatenate([group[:_EXACT_TESTS_PER_CANDIDATE] for group in
+                             np.split(order, np.flatnonzero(np.diff(owners[order])) + 1)])
+    e1, e2 = plane_basis(unit_normal)
+    blocked = footprints_blocked_in_plane(obstacles_in_plane, np.ascontiguousarray(feet[tested] @ e1),
+                                          np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
+    moved: Dict[int, int] = {}
+    for probe in tested[~blocked]:  # best first within each owner's group
+        moved.setdefault(int(owners[probe]), int(probe))
+    return moved
+
+
+def _moved_to(candidates: CandidateSet, indices: Array, feet: Array, centroid: Array, unit_normal: Array,
+              params: PlannerParams) -> CandidateSet:
+    """A copy of ``candidates`` with those at ``indices`` standing on ``feet``, looking at the target."""
+    rotations, positions = cameras_at_feet(feet, centroid, unit_normal, candidates.camera_height, params)
+    fitted = CandidateSet(rotations=candidates.rotations.copy(), positions=candidates.positions.copy(),
+                          foot_points=candidates.foot_points.copy(), ring_center=candidates.ring_center,
+                          camera_height=candidates.camera_height, is_current=candidates.is_current)
+    fitted.rotations[indices], fitted.positions[indices], fitted.foot_points[indices] = rotations, positions, feet
+    return fitted
 
 
 def _on_scored(values: Array, picked: Array, count: int, fill: float) -> Array:
@@ -523,32 +553,15 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
         return candidates, feasibility
     owners_array, feet, shift = np.concatenate(owners), np.concatenate(probes), np.concatenate(shifts)
     lengths = reach.path_lengths_at(feet)
-    ok = (shift > 1e-9) & np.isfinite(lengths) & (lengths <= float(params.max_path_length)) \
-        & (np.linalg.norm(feet - current_foot[None, :], axis=1) <= float(params.max_travel))
-    # Per candidate, its few nearest probes that pass on the grid go to the exact footprint test (one call);
-    # of two equally near (mirror images), the one with the shorter path first, then the clockwise one.
+    ok = (shift > 1e-9) & _probe_passes_grid(feet, lengths, current_foot, params)
+    # Of two probes equally near (mirror images), the one with the shorter path first, then the clockwise one.
     order = np.lexsort((np.arange(len(shift)), np.where(ok, lengths, np.inf), shift, owners_array))
-    order = order[ok[order]]
-    tested = np.concatenate([group[:_EXACT_TESTS_PER_CANDIDATE] for group in
-                             np.split(order, np.flatnonzero(np.diff(owners_array[order])) + 1)]) if order.size \
-        else order
-    moved: Dict[int, int] = {}
-    if tested.size:
-        e1, e2 = plane_basis(unit_normal)
-        blocked = footprints_blocked_in_plane(obstacles_in_plane, np.ascontiguousarray(feet[tested] @ e1),
-                                              np.ascontiguousarray(feet[tested] @ e2), float(params.robot_radius))
-        for probe in tested[~blocked]:  # nearest first within each candidate's group
-            moved.setdefault(int(owners_array[probe]), int(probe))
+    moved = _nearest_free_probes(feet, owners_array, order[ok[order]], obstacles_in_plane, unit_normal, params)
     if not moved:
         return candidates, feasibility
     indices = np.fromiter(moved.keys(), dtype=np.int64)
     chosen = np.fromiter(moved.values(), dtype=np.int64)
-    rotations, positions = cameras_at_feet(feet[chosen], centroid, unit_normal, candidates.camera_height, params)
-    fitted = CandidateSet(rotations=candidates.rotations.copy(), positions=candidates.positions.copy(),
-                          foot_points=candidates.foot_points.copy(), ring_center=candidates.ring_center,
-                          camera_height=candidates.camera_height, is_current=candidates.is_current)
-    fitted.rotations[indices], fitted.positions[indices], fitted.foot_points[indices] = rotations, positions, \
-        feet[chosen]
+    fitted = _moved_to(candidates, indices, feet[chosen], centroid, unit_normal, params)
     reach.path_lengths = reach.path_lengths.copy()
     reach.reachable = reach.reachable.copy()
     reach.path_lengths[indices], reach.reachable[indices] = lengths[chosen], True
@@ -558,10 +571,9 @@ def _fit_to_free_space(candidates: CandidateSet, feasibility: FeasibilityResult,
 
 
 def _floor_reach(candidates: CandidateSet, obstacles_in_plane: Array, target: TargetArrays, target_points: Array,
-                 normal: Array, offset: float, params: PlannerParams, robot_radius: float,
-                 feet: Optional[Array] = None) -> Reachability:
+                 normal: Array, offset: float, params: PlannerParams, robot_radius: float) -> Reachability:
     """The path search from the robot over the floor grid around the ring's foot points, obstacles grown by
-    ``robot_radius``; the path lengths are those of ``feet`` (default: the ring's)."""
+    ``robot_radius``; the path lengths are the ring's."""
     unit_normal, unit_offset = normalize_plane(normal, offset)
     current_foot = -unit_offset * unit_normal
     grid = build_occupancy_grid(np.zeros((0, 3)), target_points, unit_normal, unit_offset,
@@ -569,8 +581,7 @@ def _floor_reach(candidates: CandidateSet, obstacles_in_plane: Array, target: Ta
                                 robot_radius, params.floor_clearance, params.unknown_space,
                                 camera=(np.asarray(target.k, dtype=np.float64).reshape(3, 3), int(target.width),
                                         int(target.height)), obstacle_plane_points=obstacles_in_plane)
-    return reachability(grid, current_foot, candidates.foot_points if feet is None else feet,
-                        params.max_path_length, robot_radius)
+    return reachability(grid, current_foot, candidates.foot_points, params.max_path_length, robot_radius)
 
 
 def _check_paths(candidates: CandidateSet, feasibility: FeasibilityResult, obstacles_in_plane: Array,
