@@ -212,6 +212,11 @@ class DrivenRobot:
     :meth:`look_at_target`) from wherever the base is and tilts to the goal's pitch (:meth:`take_view`); a
     fixed head keeps its pan at 0 and its mounting pitch.
 
+    The goal it follows may be acted on until its ``valid_until`` (GoalStatus; :meth:`hold_goal_until`): the
+    robot brakes there on its own clock (:meth:`drive`), as a motion stack should, so a late or lost
+    withdrawal (a slow link, a frozen planner) does not keep it driving, and the moment it stops does not
+    depend on when the planner's own age check ran.
+
     A goal withdrawn because the target is no longer seen (:meth:`lose_target`) starts a bounded,
     deterministic search: the base brakes to a stop with the head toward the target's last known place
     (LOOKING); after ``search.look_s`` without a new goal it drives back along its own track to the place
@@ -245,6 +250,11 @@ class DrivenRobot:
         self._seen_from: Optional[FloatArray] = None  # camera (floor) position of the latest frame that saw the target
         self.search_phase = SEARCH_NONE
         self._search_since_s = 0.0
+        # Until when (sim ns) the goal followed may be acted on, and where its target was last known when its
+        # status said the target is not seen (None: seen; the expiry is then a withdrawal, else a loss).
+        self.goal_valid_until_ns: Optional[int] = None
+        self._goal_target_lost = False
+        self._goal_target_place: Optional[FloatArray] = None
         #: Paths taken (replacing the one followed), withdrawals and searches started, for the episode's record.
         self.paths_taken = 0
         self.withdrawals = 0
@@ -265,6 +275,37 @@ class DrivenRobot:
                 del self._track[0]
         self._search_step()
         return self.stack.camera_pose()
+
+    def drive(self, from_ns: int, to_ns: int) -> CameraPose:
+        """Drive from sim time ``from_ns`` to ``to_ns`` (:meth:`advance`), braking at the goal's ``valid_until``.
+
+        A goal still followed when sim time passes its ``valid_until`` ends there (integer nanoseconds, so the
+        split does not depend on rounding): :meth:`withdraw`, or :meth:`lose_target` when its last status said
+        the target is not seen; the rest of the step is driven after it.
+        """
+        until = self.goal_valid_until_ns
+        if until is not None and self.stack.has_path and int(to_ns) > until:
+            first_ns = max(0, until - int(from_ns))
+            if first_ns > 0:
+                self.advance(first_ns * 1e-9)
+            self.goal_valid_until_ns = None
+            if self._goal_target_lost:
+                self.lose_target(self._goal_target_place)
+            else:
+                self.withdraw()
+            return self.advance((int(to_ns) - int(from_ns) - first_ns) * 1e-9)
+        return self.advance((int(to_ns) - int(from_ns)) * 1e-9)
+
+    def hold_goal_until(self, valid_until_ns: Optional[int], target_lost: bool = False,
+                        target_place: Optional[FloatArray] = None) -> None:
+        """A CURRENT status of the goal: it may be acted on until ``valid_until_ns`` (None: no limit).
+
+        ``target_lost``: the status said the target is not seen, so the goal's expiry starts the search toward
+        ``target_place`` (world; None: the latest plan's ring centre).
+        """
+        self.goal_valid_until_ns = None if valid_until_ns is None else int(valid_until_ns)
+        self._goal_target_lost = bool(target_lost)
+        self._goal_target_place = None if target_place is None else np.asarray(target_place, dtype=np.float64).copy()
 
     def take_path(self, points_world: FloatArray, final_rotation_world: FloatArray, goal_changed: bool) -> bool:
         """A CURRENT goal's base path (world (P, 3) points, the last pose's world rotation); whether it was taken.

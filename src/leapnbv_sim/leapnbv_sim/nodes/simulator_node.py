@@ -43,7 +43,9 @@ Continuous mode (``motion_stack``, :class:`leapnbv_sim.simulator.DrivenRobot`): 
 the camera itself; a simulated motion stack follows the base path of the latest CURRENT goal
 (``/leapnbv/base_path``, nav_msgs/Path in the observation's optical frame, taken to the world with
 that stamp's remembered pose) at the base's limits (``base_max_*``), and stops on a withdrawn goal
-(``/leapnbv/goal_status`` not CURRENT, or an empty path); a changed goal's path
+(``/leapnbv/goal_status`` not CURRENT, or an empty path) or when sim time passes the goal's
+``valid_until`` (on its own clock: the STALE status of a goal that aged out comes whenever the
+planner's age check ran, and is only confirmed by it); a changed goal's path
 (``goal_status.goal_changed``) replaces the one followed, a kept goal's too with
 ``replan_kept_goals``. The pan-tilt head turns toward the latest plan's ring centre
 (``/leapnbv/view_candidates``) and tilts to the goal's pitch (``next_best_view``) at its rates.
@@ -221,6 +223,8 @@ class SimulatorNode(Node):
         #: Continuous mode: the latest goal status received, and every status of the current scene, in order.
         self.goal_status: Optional[GoalStatus] = None
         self.goal_statuses: List[GoalStatus] = []
+        #: Continuous mode: the latest CURRENT status's valid_until (ns; None: no limit, or none yet).
+        self.held_valid_until_ns: Optional[int] = None
         #: Continuous mode: stamp of the frame the latest path taken was planned on, and its world points.
         self.last_path_stamp_ns: Optional[int] = None
         self.last_path_world: Optional[np.ndarray] = None
@@ -276,6 +280,7 @@ class SimulatorNode(Node):
         self.robot = DrivenRobot(start, base_limits(p), p.robot_head, p.replan_kept_goals,
                                  search_limits(p)) if p.motion_stack else None
         self.goal_status = None
+        self.held_valid_until_ns = None
         self.goal_statuses = []
         self.last_path_stamp_ns = None
         self.last_path_world = None
@@ -373,8 +378,8 @@ class SimulatorNode(Node):
         if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns and self.frame_count > 0:
             raise SimulatorError(f"frame stamp {stamp_ns} ns is not after the previous {self.last_stamp_ns} ns")
         if self.robot is not None:
-            elapsed_ns = stamp_ns - self.last_stamp_ns if self.last_stamp_ns is not None and self.frame_count else 0
-            self.camera = self.robot.advance(elapsed_ns * 1e-9)
+            driven_from = self.last_stamp_ns if self.last_stamp_ns is not None and self.frame_count else stamp_ns
+            self.camera = self.robot.drive(driven_from, stamp_ns)
         elif self.motion is not None:
             self.camera = self.motion.pose_at(stamp_ns)
             if self.motion.fraction_at(stamp_ns) >= 1.0:
@@ -466,14 +471,39 @@ class SimulatorNode(Node):
             seen_from = self.camera_pose_at(stamp_to_ns(target.header.stamp))
             if seen_from is not None:
                 self.robot.saw_target_from(seen_from.position)
+        lost, place = self._target_last_known(target)
         if msg.state == GoalStatus.STATE_CURRENT:
+            valid_until = stamp_to_ns(msg.valid_until)
+            self.held_valid_until_ns = valid_until if valid_until > 0 else None
+            self.robot.hold_goal_until(self.held_valid_until_ns, lost, place)
             return
-        if target.state in (TargetTrack.STATE_NOT_SEEN, TargetTrack.STATE_LOST):
-            place = np.array([target.position.x, target.position.y, target.position.z], dtype=np.float64)
-            known = target.fixed_frame == self.params.world_frame_id and bool(np.all(np.isfinite(place)))
-            self.robot.lose_target(place if known else None)
+        if msg.state == GoalStatus.STATE_STALE and self._aged_out(msg.header):
+            if lost and not self.robot.stack.has_path:
+                self.robot.lose_target(place)  # braked already: the search starts now
+            elif lost:
+                self.robot.hold_goal_until(self.held_valid_until_ns, lost, place)
+            return
+        if lost:
+            self.robot.lose_target(place)
         else:
             self.robot.withdraw()
+
+    def _aged_out(self, header: Header) -> bool:
+        """Whether a withdrawal (its header stamped when it was made) came after the held goal's valid_until.
+
+        The robot then brakes at valid_until on its own clock (DrivenRobot.drive), not when the withdrawal
+        arrives: on sim time the planner's age check may run while a frame is in flight or only after the next
+        one, and the episode would depend on this machine's speed.
+        """
+        return self.held_valid_until_ns is not None and stamp_to_ns(header.stamp) > self.held_valid_until_ns
+
+    def _target_last_known(self, target: TargetTrack) -> Tuple[bool, Optional[np.ndarray]]:
+        """Whether a status's target is not seen (NOT_SEEN, LOST), and then its last known place (world) if any."""
+        if target.state not in (TargetTrack.STATE_NOT_SEEN, TargetTrack.STATE_LOST):
+            return False, None
+        place = np.array([target.position.x, target.position.y, target.position.z], dtype=np.float64)
+        known = target.fixed_frame == self.params.world_frame_id and bool(np.all(np.isfinite(place)))
+        return True, place if known else None
 
     @rejects_bad_input("bad_base_path")
     def on_base_path(self, msg: Path) -> None:
@@ -481,7 +511,8 @@ class SimulatorNode(Node):
         if self.robot is None:
             return
         if not msg.header.frame_id or not msg.poses:
-            self.robot.withdraw()  # "no way to a current goal"
+            if not self._aged_out(msg.header):
+                self.robot.withdraw()  # "no way to a current goal"
             return
         if msg.header.frame_id != self.frame_id:
             raise ConversionError(f"base path in frame {msg.header.frame_id!r}, expected {self.frame_id!r}")
