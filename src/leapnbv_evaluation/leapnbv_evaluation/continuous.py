@@ -19,7 +19,10 @@ Clock (``EvaluationOptions.clock``):
   A fixed wall budget per sim step would instead make the episode depend on the machine's load. While a
   frame is in flight the clock ticks on by the stages' wait-check period (their timers run on sim time: a
   companion that came after its frame is found when one fires), never up to the next frame's stamp; every
-  wait and age limit of the graph is at least a camera period, so how far it ticked decides nothing.
+  wait limit of the graph is at least a camera period, so how far it ticked decides nothing. The one
+  deadline that can fall inside a period, a goal's ``valid_until`` (a goal planned five frames ago at 5 Hz
+  and 1 s), is the motion stack's: it brakes there on its own clock, and the planner's STALE status,
+  which comes when its age check runs, only confirms it (``SimulatorNode``).
 * ``real_time``: sim time follows the wall clock; frames go out at the camera rate whether or not the
   graph kept up, and the graph plans from whatever frames it admits (its frame dropping and latencies
   are the machine's). Not reproducible; for watching the loop as a robot runs it. A frame's plan and mask

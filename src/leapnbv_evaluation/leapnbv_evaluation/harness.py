@@ -392,9 +392,11 @@ class ClosedLoopEvaluator:
         The graph's stages look for a companion that came after its frame (a pulled depth image) on a wait-check
         timer, and their timers run on sim time: with the clock held at the frame's stamp that frame would wait
         for ever. So every CLOCK_TICK_WALL_S of wall time the clock moves on by one wait-check period, up to one
-        tick before the next frame's stamp. Decisions do not depend on how far it got: every wait and age limit
-        of the graph is at least a camera period (a frame's stage waits are 0.2 s and more; the goal age 1 s), so
-        none runs out within the frame's period; only the re-checks fire.
+        tick before the next frame's stamp. Decisions do not depend on how far it got: every wait limit of the
+        graph is at least a camera period (a frame's stage waits are 0.2 s and more), so none runs out within the
+        frame's period; only the re-checks fire. The goal age (1 s) can run out within one, and the planner's
+        withdrawal then comes only if the clock ticked: the simulated motion stack brakes at the goal's
+        ``valid_until`` on its own clock instead, whenever the withdrawal comes.
         """
         o, sim = self.options, self._simulator()
         if not (o.continuous and o.clock == "lockstep" and sim.clock_pub is not None):
