@@ -164,6 +164,10 @@ class HmrParams(EngineParams):
     target_max_person_extent_m: float = param(2.4, "m: the largest height or width a person's box can measure at "
                                               "its place; a depth at which the box would be larger is not where "
                                               "its person stands (a hidden person behind them)", min=0.5, max=10.0)
+    target_coast_s: float = param(1.5, "s: how long the target's last velocity carries its predicted place while it "
+                                  "is not seen; then the prediction stands where it got to (a hidden person mostly "
+                                  "stops: carried on, the place drifts about 2 m in 3 s and the gate misses them)",
+                                  min=0.0, max=60.0)
     target_depth_share: float = param(0.5, "share of a box's width and height, about its centre, whose median depth "
                                       "is the person's place", min=0.1, max=1.0)
     target_input_wait_s: float = param(0.05, "s: how long detections wait for their depth frame and camera pose, once "

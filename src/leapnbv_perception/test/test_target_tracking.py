@@ -534,6 +534,29 @@ def test_a_walking_target_is_followed_while_the_robot_drives_and_found_again_aft
     assert d.velocity[2] == 0.0
 
 
+@pytest.mark.parametrize("coast_s, found_again", [(1.5, True), (0.0, True), (60.0, False)])
+def test_a_hidden_target_stands_after_coast_s_and_is_found_again_where_it_stopped(coast_s, found_again):
+    # Walks at 0.8 m/s for 2 s, stops behind furniture and is hidden 2.8 s, then steps out where it stopped.
+    tracker = TargetTracker(TrackerConfig(coast_s=coast_s))
+    period = SECOND // 5
+    pose = camera()
+    stop = (4.0, -1.0 + 0.8 * 2.0)
+    for k in range(11):
+        d = step(tracker, k, pose, [(4.0, -1.0 + 0.8 * k * 0.2)], period_ns=period)
+        assert (d.state, d.track_id) == (STATE_TRACKED, 1)
+    for k in range(11, 25):
+        d = step(tracker, k, pose, [], period_ns=period)
+        assert d.state == STATE_NOT_SEEN
+    hidden_s = 14 * 0.2
+    drift = 0.8 * min(coast_s, hidden_s)  # how far the prediction carried the person past where they stopped
+    np.testing.assert_allclose(d.position[:2], [stop[0], stop[1] + drift], atol=0.1)
+    d = step(tracker, 25, pose, [stop], period_ns=period)
+    if found_again:
+        assert (d.state, d.detection_index, d.track_id) == (STATE_TRACKED, 0, 1), d.reason
+    else:  # carried on at 0.8 m/s the prediction is 2.2 m past them, outside the 1.5 m gate
+        assert d.state == STATE_NOT_SEEN and d.detection_index == -1, d.reason
+
+
 def test_lost_after_the_limit_then_a_new_target_with_a_new_track_id():
     config = TrackerConfig(lost_after_s=1.0)
     tracker = TargetTracker(config)

@@ -40,7 +40,7 @@ def tracker_config(p: HmrParams) -> TrackerConfig:
                          min_track_iou=p.min_track_iou, central_share=p.target_depth_share,
                          ambiguity_m=p.target_ambiguity_m, reacquire_window_s=p.target_reacquire_window_s,
                          reacquire_radius_m=p.target_reacquire_radius_m,
-                         max_person_extent_m=p.target_max_person_extent_m)
+                         max_person_extent_m=p.target_max_person_extent_m, coast_s=p.target_coast_s)
 
 
 def target_track_msg(decision: TargetDecision, header: Header) -> TargetTrack:
