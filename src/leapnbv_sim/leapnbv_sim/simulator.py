@@ -350,6 +350,14 @@ class DrivenRobot:
         self.stack.clear_path()
         self.search_phase = SEARCH_NONE
 
+    def no_path(self) -> None:
+        """An empty base path (the planner has no way to its goal, or withdrew it): :meth:`withdraw`, unless a search
+        is on. The search's path is its own, not the planner's; and a loss's empty path and its status (which starts
+        the search) come on two topics, in either order: whether the robot searched must not depend on that order.
+        """
+        if self.search_phase == SEARCH_NONE:
+            self.withdraw()
+
     def lose_target(self, last_known_world: Optional[FloatArray] = None) -> None:
         """The goal was withdrawn because the target is not seen: brake and start the search (once per loss).
 

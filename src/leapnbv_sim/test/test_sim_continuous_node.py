@@ -178,11 +178,21 @@ def test_a_goal_withdrawn_while_the_target_is_not_seen_starts_the_search(scene) 
         sim.on_goal_status(status(GoalStatus.STATE_STALE, stamp, TargetTrack.STATE_NOT_SEEN, stamp))
         assert sim.robot.search_phase == SEARCH_LOOKING and sim.robot.searches == 1
         np.testing.assert_allclose(sim.robot._target_xy, [3.0, 2.0])
+        # The loss's empty path, after its status or before it: the same search, the same counts (two topics).
+        sim.on_base_path(Path())
+        assert sim.robot.search_phase == SEARCH_LOOKING and (sim.robot.searches, sim.robot.withdrawals) == (1, 2)
+        sim.robot.withdraw()
+        sim.on_goal_status(status(GoalStatus.STATE_CURRENT, stamp, TargetTrack.STATE_TRACKED, stamp))
+        sim.on_base_path(_path_in_optical_frame(sim, stamp, goal_points, heading))
+        sim.on_base_path(Path())
+        assert sim.robot.search_phase == SEARCH_NONE and sim.robot.withdrawals == 3
+        sim.on_goal_status(status(GoalStatus.STATE_STALE, stamp, TargetTrack.STATE_NOT_SEEN, stamp))
+        assert sim.robot.search_phase == SEARCH_LOOKING and (sim.robot.searches, sim.robot.withdrawals) == (2, 3)
         # A place in another fixed frame is not used (the last ring centre is looked at instead).
         sim.robot.withdraw()
         sim.robot.look_at_target(np.array([1.0, 1.0, 0.0]))
         sim.on_goal_status(status(GoalStatus.STATE_NONE, stamp, TargetTrack.STATE_LOST, stamp, fixed_frame="odom"))
-        assert sim.robot.search_phase == SEARCH_LOOKING and sim.robot.searches == 2
+        assert sim.robot.search_phase == SEARCH_LOOKING and sim.robot.searches == 3
         np.testing.assert_allclose(sim.robot._target_xy, [1.0, 1.0])
         sim.destroy_node()
     finally:

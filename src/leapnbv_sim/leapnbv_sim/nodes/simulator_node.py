@@ -512,7 +512,7 @@ class SimulatorNode(Node):
             return
         if not msg.header.frame_id or not msg.poses:
             if not self._aged_out(msg.header):
-                self.robot.withdraw()  # "no way to a current goal"
+                self.robot.no_path()  # "no way to a current goal"
             return
         if msg.header.frame_id != self.frame_id:
             raise ConversionError(f"base path in frame {msg.header.frame_id!r}, expected {self.frame_id!r}")
