@@ -82,6 +82,9 @@ class SimulatorParams:
                                  min=0.0, max=60.0)
     search_return_m: float = param(3.0, "motion stack: then the longest drive back along its own track to where it "
                                    "last saw the target from (0: it only looks)", min=0.0, max=50.0)
+    search_back_off_m: float = param(0.5, "motion stack: how much farther back along its track than that place the "
+                                     "search drives (within search_return_m): the last frame that saw the target "
+                                     "mostly saw it at the edge of what hid it", min=0.0, max=50.0)
     publish_clock: bool = param(False, "publish /clock (the simulator owns sim time): at each frame's stamp before "
                                 "the frame, and with rate_hz > 0 from the wall clock at clock_rate_hz (the "
                                 "real-time mode)", read_only=True)
@@ -109,7 +112,8 @@ def base_limits(params: SimulatorParams) -> BaseLimits:
 
 def search_limits(params: SimulatorParams) -> SearchLimits:
     """The lost-target search's limits the parameters give."""
-    return SearchLimits(look_s=params.search_look_s, return_m=params.search_return_m)
+    return SearchLimits(look_s=params.search_look_s, return_m=params.search_return_m,
+                        back_off_m=params.search_back_off_m)
 
 
 def load_scene(params: SimulatorParams) -> Scene:
@@ -190,13 +194,17 @@ class SearchLimits:
     Attributes:
         look_s: seconds the robot stands looking toward the target's last known place before it drives back.
         return_m: the longest drive back along its own track (0: it only looks).
+        back_off_m: how much farther back along the track than the place nearest the last seen-from place it
+            drives (within return_m): that frame mostly saw the person at the edge of what hid them (furnished
+            seed 25 without the map went back to where 3 x 10 pixels of the person showed, and stood there).
     """
 
     look_s: float = 1.5
     return_m: float = 3.0
+    back_off_m: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("look_s", "return_m"):
+        for name in ("look_s", "return_m", "back_off_m"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"search limit {name} must be a finite number >= 0, got {value}")
@@ -382,7 +390,8 @@ class DrivenRobot:
         return self.stack.arrived()
 
     def return_path(self) -> Optional[FloatArray]:
-        """(P, 2) the track driven back to the point nearest the latest seen-from place, at most ``return_m`` long.
+        """(P, 2) the track driven back to the point nearest the latest seen-from place and ``back_off_m`` on, at
+        most ``return_m`` long.
 
         The base's position first; None when there is no such place or the base is already there.
         """
@@ -399,6 +408,12 @@ class DrivenRobot:
             distance = float(np.linalg.norm(point - self._seen_from))
             if distance < best_distance - 1e-12:
                 best, best_distance = len(points) - 1, distance
+        beyond = 0.0
+        while best + 1 < len(points):
+            beyond += float(np.linalg.norm(points[best + 1] - points[best]))
+            if beyond > self.search.back_off_m + 1e-9:
+                break
+            best += 1
         if best == 0 or path_length(np.array(points[:best + 1])) <= self.stack.limits.goal_tolerance_m:
             return None
         return np.array(points[:best + 1])

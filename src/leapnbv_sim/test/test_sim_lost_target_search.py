@@ -50,7 +50,7 @@ def _run(robot: DrivenRobot, seconds: float) -> list:
 
 
 def test_a_lost_target_is_looked_for_then_driven_back_to_where_it_was_seen() -> None:
-    robot = _robot(SearchLimits(look_s=1.5, return_m=3.0))
+    robot = _robot(SearchLimits(look_s=1.5, return_m=3.0, back_off_m=0.0))
     _drive_out(robot, seen_until_x=0.8)
     moving = robot.stack.state.v
     assert moving > 0.1
@@ -78,7 +78,7 @@ def test_a_lost_target_is_looked_for_then_driven_back_to_where_it_was_seen() -> 
 
 
 def test_the_drive_back_is_bounded_and_a_new_goal_ends_the_search() -> None:
-    robot = _robot(SearchLimits(look_s=0.5, return_m=0.4))
+    robot = _robot(SearchLimits(look_s=0.5, return_m=0.4, back_off_m=1.0))
     _drive_out(robot, seen_until_x=0.3)
     robot.lose_target()
     _run(robot, 2.0)  # stop and look
@@ -97,6 +97,17 @@ def test_the_drive_back_is_bounded_and_a_new_goal_ends_the_search() -> None:
     assert robot.search_phase == SEARCH_NONE
 
 
+@pytest.mark.parametrize("back_off_m", [0.5, 5.0])
+def test_the_drive_back_goes_back_off_m_beyond_the_last_seen_from_place(back_off_m) -> None:
+    robot = _robot(SearchLimits(look_s=0.5, return_m=3.0, back_off_m=back_off_m))
+    _drive_out(robot, seen_until_x=1.0)  # 1.7 m out, lost at about x 1.7, braked to about 1.95
+    robot.lose_target()
+    _run(robot, 20.0)
+    assert robot.search_phase == SEARCH_WAITING
+    # 0.5 m past x 1.0 toward the start (within a step's travel); 5 m: as far as the track goes, its start
+    assert robot.stack.state.x == pytest.approx(0.5 if back_off_m < 1.0 else 0.0, abs=0.06)
+
+
 def test_without_a_place_to_go_back_to_it_only_looks() -> None:
     never_seen = _robot(SearchLimits(look_s=0.5, return_m=3.0))
     _drive_out(never_seen, seen_until_x=-1.0)  # never saw the target from anywhere
@@ -113,3 +124,5 @@ def test_without_a_place_to_go_back_to_it_only_looks() -> None:
         SearchLimits(look_s=-1.0)
     with pytest.raises(ValueError, match="return_m"):
         SearchLimits(return_m=float("nan"))
+    with pytest.raises(ValueError, match="back_off_m"):
+        SearchLimits(back_off_m=-0.1)
