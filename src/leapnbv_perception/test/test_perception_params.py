@@ -44,8 +44,8 @@ def test_hmr_runtime_settings() -> None:
     assert runtime == {"box_scale", "unmirror_left_hand", "track_previous_target", "min_track_iou", "max_stamp_ahead_s",
                        "inline_mesh_faces", "track_in_fixed_frame", "target_gate_m", "target_gate_growth_m_s",
                        "target_lost_after_s", "target_depth_share", "target_ambiguity_m", "target_reacquire_window_s",
-                       "target_reacquire_radius_m", "target_max_person_extent_m", "target_coast_s", "target_input_wait_s",
-                       "depth_slop_s"}
+                       "target_reacquire_radius_m", "target_max_person_extent_m", "target_coast_s",
+                       "target_input_wait_s", "depth_slop_s"}
     with pytest.raises(ParamsError, match="box_scale = 0.5 is below its minimum 1.0"):
         replace_params(HmrParams(), {"box_scale": 0.5})
 

@@ -359,9 +359,10 @@ class DrivenRobot:
         self.search_phase = SEARCH_NONE
 
     def no_path(self) -> None:
-        """An empty base path (the planner has no way to its goal, or withdrew it): :meth:`withdraw`, unless a search
-        is on. The search's path is its own, not the planner's; and a loss's empty path and its status (which starts
-        the search) come on two topics, in either order: whether the robot searched must not depend on that order.
+        """An empty base path (no way to the goal, or the goal withdrawn): :meth:`withdraw`, unless a search is on.
+
+        The search's path is its own, not the planner's; and a loss's empty path and its status (which starts the
+        search) come on two topics, in either order: whether the robot searched must not depend on that order.
         """
         if self.search_phase == SEARCH_NONE:
             self.withdraw()
@@ -390,10 +391,10 @@ class DrivenRobot:
         return self.stack.arrived()
 
     def return_path(self) -> Optional[FloatArray]:
-        """(P, 2) the track driven back to the point nearest the latest seen-from place and ``back_off_m`` on, at
-        most ``return_m`` long.
+        """(P, 2) the track back to the point nearest the latest seen-from place, then ``back_off_m`` on.
 
-        The base's position first; None when there is no such place or the base is already there.
+        At most ``return_m`` long; the base's position first; None when there is no such place or the base is
+        already there.
         """
         if self._seen_from is None or self.search.return_m <= 0.0:
             return None
