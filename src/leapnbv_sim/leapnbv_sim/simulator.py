@@ -20,7 +20,7 @@ from leapnbv_common.params import param
 from leapnbv_perception.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from leapnbv_perception.smplx_layer import SMPLXModel
 from leapnbv_sim.generation import SceneConfig, generate_scene
-from leapnbv_sim.motion_stack import BaseLimits, MotionStack, path_length
+from leapnbv_sim.motion_stack import BaseLimits, MotionStack
 from leapnbv_sim.poses import HEAD_MODES, ROBOT_MOTIONS, CameraPose, RobotModel, camera_pitch
 from leapnbv_sim.robot_frames import RobotFrameIds
 from leapnbv_sim.scene import Scene
@@ -400,22 +400,21 @@ class DrivenRobot:
             return None
         track = self._track
         points = [track[-1]]
-        best, best_distance, travelled = 0, float(np.linalg.norm(track[-1] - self._seen_from)), 0.0
+        along = [0.0]  # metres driven back to each of points
+        best, best_distance = 0, float(np.linalg.norm(track[-1] - self._seen_from))
         for point in reversed(track[:-1]):
-            travelled += float(np.linalg.norm(point - points[-1]))
+            travelled = along[-1] + float(np.linalg.norm(point - points[-1]))
             if travelled > self.search.return_m + 1e-9:
                 break
             points.append(point)
+            along.append(travelled)
             distance = float(np.linalg.norm(point - self._seen_from))
             if distance < best_distance - 1e-12:
                 best, best_distance = len(points) - 1, distance
-        beyond = 0.0
-        while best + 1 < len(points):
-            beyond += float(np.linalg.norm(points[best + 1] - points[best]))
-            if beyond > self.search.back_off_m + 1e-9:
-                break
+        reach = along[best] + self.search.back_off_m + 1e-9
+        while best + 1 < len(points) and along[best + 1] <= reach:
             best += 1
-        if best == 0 or path_length(np.array(points[:best + 1])) <= self.stack.limits.goal_tolerance_m:
+        if best == 0 or along[best] <= self.stack.limits.goal_tolerance_m:
             return None
         return np.array(points[:best + 1])
 
