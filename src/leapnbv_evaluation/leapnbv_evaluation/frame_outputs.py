@@ -44,9 +44,9 @@ def expected_outputs(real_models: bool) -> FrozenSet[str]:
         real_models: Real perception runs (the HMR node then also publishes the metric mesh).
 
     Returns:
-        The stage outputs and the person mask (and the metric mesh with real models).
+        The stage outputs, the person mask and the target track (and the metric mesh with real models).
     """
-    expected = {topic for _, topic in STAGE_TOPICS} | {PERSON_MASK}
+    expected = {topic for _, topic in STAGE_TOPICS} | {PERSON_MASK, TARGET_TRACK}
     if real_models:
         expected.add(HUMAN_MESH_METRIC)
     return frozenset(expected)
@@ -70,6 +70,13 @@ class FrameOutputs:
     def complete(self, real_models: bool) -> bool:
         """Whether every output of a planned frame came (:func:`expected_outputs`)."""
         return expected_outputs(real_models) <= set(self.messages)
+
+    def failure_recorded(self) -> bool:
+        """Whether a frame that ends early has its record: hmr_node's target track of every frame it decides.
+
+        hmr_node decides a frame with no detections too; its target track may come after the empty detections.
+        """
+        return TARGET_TRACK in self.messages
 
     def early_failure(self) -> Optional[str]:
         """A reason the graph will publish no view_candidates for this frame, once it is certain."""

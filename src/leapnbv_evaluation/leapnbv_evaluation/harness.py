@@ -80,6 +80,8 @@ from leapnbv_stand_ins.files import ensure_stand_in_body_model
 #: run on sim time: a companion that came after its frame is found only when one fires) every this many wall
 #: seconds, but never to the next frame's stamp.
 CLOCK_TICK_WALL_S = 0.05
+#: A frame that ends early (no person, no target) waits at most this long, in wall seconds, for its target track.
+FAILURE_RECORD_WAIT_S = 3.0
 
 # The names callers import from here (the frame record and the options have their own modules).
 __all__ = [
@@ -371,11 +373,13 @@ class ClosedLoopEvaluator:
             if frame.early_failure() is not None:
                 if not failure_seen_at:
                     failure_seen_at.append(time.monotonic())
-                # nbv_node publishes nothing for such a frame; wait a moment for certainty.
-                return time.monotonic() - failure_seen_at[0] > 0.5
+                # nbv_node publishes nothing for such a frame; wait a moment for certainty, and for the frame's
+                # target track (a slow run's may come later; FAILURE_RECORD_WAIT_S bounds a frame hmr_node dropped).
+                waited = time.monotonic() - failure_seen_at[0]
+                return waited > 0.5 and (frame.failure_recorded() or waited > FAILURE_RECORD_WAIT_S)
             return False
 
-        if not self._spin_until(answered, timeout):
+        if not self._spin_until(answered, timeout) and frame.early_failure() is None:
             frame.failure = f"no view_candidates within {timeout:.0f} s (got {sorted(frame.messages)})"
         elif frame.view_candidates is None:
             frame.failure = frame.early_failure()

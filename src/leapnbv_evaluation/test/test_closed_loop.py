@@ -96,8 +96,9 @@ def test_frame_outputs_early_failure_completeness_and_latency() -> None:
     assert frame.early_failure() == "no ground plane (12 inliers)"
     # The target track: found (index 0) is no failure; not among the detections is one, with hmr_node's reason.
     frame.messages["ground_plane"] = SimpleNamespace(valid=True, inlier_count=900, compute_time_ms=1.0)
+    assert not frame.failure_recorded()  # a frame that ends early waits for its target track
     frame.messages["target_track"] = SimpleNamespace(detection_index=0, reason="nearest")
-    assert frame.early_failure() is None
+    assert frame.early_failure() is None and frame.failure_recorded()
     frame.messages["target_track"] = SimpleNamespace(detection_index=-1, reason="hidden 0.4 s")
     assert frame.early_failure() == "the target is not among the detections: hidden 0.4 s"
     frame.messages["ground_plane"] = SimpleNamespace(valid=False, inlier_count=12, compute_time_ms=1.0)
@@ -110,6 +111,9 @@ def test_frame_outputs_early_failure_completeness_and_latency() -> None:
     for topic in expected_outputs(real_models=False):
         frame.messages.setdefault(topic, SimpleNamespace(compute_time_ms=0.0))
     assert frame.complete(real_models=False)
+    del frame.messages["target_track"]
+    assert not frame.complete(real_models=False)  # a planned frame's record holds its target track
+    frame.messages["target_track"] = SimpleNamespace(detection_index=0, reason="nearest")
     assert not frame.complete(real_models=True)  # the metric mesh is missing
     assert expected_outputs(True) - expected_outputs(False) == {"human_mesh_metric"}
 
