@@ -70,3 +70,60 @@ def mark_occupied_in_plane(plane_points: Array, origin: Array, cell: float, occu
         if not (u >= 0.0 and v >= 0.0 and u < cols and v < rows):
             continue
         occupied[int(v), int(u)] = True
+
+
+@njit(cache=True)
+def segment_free(free: Array, r0: int, c0: int, r1: int, c1: int) -> bool:
+    """Whether the straight segment between two cell centres crosses free cells only.
+
+    Every cell the segment passes through is tested (a supercover walk, in integers: no rounding decides a
+    cell); where it passes exactly through a cell corner, both cells beside the corner must be free, as a
+    diagonal step of :func:`grid_distances` needs.
+    """
+    dr, dc = abs(r1 - r0), abs(c1 - c0)
+    sr = 1 if r1 > r0 else -1
+    sc = 1 if c1 > c0 else -1
+    r, c, ir, ic = r0, c0, 0, 0
+    while ir < dr or ic < dc:
+        # The next cell edge the segment meets: a column edge at (0.5 + ic) / dc of its length, a row edge at
+        # (0.5 + ir) / dr; compared cross-multiplied.
+        side = (1 + 2 * ic) * dr - (1 + 2 * ir) * dc
+        if side == 0:
+            if not (free[r, c + sc] and free[r + sr, c]):
+                return False
+            r += sr
+            c += sc
+            ir += 1
+            ic += 1
+        elif side < 0:
+            c += sc
+            ic += 1
+        else:
+            r += sr
+            ir += 1
+        if not free[r, c]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def pulled_vertices(free: Array, rows: Array, cols: Array) -> Array:
+    """Indices into a cell chain (a grid path) of its corners after pulling it taut, first and last included.
+
+    From each corner the path goes straight to the farthest later cell of the chain that it sees over free cells
+    (:func:`segment_free`), scanning forward until the view is first blocked. The pulled path stays in free
+    cells and is never longer than the chain.
+    """
+    n = rows.shape[0]
+    keep = np.zeros(n, dtype=np.int64)
+    count = 1
+    i = 0
+    while i < n - 1:
+        j = i + 1
+        while j + 1 < n and segment_free(free, rows[i], cols[i], rows[j + 1], cols[j + 1]):
+            j += 1
+        keep[count] = j
+        count += 1
+        i = j
+    return keep[:count]
+
