@@ -10,10 +10,7 @@ take. Cells outside the current view's field of view are unknown: free or occupi
 wedge of the image's columns on the floor: the floor just below the image, in front of the robot,
 counts as seen. The path length from the robot's current foot point to each candidate's is a
 Dijkstra shortest path over free cells (8-connected, no corner cutting); a candidate is reachable
-when its cell is free and the path is at most ``max_path_length``. An 8-connected path is up to 8.2 %
-longer than the straight line (at 22.5 degrees), so one that is longer than the limit by less than that is
-pulled taut over the free cells (``path_kernel.pulled_vertices``) and judged, measured and driven by the
-pulled path: the far side of a person down a corridor is about as far as the limit.
+when its cell is free and the path is at most ``max_path_length``.
 
 Everything is in the observation's camera optical frame; the plane coordinates are
 (p . e1, p . e2) with (e1, e2) = ``plane_basis(n)``.
@@ -29,15 +26,12 @@ import numpy as np
 from leapnbv_planner.arrays import Array
 from leapnbv_planner.candidates import plane_basis
 from leapnbv_planner.footprint_kernel import elevated_plane_points
-from leapnbv_planner.path_kernel import grid_distances, mark_occupied_in_plane, pulled_vertices
+from leapnbv_planner.path_kernel import grid_distances, mark_occupied_in_plane
 
 UNKNOWN_SPACE_CHOICES = ("free", "occupied")
 GRID_MARGIN_M = 1.0  # the grid reaches this far beyond the outermost candidate and the robot
 MAX_GRID_CELLS = 400  # per side: a plan never builds a grid larger than this (coarser cells instead)
 NEAR_M = 0.1  # a floor cell nearer than this to the camera plane counts as unseen
-#: A grid path longer than max_path_length by at most this factor is pulled taut and judged by its pulled length
-#: (an 8-connected path exceeds the straight line by up to 8.2 %).
-PULL_TAUT_FACTOR = 1.09
 
 
 class ReachabilityError(ValueError):
@@ -98,10 +92,6 @@ class Reachability:
         parents: (R, C) flat index of each cell's predecessor on its shortest path (-1: none).
         start_cell: (row, col) of the robot's foot point.
         distances: (R, C) metres of the shortest free path to each cell's centre (inf: none).
-        free: (R, C) the cells the search could take (the grid's free cells and the robot's own disc); None
-            without (then no path is pulled taut).
-        max_path_length: the limit the lengths were judged by; a grid path longer than it by less than
-            PULL_TAUT_FACTOR is measured and driven pulled taut.
     """
 
     path_lengths: Array
@@ -110,8 +100,6 @@ class Reachability:
     parents: Array
     start_cell: Tuple[int, int]
     distances: Optional[Array] = None
-    free: Optional[Array] = None
-    max_path_length: float = float("inf")
 
     def path_lengths_at(self, foot_points: Array) -> Array:
         """(N,) path lengths to (N, 3) floor points (their cells'; inf off the grid or without a path).
@@ -121,63 +109,29 @@ class Reachability:
         """
         if self.distances is None:
             raise ReachabilityError("path_lengths_at needs the grid distances (Reachability.distances is None)")
-        rows, cols, inside = self.grid.cells_of(np.asarray(foot_points, dtype=np.float64).reshape(-1, 3))
-        lengths: Array = np.where(inside, self.distances[rows, cols], np.inf)
-        for k in np.flatnonzero(self._pulled_taut(lengths)):
-            chain = self._chain(int(rows[k]), int(cols[k]))
-            if chain is not None:
-                lengths[k] = self._length(self._taut(chain))
-        return lengths
+        return _lengths_at(self.grid, self.distances, foot_points)
 
     def path_to(self, foot_point: Array) -> Optional[Array]:
         """(P, 3) floor points (cell centres) from the robot to ``foot_point`` (its exact point last); None
-        when unreachable. A path that is reachable only pulled taut is given by its corners."""
+        when unreachable."""
         rows, cols, inside = self.grid.cells_of(np.asarray(foot_point, dtype=np.float64).reshape(1, 3))
         if not inside[0]:
             return None
-        chain = self._chain(int(rows[0]), int(cols[0]))
-        if chain is None:
-            return None
-        if self.distances is not None and self._pulled_taut(self.distances[rows, cols])[0]:
-            chain = self._taut(chain)
         columns = self.free_columns()
-        points = self.grid.cell_centres(chain // columns, chain % columns)
-        points[-1] = np.asarray(foot_point, dtype=np.float64)
-        return points
-
-    def _pulled_taut(self, grid_lengths: Array) -> Array:
-        """Which grid path lengths are judged pulled taut: over the limit by less than PULL_TAUT_FACTOR."""
-        limit = float(self.max_path_length)
-        near: Array = (grid_lengths > limit) & (grid_lengths <= limit * PULL_TAUT_FACTOR) & np.isfinite(grid_lengths)
-        return near if self.free is not None else np.zeros_like(near)
-
-    def _chain(self, row: int, col: int) -> Optional[Array]:
-        """Flat cell indices of the shortest grid path from the robot's cell to (row, col); None without one."""
-        columns = self.free_columns()
-        index = row * columns + col
+        index = int(rows[0]) * columns + int(cols[0])
         start = self.start_cell[0] * columns + self.start_cell[1]
-        parents = self.parents.reshape(-1)
-        if index != start and parents[index] < 0:
+        if index != start and self.parents.reshape(-1)[index] < 0:
             return None
         chain = [index]
         while chain[-1] != start:
-            chain.append(int(parents[chain[-1]]))
+            chain.append(int(self.parents.reshape(-1)[chain[-1]]))
             if chain[-1] < 0 or len(chain) > self.parents.size:
                 return None
         chain.reverse()
-        return np.asarray(chain, dtype=np.int64)
-
-    def _taut(self, chain: Array) -> Array:
-        """The corners of a cell chain pulled taut over the search's free cells."""
-        columns = self.free_columns()
-        assert self.free is not None
-        return chain[pulled_vertices(self.free, chain // columns, chain % columns)]
-
-    def _length(self, chain: Array) -> float:
-        """Metres along a chain of cells (centre to centre)."""
-        columns = self.free_columns()
-        steps = np.diff(np.stack([chain // columns, chain % columns], axis=1), axis=0).astype(np.float64)
-        return float(np.sum(np.hypot(steps[:, 0], steps[:, 1]))) * self.grid.cell
+        flat = np.asarray(chain, dtype=np.int64)
+        points = self.grid.cell_centres(flat // columns, flat % columns)
+        points[-1] = np.asarray(foot_point, dtype=np.float64)
+        return points
 
     def free_columns(self) -> int:
         return int(self.grid.free.shape[1])
@@ -305,8 +259,12 @@ def reachability(grid: OccupancyGrid, start_foot: Array, feet: Array, max_path_l
     free |= near_start & ~grid.occupied
     free[start] = True
     distances, parents = grid_distances(free, start[0], start[1], grid.cell)
-    reach = Reachability(path_lengths=np.zeros(0), reachable=np.zeros(0, dtype=bool), grid=grid, parents=parents,
-                         start_cell=start, distances=distances, free=free, max_path_length=float(max_path_length))
-    reach.path_lengths = reach.path_lengths_at(feet)
-    reach.reachable = np.isfinite(reach.path_lengths) & (reach.path_lengths <= float(max_path_length))
-    return reach
+    lengths = _lengths_at(grid, distances, feet)
+    return Reachability(path_lengths=lengths, reachable=np.isfinite(lengths) & (lengths <= float(max_path_length)),
+                        grid=grid, parents=parents, start_cell=start, distances=distances)
+
+
+def _lengths_at(grid: OccupancyGrid, distances: Array, foot_points: Array) -> Array:
+    """(N,) path lengths to (N, 3) floor points: their cells' distances; inf off the grid or without a path."""
+    rows, cols, inside = grid.cells_of(np.asarray(foot_points, dtype=np.float64).reshape(-1, 3))
+    return np.where(inside, distances[rows, cols], np.inf)

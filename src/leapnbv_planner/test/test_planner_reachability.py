@@ -9,7 +9,7 @@ import pytest
 from leapnbv_planner.candidates import FeasibilityReason
 from leapnbv_planner.inputs import PlanFloor, PlanTarget
 from leapnbv_planner.params import default_nbv_params
-from leapnbv_planner.path_kernel import grid_distances, pulled_vertices, segment_free
+from leapnbv_planner.path_kernel import grid_distances
 from leapnbv_planner.plan import plan_views
 from leapnbv_planner.reachability import ReachabilityError, build_occupancy_grid, reachability
 
@@ -253,51 +253,3 @@ def test_grid_cell_edges_stay_off_the_robot_and_the_candidates():
         fraction = uv - np.floor(uv)
         assert np.all(np.abs(fraction - np.round(fraction)) > 1e-6)  # no foot point on an edge
         assert max(grid.free.shape) <= 400 and np.all(uv >= 13.0) and np.all(uv <= np.array(grid.free.shape)[::-1] - 13)
-
-
-def test_a_segment_is_free_only_over_free_cells_and_a_corner_needs_both_cells_beside_it():
-    free = np.ones((5, 5), dtype=bool)
-    assert segment_free(free, 0, 0, 4, 4) and segment_free(free, 4, 1, 0, 3)
-    free[2, 1] = False  # on the line from (0, 0) to (4, 2): row 2 is crossed in column 1
-    assert not segment_free(free, 0, 0, 4, 2) and not segment_free(free, 4, 2, 0, 0)
-    assert segment_free(free, 0, 0, 0, 4)  # a row away from it
-    free = np.ones((3, 3), dtype=bool)
-    free[0, 1] = False  # the diagonal (0, 0) -> (1, 1) passes exactly through this cell's corner
-    assert not segment_free(free, 0, 0, 1, 1) and not segment_free(free, 2, 2, 0, 0)
-    assert segment_free(free, 1, 0, 2, 1)
-
-
-def test_a_path_pulled_taut_keeps_the_corner_it_turns_round():
-    free = np.ones((6, 6), dtype=bool)
-    free[:4, 2] = False  # a wall down column 2 from the top: (0, 0) -> (0, 5) goes round its end in row 4
-    distances, parents = grid_distances(free, 0, 0, 1.0)
-    chain = [5]
-    while parents.reshape(-1)[chain[-1]] >= 0:
-        chain.append(int(parents.reshape(-1)[chain[-1]]))
-    chain = np.asarray(chain[::-1], dtype=np.int64)
-    keep = pulled_vertices(free, chain // 6, chain % 6)
-    corners = np.stack([chain[keep] // 6, chain[keep] % 6], axis=1)
-    # The chain steps down column 0, along row 4 below the wall's end and up column 4; taut, it keeps the two
-    # cells it turns at beside the wall's end (the straight line from (0, 0) to (4, 2) clips the wall's cell (3, 2)).
-    assert corners.tolist() == [[0, 0], [4, 1], [4, 3], [0, 5]]
-    assert all(segment_free(free, *a, *b) for a, b in zip(corners[:-1], corners[1:]))
-    taut = float(np.sum(np.hypot(*np.diff(corners, axis=0).T.astype(float))))
-    assert taut == pytest.approx(np.hypot(4.0, 1.0) + 2.0 + np.hypot(4.0, 2.0)) and taut < distances[0, 5] - 0.6
-
-
-def test_a_goal_a_grid_path_puts_just_past_the_limit_is_reachable_by_its_taut_path():
-    # 22.5 degrees off the grid's axes, where an 8-connected path is longest (8.2 % over the straight line).
-    direction = np.array([np.sin(np.radians(22.5)), np.cos(np.radians(22.5))])
-    feet = np.array([foot(*(5.85 * direction)), foot(*(6.3 * direction))])
-    reach = reachability(grid_for(np.zeros((0, 3)), feet), foot(0, 0), feet, 6.0, 0.3)
-    grid_lengths = reach.distances[reach.grid.cells_of(feet)[:2]]
-    assert np.all(grid_lengths > 6.0)  # the grid alone found both too far
-    assert reach.reachable.tolist() == [True, False]
-    assert reach.path_lengths[0] == pytest.approx(5.85, abs=0.1)
-    path = reach.path_to(feet[0])
-    assert len(path) == 2  # open floor: straight there
-    assert np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)) == pytest.approx(5.85, abs=0.1)
-    # Far past the limit: judged by the grid, not pulled.
-    far = reachability(grid_for(np.zeros((0, 3)), feet), foot(0, 0), feet, 5.0, 0.3)
-    np.testing.assert_allclose(far.path_lengths, grid_lengths)
-    assert not far.reachable.any() and len(far.path_to(feet[0])) > 10
