@@ -524,7 +524,8 @@ def test_obstacle_map_resolution_change_rebuilds_the_map(graph, planned):
 
 def test_near_ties_keep_the_committed_goal_and_a_view_ahead_by_the_margin_replaces_it(graph, planned):
     # The person steps 1 cm to one side and the other frame by frame, the camera still (a fixed pose in "odom",
-    # not the obstacle map's frame: the commitment keeps its goal in any fixed frame). The scene is symmetric:
+    # not the obstacle map's frame: the commitment keeps its goal in any fixed frame, and these plans are made without
+    # the map, so commit_margin_without_map is the margin in force). The scene is symmetric:
     # the plan's choice alternates between candidates 16 and 2, which score within 1.3e-4 of each other.
     probe = graph["probe"]
     node = f"{NS}/nbv_node"
@@ -558,12 +559,12 @@ def test_near_ties_keep_the_committed_goal_and_a_view_ahead_by_the_margin_replac
         for _, goal, status in frames[1:]:
             assert status.commitment == "KEPT" and not status.goal_changed, status.reason
             assert np.linalg.norm(goal - committed) < 0.01  # the same place: the goal did not flip
-            assert abs(status.margin - 0.02) < 1e-6 and 0.0 < status.best_score - status.held_score < 0.02 or \
+            assert abs(status.margin - 0.05) < 1e-6 and 0.0 < status.best_score - status.held_score < 0.05 or \
                 status.best_score <= status.held_score
             assert status.reason.startswith("goal kept")
             assert (status.committed_since.sec, status.committed_since.nanosec) == (600, 0)
         # The rival view ahead by more than the margin in force (a live parameter; the goal is not dropped by it).
-        (result,) = set_parameters(probe, node, commit_margin=1e-5)
+        (result,) = set_parameters(probe, node, commit_margin_without_map=1e-5)
         assert result.successful, result.reason
         chosen, goal, status = frame(606, 0.01)
         assert status.commitment == "BEATEN_BY_MARGIN" and status.goal_changed, status.reason
@@ -571,7 +572,7 @@ def test_near_ties_keep_the_committed_goal_and_a_view_ahead_by_the_margin_replac
         assert chosen == choices[1] and np.linalg.norm(goal - committed) > 0.5  # the other view of the pair
         assert (status.committed_since.sec, status.committed_since.nanosec) == (606, 0)
     finally:
-        (result,) = set_parameters(probe, node, commit_margin=deployed_params().commit_margin)
+        (result,) = set_parameters(probe, node, commit_margin_without_map=deployed_params().commit_margin_without_map)
         assert result.successful, result.reason
 
 

@@ -7,7 +7,9 @@ Here the goal is committed: it is kept in the fixed frame of the camera pose (th
 re-scores it from the current view with the ring's rules and terms
 (``PlanInputs.extra_foot_points``, ``Plan.extra``), and :func:`decide` replaces it only
 
-- when another view beats it by more than ``commit_margin`` (BEATEN_BY_MARGIN), unless that view is
+- when another view beats it by more than the margin (BEATEN_BY_MARGIN: ``commit_margin``, or
+  ``commit_margin_without_map`` for a plan made without an obstacle map, whose scores move more as the
+  drive shows furniture: :func:`margin_in_force`), unless that view is
   within ``commit_dropped_radius_m`` of a goal dropped as blocked in the last ``commit_dropped_s``
   (the way to it flickers: taking it back would send the robot to and fro),
 - when it became infeasible or unreachable (INFEASIBLE, UNREACHABLE) and no foot point within
@@ -49,7 +51,7 @@ from leapnbv_planner.plan import Frame, Plan, base_goal_frame
 from leapnbv_planner.scoring import SCORE_TIE_TOLERANCE
 
 __all__ = ["DISTANCE_TOLERANCE_M", "CommitReason", "CommitmentParams", "CommittedGoal", "GoalCommitment",
-           "GoalDecision", "HeldView", "Verdict", "decide"]
+           "GoalDecision", "HeldView", "Verdict", "decide", "margin_in_force"]
 
 # Metres: distances within this of a threshold are on the side of keeping the goal (as SCORE_TIE_TOLERANCE for
 # scores): far above the rounding of a transform, far below anything a robot can tell apart.
@@ -139,8 +141,13 @@ class Verdict:
         return self.reason == CommitReason.KEPT
 
 
+def margin_in_force(params: CommitmentParams, used_obstacle_map: bool = True) -> float:
+    """The commit margin of a plan: ``commit_margin``, or ``commit_margin_without_map`` for a plan without a map."""
+    return float(params.commit_margin if used_obstacle_map else params.commit_margin_without_map)
+
+
 def decide(params: CommitmentParams, best_index: int, best_score: float, held: Optional[HeldView],
-           current_score: Optional[float] = None) -> Verdict:
+           current_score: Optional[float] = None, used_obstacle_map: bool = True) -> Verdict:
     """Keep the committed goal or take another (pure: the same inputs give the same verdict).
 
     In this order: commitment off -> the plan's best (DISABLED); nothing committed -> the plan's best
@@ -158,6 +165,8 @@ def decide(params: CommitmentParams, best_index: int, best_score: float, held: O
         best_score: its score (ignored without a choice).
         held: the committed goal as this plan sees it; None when nothing is committed.
         current_score: the plan's candidate 0 (the current view, ``include_current``), None without it.
+        used_obstacle_map: the plan was made with an obstacle map (``Plan.used_obstacle_map``): the margin is
+            :func:`margin_in_force`'s.
 
     Returns:
         The verdict.
@@ -174,7 +183,7 @@ def decide(params: CommitmentParams, best_index: int, best_score: float, held: O
         return Verdict(CommitReason.UNREACHABLE, best_index)
     if held.reason != int(FeasibilityReason.OK) or not math.isfinite(held.score):
         return Verdict(CommitReason.INFEASIBLE, best_index)
-    margin = float(params.commit_margin)
+    margin = margin_in_force(params, used_obstacle_map)
     same_goal = float(params.commit_same_goal_m) + DISTANCE_TOLERANCE_M
     best = float(best_score) if best_index >= 0 else -math.inf
     if current_score is not None and held.current_distance_m > same_goal \
@@ -235,7 +244,7 @@ class GoalDecision:
         best_index: the plan's own choice (-1: none), its rival.
         best_score: its score (NaN without one).
         person_moved_m: the person's displacement since the commit (NaN: none was re-scored).
-        margin: the commit_margin in force.
+        margin: the margin in force (:func:`margin_in_force`).
         nudged_m: metres the kept goal's foot point moved to free space in this plan (``ExtraViews.nudged_m``: its
             own foot point was blocked or had no path, one within commit_same_goal_m had); 0 when it did not.
         blocked_s: KEPT_BLOCKED: seconds the committed goal has been blocked (``HeldView.blocked_s``); 0 otherwise.
@@ -394,7 +403,7 @@ class GoalCommitment:
         had_goal = self.goal is not None
         best = int(plan.chosen_index)
         best_score = float(plan.scores.score[best]) if best >= 0 else math.nan
-        margin = float(params.commit_margin)
+        margin = margin_in_force(params, plan.used_obstacle_map)
         if not params.commit_goals or camera_pose is None:
             self.goal = None
             reason = CommitReason.DISABLED if not params.commit_goals else CommitReason.NO_FIXED_FRAME
@@ -417,7 +426,7 @@ class GoalCommitment:
                 best_foot = _to_fixed(camera_pose, plan.candidates.foot_points[best])
                 held = replace(held, best_near_dropped=self._near_dropped(params, best_foot, fixed_frame, stamp_ns))
         current_score = float(plan.scores.score[0]) if plan.includes_current_view else None
-        verdict = decide(params, best, best_score, held, current_score)
+        verdict = decide(params, best, best_score, held, current_score, plan.used_obstacle_map)
         held_score = held.score if held is not None else math.nan
         moved = held.person_moved_m if held is not None else math.nan
         if verdict.reason == CommitReason.KEPT_BLOCKED and self.goal is not None and plan.extra is not None \

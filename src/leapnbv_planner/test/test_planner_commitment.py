@@ -19,6 +19,7 @@ from leapnbv_planner.commitment import (
     HeldView,
     Verdict,
     decide,
+    margin_in_force,
 )
 from leapnbv_planner.inputs import CameraInMap, PlanInputs
 from leapnbv_planner.params import PlannerParams, nbv_params_class
@@ -45,11 +46,12 @@ def _same_commit(a, b) -> bool:
 
 def test_defaults_ranges_and_descriptions_are_declared_as_every_parameter():
     specs = {spec.name: spec for spec in param_specs(CommitmentParams)}
-    assert set(specs) == {"commit_goals", "commit_margin", "commit_person_moved_m", "commit_same_goal_m",
+    assert set(specs) == {"commit_goals", "commit_margin", "commit_margin_without_map", "commit_person_moved_m",
+                          "commit_same_goal_m",
                           "commit_blocked_s", "commit_dropped_s", "commit_dropped_radius_m"}
     assert (PARAMS.commit_dropped_s, PARAMS.commit_dropped_radius_m) == (5.0, 1.0)
-    assert (PARAMS.commit_goals, MARGIN, PARAMS.commit_person_moved_m, PARAMS.commit_same_goal_m,
-            PARAMS.commit_blocked_s) == (True, 0.02, 0.5, 0.25, 0.6)
+    assert (PARAMS.commit_goals, MARGIN, PARAMS.commit_margin_without_map, PARAMS.commit_person_moved_m,
+            PARAMS.commit_same_goal_m, PARAMS.commit_blocked_s) == (True, 0.02, 0.05, 0.5, 0.25, 0.6)
     assert (specs["commit_blocked_s"].min, specs["commit_blocked_s"].max) == (0.0, 10.0)
     assert all(spec.description and not spec.read_only for spec in specs.values())  # all change at runtime
     assert (specs["commit_margin"].min, specs["commit_margin"].max) == (0.0, 1.0)
@@ -158,6 +160,25 @@ def test_staying_is_as_good_when_the_current_view_is_within_the_margin():
     assert decide(PARAMS, -1, math.nan, held(0.90), current_score=0.89).reason == CommitReason.STAYING_AS_GOOD
 
 
+def test_a_plan_without_an_obstacle_map_holds_the_goal_by_its_own_margin():
+    # A rival 0.03 above the committed goal: it beats a goal by commit_margin (0.02), not by the map-less 0.05.
+    assert margin_in_force(PARAMS) == MARGIN and margin_in_force(PARAMS, used_obstacle_map=False) == 0.05
+    assert decide(PARAMS, 9, 0.93, held(0.90)).reason == CommitReason.BEATEN_BY_MARGIN
+    assert decide(PARAMS, 9, 0.93, held(0.90), used_obstacle_map=False).keep
+    assert decide(PARAMS, 9, 0.95, held(0.90), used_obstacle_map=False).keep  # exactly the margin: kept
+    assert decide(PARAMS, 9, 0.9501, held(0.90), used_obstacle_map=False).reason == CommitReason.BEATEN_BY_MARGIN
+    # Staying is as good within the same margin: 0.04 under the best.
+    assert decide(PARAMS, 9, 0.93, held(0.90), current_score=0.89).reason == CommitReason.BEATEN_BY_MARGIN
+    assert decide(PARAMS, 9, 0.93, held(0.90), current_score=0.89, used_obstacle_map=False).reason == \
+        CommitReason.STAYING_AS_GOOD
+    # On a real plan (these have no map): the decision weighs and reports the map-less margin.
+    commitment = GoalCommitment()
+    plan, first = _step(commitment, 0.0, params=PARAMS)
+    assert not plan.used_obstacle_map and first.margin == 0.05
+    plan, kept = _step(commitment, 0.3, params=PARAMS, stamp=1)
+    assert kept.margin == 0.05 and "margin 0.05" in kept.describe()
+
+
 def test_first_goal_no_goal_and_off():
     assert decide(PARAMS, 5, 0.7, None) == Verdict(CommitReason.FIRST_GOAL, 5)
     assert decide(PARAMS, -1, math.nan, None) == Verdict(CommitReason.NO_GOAL, -1)
@@ -192,6 +213,9 @@ def test_decisions_do_not_depend_on_the_last_bit():
 # --- the tracker on real plans ---
 
 PLANNER = nbv_params_class()(min_radius=1.0)
+# These plans have no obstacle map; the tests of the other rules hold them to commit_margin (the map-less margin has
+# its own test).
+ON_PLANS = dataclasses.replace(PARAMS, commit_margin_without_map=MARGIN)
 
 
 def _moved(target, shift, person_shift=0.0):
@@ -209,7 +233,7 @@ def _pose(shift):
     return CameraInMap(rotation, position + rotation @ np.array([shift, 0.0, 0.0]))
 
 
-def _step(commitment, shift, params=PARAMS, person_shift=0.0, extra_background=None, fixed_frame="map",
+def _step(commitment, shift, params=ON_PLANS, person_shift=0.0, extra_background=None, fixed_frame="map",
           with_pose=True, stamp=0):
     target, ground = frame()
     target = _moved(target, shift, person_shift)
@@ -297,7 +321,7 @@ def test_an_obstacle_on_the_committed_goal_keeps_it_on_its_last_path_then_replac
     # The box goes: the dropped place is the plan's best again (the new goal is its mirror image, 2e-5 below it: a
     # margin of 0 lets it beat that), but does not take the goal back within commit_dropped_s (5 s) of the drop;
     # after that it does.
-    no_margin = dataclasses.replace(PARAMS, commit_margin=0.0)
+    no_margin = dataclasses.replace(PARAMS, commit_margin=0.0, commit_margin_without_map=0.0)
     plan, decision = _step(commitment, 0.0, params=no_margin, stamp=1_000_000_000)
     assert np.linalg.norm(plan.candidates.foot_points[plan.chosen_index] - foot) < 1e-9
     assert decision.best_score > decision.held_score + 1e-6
@@ -356,7 +380,8 @@ def test_a_person_who_moved_resets_and_a_still_one_does_not():
 
 def test_staying_as_good_then_arrived():
     commitment = GoalCommitment()
-    loose = dataclasses.replace(PARAMS, commit_margin=1.0)  # every view is as good as any other
+    # Every view is as good as any other.
+    loose = dataclasses.replace(PARAMS, commit_margin=1.0, commit_margin_without_map=1.0)
     _step(commitment, 0.0, loose)
     plan, decision = _step(commitment, 0.3, loose)
     assert decision.reason == CommitReason.STAYING_AS_GOOD and decision.changed and decision.index == 0

@@ -26,7 +26,8 @@ ROBOT_VALUES = {
     "obstacle_map_resolution": 0.1, "map_max_target_points": 1500, "map_target_margin": 0.1, "camera_pose_cache": 150,
     "max_goal_age_s": 1.0, "camera_pose_wait_s": 0.1, "num_rings": 3, "min_radius": 1.5, "reachability": True,
     "weight_body_occlusion": 0.83, "max_stamp_ahead_s": 0.5, "max_obstacle_voxels": 200_000,
-    "commit_goals": True, "commit_margin": 0.02, "commit_person_moved_m": 0.5, "commit_same_goal_m": 0.25,
+    "commit_goals": True, "commit_margin": 0.02, "commit_margin_without_map": 0.05, "commit_person_moved_m": 0.5,
+    "commit_same_goal_m": 0.25,
     "commit_blocked_s": 0.6, "commit_dropped_s": 5.0, "commit_dropped_radius_m": 1.0,
     "obstacle_memory": False, "obstacle_memory_half_life_s": 20.0, "obstacle_memory_max_voxels": 50_000,
 }
@@ -46,7 +47,8 @@ def test_defaults_are_the_robot_values_and_valid():
         "weight_travel", "weight_body_occlusion", "num_rings", "min_radius", "reachability", "max_path_length",
         "grid_resolution", "unknown_space", "camera_height", "camera_tilt", "score_infeasible", "fit_to_free_space",
         "min_free_radius", "max_stamp_ahead_s", "max_obstacle_voxels", "commit_goals", "commit_margin",
-        "commit_person_moved_m", "commit_same_goal_m", "commit_blocked_s", "commit_dropped_s",
+        "commit_margin_without_map", "commit_person_moved_m", "commit_same_goal_m", "commit_blocked_s",
+        "commit_dropped_s",
         "commit_dropped_radius_m", "visibility_points", "visibility_min_depth",
         "visibility_max_depth", "obstacle_memory", "obstacle_memory_half_life_s", "obstacle_memory_max_voxels"}
     for name, value in ROBOT_VALUES.items():
